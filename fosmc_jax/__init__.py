@@ -1,0 +1,60 @@
+"""fosmc_jax: a differentiable, batched JAX simulator of the full-order sliding mode tracking
+controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class of Uncertain
+Dynamical System", for a 3-DOF direct-drive arm."""
+
+from . import _paper as paper
+from ._controller import LAWS, SWITCHING, Controller, control_law, safe_norm, sliding_surface, switch
+from ._design import (
+    CONVENTIONS,
+    BoxBound,
+    DesignError,
+    box_norm_bound,
+    check_design,
+    check_matching,
+    closed_loop_matrix,
+    gain_from_poles,
+    gamma_bounds,
+    input_matrix_product,
+    matching_condition,
+)
+from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
+from ._metrics import METRIC_NAMES, Metrics
+from ._reference import Cycloid, Sinusoid, desired_state, feedforward
+from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
+
+__all__ = [
+    "CONVENTIONS",
+    "INTEGRATORS",
+    "LAWS",
+    "METRIC_NAMES",
+    "SWITCHING",
+    "UNCERTAINTY",
+    "BoxBound",
+    "Controller",
+    "Cycloid",
+    "DesignError",
+    "LinearPlant",
+    "Metrics",
+    "Result",
+    "Sinusoid",
+    "Trace",
+    "box_norm_bound",
+    "check_design",
+    "check_matching",
+    "closed_loop_matrix",
+    "control_law",
+    "desired_state",
+    "feedforward",
+    "gain_from_poles",
+    "gamma_bounds",
+    "input_matrix_product",
+    "matching_condition",
+    "paper",
+    "safe_norm",
+    "simulate",
+    "simulate_batch",
+    "sliding_surface",
+    "switch",
+    "uncertain_plants",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,106 @@
+"""The FOSMC controller: sliding surface (14), control law (23), switching functions (28).
+
+:class:`Controller` holds what may be traced and tuned (C, the poles, gamma, delta) plus the
+nominal design model (rows 3, 6, 9 of A and B) used for K, Omega and the integral term.
+Everything derived from it (K, (CB)^-1, CA + CBK) is computed once per rollout by
+:func:`derive`, so that gradients reach the poles through K.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+from ._design import closed_loop_matrix, gain_from_poles, input_matrix_product
+
+#: Switching functions f(s) that replace SGN(s) in (23). ``ratio`` is (28).
+SWITCHING = ("sign", "ratio", "sat", "tanh")
+#: ``paper``: (23) as printed. ``equivalent``: (23) plus the nominal equivalent-control term KZ.
+LAWS = ("paper", "equivalent")
+
+
+class Controller(NamedTuple):
+    """FOSMC parameters (a pytree; every field may be traced).
+
+    Fields: ``C`` (3, 9) sliding-surface matrix (15); ``poles`` (3, 3) closed-loop poles per
+    joint (1/s), from which K is placed; ``gamma`` (3,) gains of (23); ``delta`` (3,)
+    boundary-layer constants of (28) (unused by ``sign``); ``a_rows`` (3, 9), ``b_rows``
+    (3, 3): rows 3, 6, 9 of the nominal design model A, B of (29).
+    """
+
+    C: Array
+    poles: Array
+    gamma: Array
+    delta: Array
+    a_rows: Array
+    b_rows: Array
+
+
+class Derived(NamedTuple):
+    """Quantities computed once per rollout from a :class:`Controller`."""
+
+    K: Array  # (3, 9), places the poles: eig(A + BK) = poles, (16)
+    CB_inv: Array  # (3, 3)
+    S: Array  # (3, 9), CA + CBK, the integrand's matrix in (14)
+
+
+def derive(ctrl: Controller) -> Derived:
+    """K from the poles, (CB)^-1, and CA + CBK = C (A + BK)."""
+    K = gain_from_poles(ctrl.a_rows, ctrl.b_rows, ctrl.poles)
+    CB_inv = jnp.linalg.inv(input_matrix_product(ctrl.C, ctrl.b_rows))
+    S = ctrl.C @ closed_loop_matrix(ctrl.a_rows, ctrl.b_rows, K)
+    return Derived(K, CB_inv, S)
+
+
+def safe_norm(x: Array) -> Array:
+    """Euclidean norm with a zero (not NaN) gradient at x = 0 (the "double where" trick)."""
+    sq = jnp.sum(x * x)
+    nonzero = sq > 0
+    return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
+
+
+def switch(s: Array, delta: Array, switching: str) -> Array:
+    """f(s), elementwise: ``sign`` SGN(s); ``ratio`` s / (|s| + delta) (28);
+    ``sat`` clip(s / delta, -1, 1); ``tanh`` tanh(s / delta). Gradients are finite at s = 0."""
+    if switching == "sign":
+        return jnp.sign(s)
+    if switching == "ratio":
+        return s / (jnp.abs(s) + delta)
+    if switching == "sat":
+        return jnp.clip(s / delta, -1.0, 1.0)
+    if switching == "tanh":
+        return jnp.tanh(s / delta)
+    raise ValueError(f"switching must be one of {SWITCHING}, got {switching!r}")
+
+
+def sliding_surface(ctrl: Controller, Z: Array, w: Array) -> Array:
+    """s = C Z - w (14), where w = int_0^t (CA + CBK) Z dtau is the integral state, (3,)."""
+    return ctrl.C @ Z - w
+
+
+def control_law(
+    ctrl: Controller,
+    derived: Derived,
+    Z: Array,
+    X_d: Array,
+    Omega: Array,
+    s: Array,
+    switching: str = "ratio",
+    law: str = "paper",
+) -> Array:
+    """The control U (3,), volts.
+
+    ``paper``:      U = -(CB)^-1 rho f(s) + Omega                      (23)
+    ``equivalent``: U = -(CB)^-1 rho f(s) + Omega + K Z
+    with rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + gamma_3 ||Omega||. The ``equivalent`` law adds
+    the nominal equivalent control (18) with H = E = 0, which (23) leaves to the switching term.
+    """
+    rho = ctrl.gamma[0] * safe_norm(Z) + ctrl.gamma[1] * safe_norm(X_d) + ctrl.gamma[2] * safe_norm(Omega)
+    U = Omega - derived.CB_inv @ (rho * switch(s, ctrl.delta, switching))
+    if law == "equivalent":
+        return U + derived.K @ Z
+    if law != "paper":
+        raise ValueError(f"law must be one of {LAWS}, got {law!r}")
+    return U
