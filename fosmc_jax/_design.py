@@ -215,3 +215,37 @@ def gamma_bounds(alpha, beta, C: Array, b_rows: Array, K: Array, convention: str
     n_cbk = jnp.linalg.svd(CB @ K, compute_uv=False)[0]
     return jnp.stack([alpha * n_cb + n_cbk, alpha * n_cb, beta * n_cb]) / (1 + beta)
 
+
+
+# ---------------------------------------------------------------------------- summary
+
+
+class DesignSummary(NamedTuple):
+    """Everything the paper derives for a design: (31), (32)-(33), CB and (35)."""
+
+    alpha: BoxBound  # max ||H|| over the box of A's rows, (8), (31)
+    beta: BoxBound  # max ||E|| over the box of B's rows, (9), (31)
+    K: np.ndarray  # (3, 9) from the poles, (16)
+    closed_loop_poles: np.ndarray  # (9,) complex, eig(A + BK)
+    CB: np.ndarray  # (3, 3)
+    gamma_min: dict[str, np.ndarray]  # convention -> (3,) lower bounds (24)-(26)
+
+
+def summarize(a_rows, b_rows, box, C, poles) -> DesignSummary:
+    """Design quantities for the nominal rows ``a_rows`` (3, 9), ``b_rows`` (3, 3), the box
+    (A_lower, A_upper, B_lower, B_upper), ``C`` (3, 9) and ``poles`` (3, 3); float64 NumPy."""
+    a_rows, b_rows, C, poles = (np.asarray(x, dtype=np.float64) for x in (a_rows, b_rows, C, poles))
+    check_design(b_rows, C, poles)
+    A_lo, A_hi, B_lo, B_hi = box
+    alpha = box_norm_bound(a_rows, A_lo, A_hi, b_rows)
+    beta = box_norm_bound(b_rows, B_lo, B_hi, b_rows)
+    with jax.enable_x64(True):
+        K = np.asarray(gain_from_poles(jnp.asarray(a_rows), jnp.asarray(b_rows), jnp.asarray(poles)))
+        gmin = {
+            c: np.asarray(gamma_bounds(alpha.value, beta.value, jnp.asarray(C), jnp.asarray(b_rows), jnp.asarray(K), c))
+            for c in CONVENTIONS
+        }
+        A_cl = np.asarray(closed_loop_matrix(jnp.asarray(a_rows), jnp.asarray(b_rows), jnp.asarray(K)))
+    eig = np.linalg.eigvals(A_cl)
+    eig = eig[np.lexsort((eig.imag, eig.real))]
+    return DesignSummary(alpha, beta, K, eig, input_matrix_product(C, b_rows), gmin)

@@ -1,0 +1,297 @@
+"""Configuration: TOML files, validation with one-line errors, and the objects they describe.
+
+Every key is optional; the defaults are the paper's (from :mod:`fosmc_jax._paper`). A config
+is resolved to a plain nested ``dict`` of Python numbers and lists (JSON-ready), then turned
+into simulator inputs by :func:`build`. Errors are :class:`ConfigError` (a ``ValueError``)
+with a message that names the key and the expected form.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import _paper as paper
+from ._controller import LAWS, SWITCHING, Controller
+from ._design import DesignError, check_design
+from ._linear_plant import UNCERTAINTY, uncertain_plants
+from ._reference import Cycloid, desired_state
+from ._simulator import INTEGRATORS
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A configuration key is missing its expected form (one-line message naming the key)."""
+
+
+PLANT_KINDS = ("linear",)
+PRECISIONS = ("float32", "float64")
+
+
+def defaults() -> dict[str, Any]:
+    """The built-in configuration: the paper's model, design, gains and simulation."""
+    return {
+        "trajectory": {
+            "start": paper.THETA_START.tolist(),
+            "end": paper.THETA_END.tolist(),
+            "duration": paper.TAU,
+        },
+        "model": {"A_rows": paper.A_ROWS.tolist(), "B_rows": paper.B_ROWS.tolist()},
+        "controller": {
+            "C": paper.C.tolist(),
+            "poles": paper.POLES.tolist(),
+            "gamma": paper.GAMMA.tolist(),
+            "switching": "ratio",
+            "delta": paper.DELTA_SETS[0].tolist(),
+            "law": "paper",
+        },
+        "plant": {
+            "kind": "linear",
+            "uncertainty": "none",
+            "dA_rows": np.zeros((3, 9)).tolist(),
+            "dB_rows": np.zeros((3, 3)).tolist(),
+            "samples": 16,
+            "seed": 0,
+            "box": {
+                "A_lower": paper.A_LOWER.tolist(),
+                "A_upper": paper.A_UPPER.tolist(),
+                "B_lower": paper.B_LOWER.tolist(),
+                "B_upper": paper.B_UPPER.tolist(),
+            },
+        },
+        "sim": {
+            "t_final": paper.T_FINAL,
+            "dt": 1e-4,
+            "integrator": "rk4",
+            "initial_offset": [0.0] * 9,
+            "precision": "float64",
+            "save_every": 0,
+            "divergence_bound": 1e6,
+        },
+    }
+
+
+# ---------------------------------------------------------------------------- validators
+
+
+def _array(shape: tuple[int, ...], what: str, check: Callable[[np.ndarray], bool] | None = None):
+    def validate(key: str, value: Any) -> Any:
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{key}: expected {what}, got {value!r}") from None
+        if isinstance(value, (bool, str)) or a.dtype == object or a.shape != shape:
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        if not np.all(np.isfinite(a)):
+            raise ConfigError(f"{key}: expected {what} (finite), got {_short(value)}")
+        if check is not None and not check(a):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        return a.tolist()
+
+    return validate
+
+
+def _number(what: str, check: Callable[[float], bool] = lambda x: True):
+    def validate(key: str, value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        if not check(value):
+            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        return float(value)
+
+    return validate
+
+
+def _integer(what: str, check: Callable[[int], bool]):
+    def validate(key: str, value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, int) or not check(value):
+            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        return int(value)
+
+    return validate
+
+
+def _choice(choices: tuple[str, ...]):
+    def validate(key: str, value: Any) -> Any:
+        if value not in choices:
+            raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {value!r}")
+        return value
+
+    return validate
+
+
+def _offsets(key: str, value: Any) -> Any:
+    what = "9 numbers, or a non-empty list of lists of 9 numbers"
+    a = np.asarray(value, dtype=object)
+    if a.ndim == 1:
+        return _array((9,), what)(key, value)
+    if a.ndim == 2 and a.shape[0] >= 1:
+        return _array((a.shape[0], 9), what)(key, value)
+    raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+_finite = lambda a: True
+SCHEMA: dict[str, Any] = {
+    "trajectory": {
+        "start": _array((3,), "3 numbers (rad)"),
+        "end": _array((3,), "3 numbers (rad)"),
+        "duration": _number("a positive number (s)", lambda x: x > 0),
+    },
+    "model": {
+        "A_rows": _array((3, 9), "a 3x9 matrix (rows 3, 6, 9 of A)"),
+        "B_rows": _array((3, 3), "a 3x3 matrix (rows 3, 6, 9 of B)"),
+    },
+    "controller": {
+        "C": _array((3, 9), "a 3x9 matrix"),
+        "poles": _array((3, 3), "a 3x3 matrix of negative numbers (1/s)", lambda a: np.all(a < 0)),
+        "gamma": _array((3,), "3 non-negative numbers", lambda a: np.all(a >= 0)),
+        "switching": _choice(SWITCHING),
+        "delta": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "law": _choice(LAWS),
+    },
+    "plant": {
+        "kind": _choice(PLANT_KINDS),
+        "uncertainty": _choice(UNCERTAINTY),
+        "dA_rows": _array((3, 9), "a 3x9 matrix"),
+        "dB_rows": _array((3, 3), "a 3x3 matrix"),
+        "samples": _integer("a positive integer", lambda n: n >= 1),
+        "seed": _integer("a non-negative integer", lambda n: n >= 0),
+        "box": {
+            "A_lower": _array((3, 9), "a 3x9 matrix"),
+            "A_upper": _array((3, 9), "a 3x9 matrix"),
+            "B_lower": _array((3, 3), "a 3x3 matrix"),
+            "B_upper": _array((3, 3), "a 3x3 matrix"),
+        },
+    },
+    "sim": {
+        "t_final": _number("a positive number (s)", lambda x: x > 0),
+        "dt": _number("a positive number (s)", lambda x: x > 0),
+        "integrator": _choice(INTEGRATORS),
+        "initial_offset": _offsets,
+        "precision": _choice(PRECISIONS),
+        "save_every": _integer("a non-negative integer", lambda n: n >= 0),
+        "divergence_bound": _number("a positive number", lambda x: x > 0),
+    },
+}
+
+
+def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
+    if not isinstance(user, dict):
+        raise ConfigError(f"{prefix or 'config'}: expected a table, got {_short(user)}")
+    out = dict(base)
+    for key, value in user.items():
+        name = f"{prefix}.{key}" if prefix else key
+        if key not in schema:
+            known = ", ".join(sorted(schema))
+            raise ConfigError(f"{name}: unknown key (known here: {known})")
+        rule = schema[key]
+        out[key] = _merge(rule, base[key], value, name) if isinstance(rule, dict) else rule(name, value)
+    return out
+
+
+def resolve(user: dict | None = None) -> dict[str, Any]:
+    """Validate a user configuration (nested dict, e.g. parsed TOML) and fill in defaults.
+
+    Raises :class:`ConfigError` naming the first offending key.
+    """
+    cfg = _merge(SCHEMA, defaults(), copy.deepcopy(user or {}), "")
+    _check_consistency(cfg)
+    return cfg
+
+
+def load(path: str | Path | None) -> dict[str, Any]:
+    """Read and :func:`resolve` a TOML file (``None``: the defaults)."""
+    if path is None:
+        return resolve({})
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {str(path)!r}: {e.strerror or e}") from None
+    try:
+        user = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    return resolve(user)
+
+
+def _check_consistency(cfg: dict) -> None:
+    sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
+    if sim["dt"] > sim["t_final"]:
+        raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    for m in ("A", "B"):
+        if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
+            raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")
+    if abs(np.linalg.det(np.asarray(model["B_rows"]))) < 1e-12:
+        raise ConfigError("model.B_rows: must be invertible (B_bar)")
+    try:
+        check_design(np.asarray(model["B_rows"]), np.asarray(ctl["C"]), np.asarray(ctl["poles"]))
+    except DesignError as e:
+        raise ConfigError(f"controller: {e}") from None
+
+
+# ---------------------------------------------------------------------------- objects
+
+
+class Problem(NamedTuple):
+    """What a resolved config describes, as simulator inputs (see :func:`fosmc_jax.simulate`)."""
+
+    plants: Any  # plant pytree with a leading batch axis P
+    controller: Controller
+    reference: Cycloid
+    X0s: Any  # (O, 9) initial states
+    dt: Any
+    options: dict  # simulate()'s static keyword arguments
+
+
+def n_steps(cfg: dict) -> int:
+    """n = round(t_final / dt)."""
+    return max(1, round(cfg["sim"]["t_final"] / cfg["sim"]["dt"]))
+
+
+def build(cfg: dict) -> Problem:
+    """Simulator inputs for a resolved config, in its ``sim.precision``.
+
+    The initial states are X_d(0) + each ``sim.initial_offset``; the batch is every plant
+    crossed with every initial state (plant-major).
+    """
+    dtype = jnp.dtype(cfg["sim"]["precision"])
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
+    traj, ctl, model, plant = cfg["trajectory"], cfg["controller"], cfg["model"], cfg["plant"]
+    reference = Cycloid(cast(traj["start"]), cast(traj["end"]), cast(traj["duration"]))
+    controller = Controller(
+        cast(ctl["C"]), cast(ctl["poles"]), cast(ctl["gamma"]), cast(ctl["delta"]),
+        cast(model["A_rows"]), cast(model["B_rows"]),
+    )  # fmt: skip
+    box = tuple(np.asarray(plant["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+    plants = uncertain_plants(
+        model["A_rows"], model["B_rows"], plant["uncertainty"], box=box,
+        dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
+    )  # fmt: skip
+    plants = type(plants)(*(cast(x) for x in plants))
+    offsets = np.atleast_2d(np.asarray(cfg["sim"]["initial_offset"], dtype=float))
+    X0s = desired_state(reference(jnp.zeros((), dtype)))[None] + cast(offsets)
+    options = {
+        "n_steps": n_steps(cfg),
+        "integrator": cfg["sim"]["integrator"],
+        "switching": ctl["switching"],
+        "law": ctl["law"],
+        "save_every": cfg["sim"]["save_every"],
+        "divergence_bound": cfg["sim"]["divergence_bound"],
+    }
+    return Problem(plants, controller, reference, X0s, jnp.asarray(cfg["sim"]["dt"], dtype), options)

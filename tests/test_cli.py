@@ -1,0 +1,115 @@
+"""The command line: JSON shapes, config handling, one-line errors with exit status 2."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fosmc_jax import _config, _paper
+from fosmc_jax._cli import main
+from fosmc_jax._metrics import METRIC_NAMES
+
+SHORT = """
+[sim]
+t_final = 0.05
+dt = 1e-3
+"""
+
+
+def run(capsys, tmp_path, text, *args):
+    path = tmp_path / "c.toml"
+    path.write_text(text)
+    code = main([args[0], "--config", str(path), *args[1:]])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_simulate_json_has_one_entry_per_rollout(capsys, tmp_path):
+    text = SHORT + """
+initial_offset = [[0, 0, 0, 0, 0, 0, 0, 0, 0], [0.01, 0, 0, 0, 0, 0, 0, 0, 0]]
+[plant]
+uncertainty = "sample"
+samples = 3
+seed = 7
+"""
+    code, out, _ = run(capsys, tmp_path, text, "simulate", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert len(d["rollouts"]) == 6
+    for r in d["rollouts"]:
+        assert set(r["metrics"]) == set(METRIC_NAMES)
+        assert all(len(v) == 3 and all(np.isfinite(v)) for v in r["metrics"].values())
+        assert r["diverged"] is False
+    assert d["config"]["plant"]["samples"] == 3
+    assert d["config"]["controller"]["gamma"] == _paper.GAMMA.tolist()  # defaults filled in
+    # rollouts with the zero offset start on the reference: error 0 at t = 0, offset 1 does not
+    assert d["rollouts"][0]["metrics"]["max_abs_error"][0] < d["rollouts"][1]["metrics"]["max_abs_error"][0]
+
+
+def test_simulate_plot_is_written(capsys, tmp_path):
+    png = tmp_path / "fig.png"
+    code, _, err = run(capsys, tmp_path, SHORT, "simulate", "--plot", str(png))
+    assert code == 0 and png.stat().st_size > 10_000, err
+
+
+def test_bounds_json(capsys, tmp_path):
+    # a small box keeps the vertex enumeration quick
+    A = _paper.A_ROWS
+    text = f"""
+[plant.box]
+A_lower = {(A - 0.5 * (np.abs(A) > 20)).tolist()}
+A_upper = {(A + 0.5 * (np.abs(A) > 20)).tolist()}
+"""
+    code, out, _ = run(capsys, tmp_path, text, "bounds", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert np.asarray(d["K"]).shape == (3, 9) and np.asarray(d["CB"]).shape == (3, 3)
+    poles = np.sort(np.asarray(d["closed_loop_poles"])[:, 0])
+    np.testing.assert_allclose(poles, np.sort(_paper.POLES.ravel()), rtol=1e-6)
+    assert set(d["gamma_min"]) == {"spectral", "paper"}
+    assert all(len(v) == 3 for v in d["gamma_min"].values())
+    assert np.all(np.asarray(d["gamma_min"]["spectral"]) >= np.asarray(d["gamma_min"]["paper"]))
+    assert 0 < d["alpha"] and 0 < d["beta"]
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("[controller]\ndelta = [1, -2, 3]", "controller.delta"),
+        ("[controller]\ndelta = [1, 2]", "controller.delta"),
+        ("[controller]\npoles = [[-1, -2, 0.5], [-1, -2, -3], [-1, -2, -3]]", "controller.poles"),
+        ("[controller]\nswitching = 'sgn'", "controller.switching"),
+        ("[controller]\nC = [[0,0,0,0,0,0,0,0,0],[0,0,0,30,20,1,0,0,0],[0,0,0,0,0,0,30,20,1]]", "controller"),
+        ("[sim]\ndt = 0", "sim.dt"),
+        ("[sim]\ndt = 'small'", "sim.dt"),
+        ("[sim]\nt_final = -1", "sim.t_final"),
+        ("[sim]\ninitial_offset = [1, 2, 3]", "sim.initial_offset"),
+        ("[sim]\ninitial_offset = []", "sim.initial_offset"),
+        ("[sim]\nfoo = 1", "sim.foo"),
+        ("[nonsense]\nx = 1", "nonsense"),
+        ("[plant]\nsamples = 0", "plant.samples"),
+        ("[plant]\nuncertainty = 'gaussian'", "plant.uncertainty"),
+        ("[plant.box]\nB_lower = [[1, 2], [3, 4]]", "plant.box.B_lower"),
+        ("[trajectory]\nstart = [0, 0, nan]", "trajectory.start"),
+        ("this is not toml", "not valid TOML"),
+    ],
+)
+@pytest.mark.parametrize("command", ["simulate", "bounds"])
+def test_bad_config_one_line_error_exit_2(capsys, tmp_path, text, key, command):
+    code, out, err = run(capsys, tmp_path, text, command)
+    assert code == 2
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("fosmc: error: ") and key in lines[0], err
+
+
+def test_missing_file(capsys):
+    assert main(["simulate", "--config", "/nonexistent/c.toml"]) == 2
+    assert "cannot read config file" in capsys.readouterr().err
+
+
+def test_resolve_is_idempotent_and_api_raises_valueerror():
+    cfg = _config.resolve({})
+    assert _config.resolve(cfg) == cfg
+    with pytest.raises(ValueError, match="sim.dt"):
+        _config.resolve({"sim": {"dt": -1.0}})
