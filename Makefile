@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/fosmc simulate --plot fosmc-simulate.png
+	$(BIN)/fosmc reproduce --out out/reproduction --force
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

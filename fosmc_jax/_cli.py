@@ -148,6 +148,53 @@ def cmd_bounds(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- reproduce
+
+
+def cmd_reproduce(args) -> int:
+    from pathlib import Path
+
+    from . import _reproduce as R
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --force to overwrite)")
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    settings = R.Settings(t_final=args.t_final, dt=args.dt, integrator=args.integrator)
+    _log(f"fosmc reproduce: {args.plant} plant, {settings.integrator}, dt = {settings.dt} s, "
+         f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
+    cases = R.run_cases(args.plant, settings, log=_log)
+    rows = R.metric_rows(cases)
+    files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts()}
+    for name, text in files.items():
+        _write_text(out / name, text)
+    _log("fosmc reproduce: drawing figures ...")
+    figures = R.write_figures(cases, out, args.plant)
+    if args.report:
+        report = Path(args.report)
+        text = report.read_text()
+        text = R.replace_block(text, "metrics", files["metrics.md"])
+        text = R.replace_block(text, "design", files["design.md"])
+        _write_text(report, text)
+        _log(f"fosmc reproduce: updated {report}")
+    print(files["metrics.md"])
+    _log(f"fosmc reproduce: wrote {', '.join(list(files) + figures)} to {out}/ "
+         f"in {time.perf_counter() - start:.1f} s (total wall time)")  # fmt: skip
+    return 0
+
+
+def _write_text(path, text: str) -> None:
+    """Atomic write: a temporary file beside ``path``, then rename."""
+    import os
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -163,6 +210,15 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--config", help="TOML config (default: the paper's setup)")
     b.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     b.set_defaults(func=cmd_bounds)
+    r = sub.add_parser("reproduce", help="the paper's Figs. 2-5, extra figures and metric tables")
+    r.add_argument("--out", default="out/reproduction", help="output folder (default: out/reproduction)")
+    r.add_argument("--plant", choices=("arm", "linear"), default="arm", help="plant for Figs. 2-5")
+    r.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    r.add_argument("--report", metavar="MD", help="also update the generated blocks of this report")
+    r.add_argument("--t-final", type=float, default=4.0, help="horizon (s), default 4")
+    r.add_argument("--dt", type=float, default=1e-4, help="step (s), default 1e-4")
+    r.add_argument("--integrator", choices=("euler", "rk4"), default="rk4")
+    r.set_defaults(func=cmd_reproduce)
     return p
 
 

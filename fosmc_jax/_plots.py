@@ -57,3 +57,33 @@ def plot_rollouts(t, X, X_d, U, labels, path: str | Path, title: str = "") -> No
         fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy: bool = False,
+                      styles=None, xlim=None) -> None:  # fmt: skip
+    """One panel per joint, several labelled time series in each.
+
+    ``series``: list of (label, t (m,) s, Y (m, 3)); ``ylabel`` names the quantity and its unit.
+    ``logy`` plots |Y| on a log axis.
+    """
+    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    for i, (label, t, Y) in enumerate(series):
+        Y = np.asarray(Y)
+        style = (styles or {}).get(label, {})
+        for j, ax in enumerate(axes):
+            y = np.abs(Y[:, j]) if logy else Y[:, j]
+            ax.plot(t, y, lw=style.get("lw", 1.0), ls=style.get("ls", "-"), color=style.get("color", f"C{i}"),
+                    marker=style.get("marker"), ms=3, drawstyle=style.get("drawstyle", "default"),
+                    label=label if j == 0 else None)  # fmt: skip
+    for j, ax in enumerate(axes):
+        ax.set_ylabel(f"{JOINTS[j]}\n{'|' + ylabel + '|' if logy else ylabel}")
+        ax.grid(alpha=0.3)
+        if logy:
+            ax.set_yscale("log")
+        if xlim is not None:
+            ax.set_xlim(*xlim)
+    axes[-1].set_xlabel("time (s)")
+    fig.legend(loc="upper center", ncol=min(len(series), 5), bbox_to_anchor=(0.5, 1.0), fontsize=9, frameon=False)
+    fig.suptitle(title, y=1.04)
+    fig.tight_layout()
+    save_figure(fig, path)

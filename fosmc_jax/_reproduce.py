@@ -1,0 +1,290 @@
+"""Reproduction of the paper's simulation study: the cases, their rollouts and metric tables.
+
+The cases are the paper's (Figs. 2-5): SGN control (23) and the continuous function (28) with
+Table 1's three delta sets, on the plant at payloads 0 and 10 kg (the arm) or the nominal
+linear model (29); plus the linear model at random vertices of the Appendix box, which the
+paper does not show. Figures are drawn by :mod:`fosmc_jax._reproduce_plots`.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import io
+import time
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _paper as paper
+from ._controller import Controller
+from ._design import summarize
+from ._linear_plant import LinearPlant, uncertain_plants
+from ._metrics import METRIC_NAMES
+from ._reference import Cycloid, desired_state
+from ._simulator import simulate
+
+SWITCHINGS = ("sign", "set 1", "set 2", "set 3")
+
+
+class Case(NamedTuple):
+    """One simulated case: labels and the batch of rollouts it holds."""
+
+    plant: str  # "arm" or "linear"
+    payload: str  # "0 kg", "10 kg", "nominal" or "box vertices (N)"
+    switching: str  # one of SWITCHINGS
+    result: Any  # Result with a leading batch axis (1 rollout, or N vertices)
+
+
+class Settings(NamedTuple):
+    t_final: float = paper.T_FINAL
+    dt: float = 1e-4
+    integrator: str = "rk4"
+    vertices: int = 64
+    save_every: int = 10
+    seed: int = 0
+
+
+def _controller(delta, dtype) -> Controller:
+    c = lambda x: jnp.asarray(x, dtype)
+    return Controller(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
+
+
+def _stack(trees):
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def plants_under_test(kind: str, dtype) -> list[tuple[str, Any]]:
+    """(label, plant batch of one) pairs for ``kind`` = "arm" (0 and 10 kg) or "linear" (nominal)."""
+    if kind == "arm":
+        from ._arm import ARM_PARAMS, Arm
+
+        params = jax.tree.map(lambda x: jnp.asarray(x, dtype), ARM_PARAMS)
+        return [(f"{p:g} kg", _stack([Arm(params, jnp.asarray(p, dtype))])) for p in paper.PAYLOADS]
+    if kind == "linear":
+        nominal = LinearPlant(jnp.asarray(paper.A_ROWS, dtype), jnp.asarray(paper.B_ROWS, dtype))
+        return [("nominal", _stack([nominal]))]
+    raise ValueError(f"plant must be 'arm' or 'linear', got {kind!r}")
+
+
+def run_cases(
+    kind: str, settings: Settings = Settings(), dtype=jnp.float64, log: Callable[[str], None] = print
+) -> list[Case]:
+    """Simulate every case; each (plant batch, switching) group is one vmapped, jitted call."""
+    reference = Cycloid(*(jnp.asarray(x, dtype) for x in (paper.THETA_START, paper.THETA_END, paper.TAU)))
+    X0 = desired_state(reference(jnp.zeros((), dtype)))
+    n_steps = round(settings.t_final / settings.dt)
+    box = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
+    vertices = uncertain_plants(paper.A_ROWS, paper.B_ROWS, "vertices", box=box,
+                                samples=settings.vertices, seed=settings.seed)  # fmt: skip
+    vertices = LinearPlant(*(jnp.asarray(x, dtype) for x in vertices))
+    n_vert = vertices.a_rows.shape[0]
+    groups = [(kind, plants_under_test(kind, dtype))]
+    groups.append(("linear", [(f"box vertices ({n_vert})", vertices)]))
+
+    cases: list[Case] = []
+    total = sum(len(g) for _, g in groups) * len(SWITCHINGS)
+    for g, (plant_kind, labelled) in enumerate(groups):
+        for switching in SWITCHINGS:
+            sign = switching == "sign"
+            delta = paper.DELTA_SETS[0 if sign else int(switching[-1]) - 1]
+            for label, plant in labelled:
+                start = time.perf_counter()
+                size = jax.tree.leaves(plant)[0].shape[0]
+                ctrls = _stack([_controller(delta, dtype)] * size)
+                # every step of the primary plant's SGN runs is kept, to show the chattering period
+                save_every = 1 if sign and g == 0 else settings.save_every
+                one = functools.partial(simulate, n_steps=n_steps, integrator=settings.integrator,
+                                        switching="sign" if sign else "ratio", save_every=save_every)  # fmt: skip
+                run = jax.vmap(one, in_axes=(0, 0, None, None, None))
+                result = run(plant, ctrls, reference, X0, jnp.asarray(settings.dt, dtype))
+                result = jax.block_until_ready(result)
+                cases.append(Case(plant_kind, label, switching, result))
+                log(f"[{len(cases)}/{total}] {plant_kind:6} {label:18} {switching:5} "
+                    f"{size:4d} rollout(s) x {n_steps} steps  {time.perf_counter() - start:6.2f} s")  # fmt: skip
+    return cases
+
+
+# ---------------------------------------------------------------------------- tables
+
+COLUMNS = ["plant", "payload", "switching", "delta", "rollouts", "diverged"] + [
+    f"{m}_{j}" for m in METRIC_NAMES for j in (1, 2, 3)
+]
+
+
+def metric_rows(cases: list[Case]) -> list[dict[str, Any]]:
+    """One row per case; batched cases (box vertices) report the worst rollout per metric
+    (max over the batch), excluding diverged rollouts."""
+    rows = []
+    for c in cases:
+        ok = ~np.asarray(c.result.diverged)
+        row = {
+            "plant": c.plant,
+            "payload": c.payload,
+            "switching": "sign" if c.switching == "sign" else "ratio",
+            "delta": "-" if c.switching == "sign" else c.switching,
+            "rollouts": int(ok.size),
+            "diverged": int((~ok).sum()),
+        }
+        for m in METRIC_NAMES:
+            v = np.asarray(getattr(c.result.metrics, m))[ok]
+            worst = v.max(axis=0) if v.size else np.full(3, np.nan)
+            for j in range(3):
+                row[f"{m}_{j + 1}"] = float(f"{worst[j]:.4g}")
+        rows.append(row)
+    return rows
+
+
+def to_csv(rows: list[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def read_csv(text: str) -> list[dict[str, Any]]:
+    rows = []
+    for r in csv.DictReader(io.StringIO(text)):
+        rows.append({k: (float(v) if k not in COLUMNS[:4] else v) for k, v in r.items()})
+        for k in ("rollouts", "diverged"):
+            rows[-1][k] = int(rows[-1][k])
+    return rows
+
+
+def to_markdown(rows: list[dict[str, Any]]) -> str:
+    """Markdown table; each metric cell lists joints 1 / 2 / 3."""
+    units = dict(rms_error="rad", max_abs_error="rad", final_abs_error="rad", chattering="V/s",
+                 control_rms="V", max_abs_control="V")  # fmt: skip
+    head = ["plant", "payload", "switching", "delta", "rollouts"] + [f"{m} ({units[m]})" for m in METRIC_NAMES]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r["plant"], r["payload"], r["switching"], r["delta"],
+                 str(r["rollouts"]) + (f" ({r['diverged']} diverged)" if r["diverged"] else "")]  # fmt: skip
+        cells += [" / ".join(f"{r[f'{m}_{j}']:.3g}" for j in (1, 2, 3)) for m in METRIC_NAMES]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------- design facts
+
+
+def design_facts() -> str:
+    """NOTES.md items 1, 3, 4 and 5, recomputed: a Markdown section with the package's numbers
+    beside the paper's printed ones."""
+    box = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
+    d = summarize(paper.A_ROWS, paper.B_ROWS, box, paper.C, paper.POLES)
+    A, B = paper.full_A(paper.A_ROWS), paper.full_B(paper.B_ROWS)
+    eig = lambda M: np.sort_complex(np.linalg.eigvals(M))
+    fmt_eig = lambda z: ", ".join(f"{x.real:.3g}" + (f"{x.imag:+.2g}j" if abs(x.imag) > 1e-9 else "") for x in z)
+    minus, plus = eig(A - B @ paper.K_PRINTED), eig(A + B @ paper.K_PRINTED)
+    mid_A = (paper.A_LOWER + paper.A_UPPER) / 2 - paper.A_ROWS
+    mid_B = (paper.B_LOWER + paper.B_UPPER) / 2 - paper.B_ROWS
+    worst = np.unravel_index(np.abs(mid_B).argmax(), mid_B.shape)
+    s_cb = np.linalg.svd(d.CB, compute_uv=False)
+    f3 = lambda v: " / ".join(f"{x:.4g}" for x in v)
+    one_minus = {
+        c: d.gamma_min[c] * (1 + d.beta.value) / (1 - d.beta.value) for c in d.gamma_min
+    }
+    lines = [
+        "| quantity | computed by fosmc_jax | printed in the paper |",
+        "|---|---|---|",
+        f"| alpha (31), max over {d.alpha.vertices_checked} vertices | {d.alpha.value:.4f} | {paper.ALPHA_PRINTED} |",
+        f"| beta (31), max over {d.beta.vertices_checked} vertices | {d.beta.value:.4f} | {paper.BETA_PRINTED} |",
+        f"| largest \\|box midpoint - nominal (29)\\|, A rows | {np.abs(mid_A).max():.3g} | 0 (rounding) |",
+        f"| largest \\|box midpoint - nominal (29)\\|, B rows | {np.abs(mid_B).max():.3g} at B({3 * worst[0] + 3},{worst[1] + 1}) | 0 |",
+        f"| eig(A + BK), K placed from (33) | {fmt_eig(d.closed_loop_poles)} | (33) |",
+        f"| eig(A + B K_printed) | {fmt_eig(plus)} | (33) claimed |",
+        f"| eig(A - B K_printed) | {fmt_eig(minus)} | (33) claimed |",
+        f"| singular values of CB | {f3(s_cb)} | - |",
+        f"| gamma bounds, `spectral` (24)-(26) | {f3(d.gamma_min['spectral'])} | {f3(paper.GAMMA_MIN_PRINTED)} (35) |",
+        f"| gamma bounds, `paper` (\\|\\|CB\\|\\| = sigma_min) | {f3(d.gamma_min['paper'])} | {f3(paper.GAMMA_MIN_PRINTED)} (35) |",
+        f"| `spectral` bounds with 1 - beta for 1 + beta | {f3(one_minus['spectral'])} | - |",
+        f"| `paper` bounds with 1 - beta for 1 + beta | {f3(one_minus['paper'])} | - |",
+        f"| gains used (36) | {f3(paper.GAMMA)} | {f3(paper.GAMMA)} |",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------- figures
+
+
+def write_figures(cases: list[Case], out_dir, kind: str) -> list[str]:
+    """Figs. 2-5 of the paper and three extra figures; returns the file names written."""
+    from ._plots import plot_joint_series
+
+    by = {(c.plant, c.payload, c.switching): c for c in cases}
+    primary = [c for c in cases if c.plant == kind and "vertices" not in c.payload]
+    loads = list(dict.fromkeys(c.payload for c in primary))
+    heavy = loads[-1]
+    theta = slice(0, 9, 3)
+
+    def tr(case, b=0):
+        t = case.result.trace
+        return np.asarray(t.t[b]), t
+
+    written = []
+
+    def save(name, series, ylabel, title, **kwargs):
+        plot_joint_series(series, ylabel, out_dir / name, title, **kwargs)
+        written.append(name)
+
+    where = f"{kind} plant" if kind == "linear" else "arm"
+    series = []
+    t, trace = tr(by[(kind, loads[0], "sign")])
+    series.append(("desired", t, np.asarray(trace.X_d[0][:, theta])))
+    for load in loads:
+        t, trace = tr(by[(kind, load, "sign")])
+        series.append((f"actual, {load}", t, np.asarray(trace.X[0][:, theta])))
+    styles = {"desired": {"color": "k", "ls": "--", "lw": 2}}
+    save("fig2_tracking.png", series, "angle (rad)", f"Fig. 2: tracking with SGN control (23), {where}", styles=styles)
+
+    t, trace = tr(by[(kind, heavy, "sign")])
+    save("fig3_sign_control.png", [(f"SGN, {heavy}", t, trace.U[0])], "control U (V)",
+         f"Fig. 3: control inputs with SGN, {where}, {heavy}")  # fmt: skip
+    mid = t[len(t) // 4]
+    save("fig_extra_chattering_zoom.png", [(f"SGN, {heavy}", t, trace.U[0])], "control U (V)",
+         f"Chattering period: SGN control over 4 ms (every step shown), {where}, {heavy}",
+         styles={f"SGN, {heavy}": {"marker": ".", "drawstyle": "steps-post"}}, xlim=(mid, mid + 0.004))  # fmt: skip
+
+    sets = [s for s in SWITCHINGS if s != "sign"]
+    for name, field, ylabel, title in (
+        ("fig4_continuous_control.png", "U", "control U (V)", "Fig. 4: control inputs with (28)"),
+        ("fig5_tracking_errors.png", "e", "tracking error (rad)", "Fig. 5: tracking errors with (28)"),
+    ):
+        series = []
+        for s in sets:
+            t, trace = tr(by[(kind, heavy, s)])
+            Y = trace.U[0] if field == "U" else trace.X[0][:, theta] - trace.X_d[0][:, theta]
+            series.append((f"{s}: delta = {paper.DELTA_SETS[int(s[-1]) - 1].tolist()}", t, Y))
+        save(name, series, ylabel, f"{title}, Table 1 sets, {where}, {heavy}")
+
+    series = [(s, *(lambda t, trace: (t, trace.s[0]))(*tr(by[(kind, heavy, s)]))) for s in SWITCHINGS]
+    save("fig_extra_sliding_variables.png", series, "s (sliding variable)",
+         f"Sliding variables s(t) of (14), {where}, {heavy}", logy=True)  # fmt: skip
+
+    series = []
+    vert = [c for c in cases if "vertices" in c.payload]
+    for c in vert:
+        t = np.asarray(c.result.trace.t[0])
+        e = np.abs(np.asarray(c.result.trace.X)[:, :, theta] - np.asarray(c.result.trace.X_d)[:, :, theta])
+        ok = ~np.asarray(c.result.diverged)
+        series.append((c.switching, t, e[ok].max(axis=0)))
+    save("fig_extra_box_vertices.png", series, "tracking error (rad)",
+         f"Linear model (3) at {vert[0].payload}: worst |error| over the vertices", logy=True)  # fmt: skip
+    return written
+
+
+# ---------------------------------------------------------------------------- report
+
+
+def replace_block(text: str, name: str, content: str) -> str:
+    """Replace what stands between ``<!-- begin:name -->`` and ``<!-- end:name -->``."""
+    begin, end = f"<!-- begin:{name} -->", f"<!-- end:{name} -->"
+    i, j = text.find(begin), text.find(end)
+    if i < 0 or j < i:
+        raise ValueError(f"report has no block {begin} ... {end}")
+    return text[: i + len(begin)] + "\n" + content + text[j:]
