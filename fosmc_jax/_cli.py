@@ -42,6 +42,8 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     cfg = _config.load(args.config)
+    if args.params:
+        cfg = _config.with_params(cfg, args.params)
     n = _config.n_steps(cfg)
     if args.plot and not cfg["sim"]["save_every"]:
         cfg["sim"]["save_every"] = max(1, n // 4000)
@@ -195,6 +197,78 @@ def _write_text(path, text: str) -> None:
     os.replace(tmp, path)
 
 
+# ---------------------------------------------------------------------------- tune
+
+
+def cmd_tune(args) -> int:
+    from pathlib import Path
+
+    from . import _tuning as T
+    from ._plots import plot_tuning
+
+    cfg = _config.load(args.config)
+    tcfg = cfg["tune"]
+    if args.steps is not None:
+        if args.steps < 1:
+            raise _config.ConfigError(f"--steps: expected a positive integer, got {args.steps}")
+        tcfg["steps"] = args.steps
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
+        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
+    out.mkdir(parents=True, exist_ok=True)
+    built = _config.build(cfg)
+    options = dict(built.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
+    problem = T.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt, options)
+    p0 = T.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
+    floor = None
+    if tcfg["keep_gamma_bound"]:
+        box = tuple(np.asarray(cfg["plant"]["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+        d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
+                      cfg["controller"]["poles"])  # fmt: skip
+        floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+    n_rollouts = built.X0s.shape[0] * jax.tree.leaves(built.plants)[0].shape[0]
+    _log(f"tune: {n_rollouts} rollouts x {built.options['n_steps']} steps per evaluation; "
+         f"free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
+    initial = T.evaluate(problem, p0)
+    m = initial["metrics"]
+    obj = T.Objective(
+        tcfg["weight_error"], tcfg["weight_chattering"],
+        float(np.mean(m["rms_error"])), float(np.mean(m["chattering"])),
+        tcfg["worst_case"], tcfg["worst_weight"], tcfg["cvar_alpha"], tcfg["penalty"],
+    )  # fmt: skip
+    try:
+        u0 = T.to_internal(p0, built.controller, floor)
+    except ValueError as e:
+        raise _config.ConfigError(str(e)) from None
+    settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
+                          tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
+    start = time.perf_counter()
+    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=out / "checkpoint.npz",
+                       resume=args.resume, log=_log)  # fmt: skip
+    final_params = T.to_physical(u, built.controller, floor)
+    final = T.evaluate(problem, final_params)
+    as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
+    result = {
+        "initial": {"params": as_dict(p0), **initial},
+        "final": {"params": as_dict(final_params), **final},
+        "objective": obj._asdict(),
+        "history": {k: v for k, v in history.items() if k != "params"},
+        "config": cfg,
+    }
+    _write_text(out / "result.json", json.dumps(_jsonable(result), indent=1))
+    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), built.controller, floor))
+                      for p in history["params"]]  # fmt: skip
+    plot_tuning(history, params_history, out / "tuning.png")
+    _log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
+    for name in ("rms_error", "chattering"):
+        print(f"{name:<12} initial {_fmt3(initial['metrics'][name])}   final {_fmt3(final['metrics'][name])}")
+    return 0
+
+
+def _fmt3(v) -> str:
+    return " ".join(f"{x:.4e}" for x in v)
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -205,6 +279,7 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
+    s.add_argument("--params", metavar="JSON", help="use delta, gamma, poles from a `fosmc tune` result.json")
     s.set_defaults(func=cmd_simulate)
     b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
     b.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -219,6 +294,13 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--dt", type=float, default=1e-4, help="step (s), default 1e-4")
     r.add_argument("--integrator", choices=("euler", "rk4"), default="rk4")
     r.set_defaults(func=cmd_reproduce)
+    t = sub.add_parser("tune", help="gradient-based tuning of delta, gamma and the poles (optax)")
+    t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
+    t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
+    t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")
+    t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    t.set_defaults(func=cmd_tune)
     return p
 
 

@@ -9,6 +9,7 @@ with a message that names the key and the expected form.
 from __future__ import annotations
 
 import copy
+import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -19,10 +20,11 @@ import numpy as np
 
 from . import _paper as paper
 from ._controller import LAWS, SWITCHING, Controller
-from ._design import DesignError, check_design
+from ._design import CONVENTIONS, DesignError, check_design
 from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
+from ._tuning import MODES, PARAM_NAMES, WORST_CASE
 
 try:  # Python >= 3.11
     import tomllib
@@ -78,6 +80,24 @@ def defaults() -> dict[str, Any]:
             "save_every": 0,
             "divergence_bound": 1e6,
         },
+        "tune": {
+            "params": ["delta", "gamma", "poles"],
+            "weight_error": 1.0,
+            "weight_chattering": 1.0,
+            "worst_case": "none",
+            "worst_weight": 0.0,
+            "cvar_alpha": 0.9,
+            "penalty": 100.0,
+            "steps": 100,
+            "learning_rate": 0.05,
+            "schedule": "cosine",
+            "clip": 1.0,
+            "mode": "auto",
+            "checkpoint_every": 10,
+            "remat_steps": 100,
+            "keep_gamma_bound": False,
+            "gamma_bound_convention": "paper",
+        },
     }
 
 
@@ -126,6 +146,21 @@ def _choice(choices: tuple[str, ...]):
         if value not in choices:
             raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {value!r}")
         return value
+
+    return validate
+
+
+def _boolean(key: str, value: Any) -> Any:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    return value
+
+
+def _names(choices: tuple[str, ...]):
+    def validate(key: str, value: Any) -> Any:
+        if not isinstance(value, list) or not value or any(v not in choices for v in value):
+            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(choices)}; got {value!r}")
+        return list(dict.fromkeys(value))
 
     return validate
 
@@ -186,6 +221,24 @@ SCHEMA: dict[str, Any] = {
         "precision": _choice(PRECISIONS),
         "save_every": _integer("a non-negative integer", lambda n: n >= 0),
         "divergence_bound": _number("a positive number", lambda x: x > 0),
+    },
+    "tune": {
+        "params": _names(PARAM_NAMES),
+        "weight_error": _number("a non-negative number", lambda x: x >= 0),
+        "weight_chattering": _number("a non-negative number", lambda x: x >= 0),
+        "worst_case": _choice(WORST_CASE),
+        "worst_weight": _number("a non-negative number", lambda x: x >= 0),
+        "cvar_alpha": _number("a number in [0, 1)", lambda x: 0 <= x < 1),
+        "penalty": _number("a positive number", lambda x: x > 0),
+        "steps": _integer("a positive integer", lambda n: n >= 1),
+        "learning_rate": _number("a positive number", lambda x: x > 0),
+        "schedule": _choice(("cosine", "constant")),
+        "clip": _number("a positive number", lambda x: x > 0),
+        "mode": _choice(MODES),
+        "checkpoint_every": _integer("a non-negative integer", lambda n: n >= 0),
+        "remat_steps": _integer("a non-negative integer", lambda n: n >= 0),
+        "keep_gamma_bound": _boolean,
+        "gamma_bound_convention": _choice(CONVENTIONS),
     },
 }
 
@@ -295,3 +348,17 @@ def build(cfg: dict) -> Problem:
         "divergence_bound": cfg["sim"]["divergence_bound"],
     }
     return Problem(plants, controller, reference, X0s, jnp.asarray(cfg["sim"]["dt"], dtype), options)
+
+
+def with_params(cfg: dict, path: str | Path) -> dict:
+    """``cfg`` with the controller's delta, gamma and poles taken from a ``fosmc tune``
+    result file (its ``final.params``), validated like the config keys they replace."""
+    try:
+        params = json.loads(Path(path).read_text())["final"]["params"]
+    except OSError as e:
+        raise ConfigError(f"--params: cannot read {str(path)!r}: {e.strerror or e}") from None
+    except (ValueError, KeyError, TypeError):
+        raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params)") from None
+    user = copy.deepcopy(cfg)
+    user["controller"].update({k: params[k] for k in ("delta", "gamma", "poles") if k in params})
+    return resolve(user)

@@ -87,3 +87,30 @@ def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy
     fig.suptitle(title, y=1.04)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def plot_tuning(history: dict, params: list[dict], path: str | Path) -> None:
+    """Loss and its two parts, and delta, gamma, poles, against the optimizer step."""
+    steps = np.arange(1, len(history["loss"]) + 1)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    ax = axes[0, 0]
+    for key in ("loss", "error", "chattering"):
+        ax.plot(steps, history[key], label=key if key == "loss" else f"{key} part")
+    ax.set_ylabel("objective (unit-free)")
+    ax.set_yscale("log")
+    ax.legend()
+    for ax, key, unit in ((axes[0, 1], "delta", "delta (same unit as s)"), (axes[1, 0], "gamma", "gamma (V)"),
+                          (axes[1, 1], "poles", "-pole (1/s)")):  # fmt: skip
+        v = np.array([p[key] for p in params]).reshape(len(params), -1)
+        v = -v if key == "poles" else v
+        for i in range(v.shape[1]):
+            label = f"joint {i // 3 + 1}, pole {i % 3 + 1}" if key == "poles" else f"joint {i + 1}"
+            ax.plot(steps, v[:, i], label=label)
+        ax.set_ylabel(unit)
+        ax.set_yscale("log")
+        ax.legend(fontsize=7, ncol=3 if key == "poles" else 1)
+    for ax in axes.ravel():
+        ax.set_xlabel("optimizer step")
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)

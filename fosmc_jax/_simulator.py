@@ -89,7 +89,7 @@ def _finite_and_bounded(tree, X, bound) -> Array:
     return finite & jnp.all(jnp.abs(X) <= bound)
 
 
-_STATIC = ("n_steps", "integrator", "switching", "law", "save_every")
+_STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every")
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
@@ -105,6 +105,7 @@ def simulate(
     switching: str = "ratio",
     law: str = "paper",
     save_every: int = 0,
+    checkpoint_every: int = 0,
     divergence_bound: float = 1e6,
 ) -> Result:
     """Simulate one closed-loop rollout of the FOSMC (14), (23) on ``plant`` from X(0) = ``X0``.
@@ -121,6 +122,9 @@ def simulate(
       law: ``paper`` (23) or ``equivalent``. Static.
       save_every: keep every ``save_every``-th sample (and the last) in ``Result.trace``;
         0 keeps none. Static.
+      checkpoint_every: for reverse-mode gradients, rematerialise blocks of this many steps
+        (``jax.checkpoint``), so memory grows with n / checkpoint_every + checkpoint_every
+        instead of n; 0 stores every step. Ignored when ``save_every`` is set. Static.
       divergence_bound: a rollout with some |X_i| above it is frozen and flagged.
 
     Returns:
@@ -211,6 +215,11 @@ def simulate(
         ks = stack(jnp.zeros((), jnp.int32), ks, carry.k)
         samples = jax.tree.map(stack, first, samples, carry.sample)
         trace = Trace(ks.astype(dtype) * dt, *samples)
+    elif checkpoint_every:
+        blocks, rest = divmod(n_steps, checkpoint_every)
+        remat = jax.checkpoint(lambda c, _: (advance(c, checkpoint_every), None))
+        carry = jax.lax.scan(remat, carry, None, length=blocks)[0]
+        carry = advance(carry, rest)
     else:
         carry = advance(carry, n_steps)
 

@@ -1,0 +1,265 @@
+"""Gradient-based tuning of delta, gamma and the poles (optax), robust over a batch of rollouts.
+
+Parameters live in unconstrained coordinates: delta = exp(u_delta), poles = -exp(u_poles)
+(real, negative, repeats allowed), gamma = exp(u_gamma), or gamma = g_min(poles) + exp(u_gamma)
+to keep gamma above the bounds (24)-(26), which move with K and hence with the poles.
+
+Objective (unit-free). Per rollout i, with the plain metrics of :mod:`fosmc_jax._metrics`,
+
+    J_i = w_e * mean_j rms_error_ij / e_ref + w_c * mean_j chattering_ij / c_ref
+
+where e_ref and c_ref are the batch means at the initial parameters, so J = w_e + w_c there.
+The loss is mean_i J_i, plus ``worst_weight`` times max_i J_i (``worst_case = "max"``) or the
+CVaR, the mean of the worst ``1 - cvar_alpha`` fraction (``"cvar"``). A diverged rollout
+contributes the finite ``penalty`` with no gradient. The training objective uses the metrics of
+the training simulation (its step and horizon); every reported result is re-evaluated with the
+plain simulator (:func:`evaluate`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ._controller import Controller
+from ._design import gain_from_poles, gamma_bounds
+from ._simulator import simulate_batch
+
+PARAM_NAMES = ("delta", "gamma", "poles")
+WORST_CASE = ("none", "max", "cvar")
+MODES = ("auto", "reverse", "forward")
+
+
+class Tunable(NamedTuple):
+    """Physical tunable parameters: ``delta`` (3,), ``gamma`` (3,), ``poles`` (3, 3) in 1/s."""
+
+    delta: Any
+    gamma: Any
+    poles: Any
+
+
+class GammaFloor(NamedTuple):
+    """Keep gamma >= the bounds (24)-(26) of ``convention`` for the given alpha, beta."""
+
+    alpha: float
+    beta: float
+    convention: str = "paper"
+
+
+def gamma_floor(floor: GammaFloor | None, base: Controller, poles) -> Any:
+    """The lower bound on gamma for these poles (0 without a floor)."""
+    if floor is None:
+        return jnp.zeros_like(base.gamma)
+    K = gain_from_poles(base.a_rows, base.b_rows, poles)
+    return gamma_bounds(floor.alpha, floor.beta, base.C, base.b_rows, K, floor.convention)
+
+
+def to_internal(p: Tunable, base: Controller, floor: GammaFloor | None = None) -> Tunable:
+    """Unconstrained coordinates of physical parameters (inverse of :func:`to_physical`)."""
+    excess = p.gamma - gamma_floor(floor, base, p.poles)
+    if floor is not None and np.any(np.asarray(excess) <= 0):
+        raise ValueError("tune: initial gamma must exceed the gamma bounds when keep_gamma_bound is on")
+    return Tunable(jnp.log(p.delta), jnp.log(excess), jnp.log(-p.poles))
+
+
+def to_physical(u: Tunable, base: Controller, floor: GammaFloor | None = None) -> Tunable:
+    """Physical parameters from unconstrained ones: delta > 0, poles < 0, gamma > floor."""
+    poles = -jnp.exp(u.poles)
+    return Tunable(jnp.exp(u.delta), gamma_floor(floor, base, poles) + jnp.exp(u.gamma), poles)
+
+
+class Objective(NamedTuple):
+    """Weights and scales of the objective (see module docstring)."""
+
+    weight_error: float = 1.0
+    weight_chattering: float = 1.0
+    error_ref: float = 1.0
+    chattering_ref: float = 1.0
+    worst_case: str = "none"
+    worst_weight: float = 0.0
+    cvar_alpha: float = 0.9
+    penalty: float = 100.0
+
+
+def rollout_costs(metrics, diverged, obj: Objective):
+    """Per-rollout J_i (B,), its error and chattering parts; diverged rollouts get ``penalty``."""
+    e = obj.weight_error * jnp.mean(metrics.rms_error, axis=-1) / obj.error_ref
+    c = obj.weight_chattering * jnp.mean(metrics.chattering, axis=-1) / obj.chattering_ref
+    J = jnp.where(diverged | ~jnp.isfinite(e + c), jax.lax.stop_gradient(obj.penalty), e + c)
+    return J, e, c
+
+
+def aggregate(J, obj: Objective):
+    """mean(J) plus the optional worst-case term."""
+    loss = jnp.mean(J)
+    if obj.worst_case == "max":
+        loss = loss + obj.worst_weight * jnp.max(J)
+    elif obj.worst_case == "cvar":
+        k = max(1, int(round((1 - obj.cvar_alpha) * J.shape[0])))
+        loss = loss + obj.worst_weight * jnp.mean(jax.lax.top_k(J, k)[0])
+    return loss
+
+
+class Problem(NamedTuple):
+    """What a tuning run simulates: the batch and the fixed parts of the controller."""
+
+    plants: Any
+    base: Controller
+    reference: Any
+    X0s: Any
+    dt: Any
+    options: dict
+
+
+def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
+    """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
+
+    def loss(u: Tunable):
+        p = to_physical(u, problem.base, floor)
+        ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
+        r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, **problem.options)
+        J, e, c = rollout_costs(r.metrics, r.diverged, obj)
+        return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
+
+    return loss
+
+
+def evaluate(problem: Problem, p: Tunable) -> dict[str, Any]:
+    """Plain-simulator metrics of physical parameters ``p``, averaged over the non-diverged
+    rollouts of the batch; plus the number of diverged rollouts."""
+    ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
+    opts = {k: v for k, v in problem.options.items() if k != "checkpoint_every"}
+    r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, **opts)
+    ok = ~np.asarray(r.diverged)
+    out = {name: np.asarray(v)[ok].mean(axis=0).tolist() for name, v in r.metrics._asdict().items()}
+    return {"metrics": out, "diverged": int((~ok).sum()), "rollouts": int(ok.size)}
+
+
+# ---------------------------------------------------------------------------- optimizer loop
+
+
+class Settings(NamedTuple):
+    steps: int = 100
+    learning_rate: float = 0.05
+    schedule: str = "cosine"  # or "constant"
+    clip: float = 1.0  # global-norm clipping of the gradient in internal coordinates
+    mode: str = "auto"  # "reverse", "forward" or "auto" (time both, keep the faster)
+    free: tuple[str, ...] = PARAM_NAMES
+    checkpoint_every: int = 10  # optimizer steps between checkpoints (0: none)
+
+
+def make_optimizer(s: Settings, labels: Tunable) -> optax.GradientTransformation:
+    lr = s.learning_rate
+    if s.schedule == "cosine":
+        lr = optax.cosine_decay_schedule(s.learning_rate, max(1, s.steps), alpha=0.1)
+    adam = optax.chain(optax.clip_by_global_norm(s.clip), optax.adam(lr))
+    return optax.multi_transform({"free": adam, "frozen": optax.set_to_zero()}, labels)
+
+
+def _value_and_grad(loss, mode: str):
+    if mode == "reverse":
+        return jax.jit(jax.value_and_grad(loss, has_aux=True))
+
+    def fwd(u):
+        grad, out = jax.jacfwd(lambda v: (lambda o: (o[0], o))(loss(v)), has_aux=True)(u)
+        return out, grad
+
+    return jax.jit(fwd)
+
+
+def _save(path: Path, payload: dict) -> None:
+    """Atomically write a checkpoint (NumPy .npz with a JSON header)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".npz", dir=path.parent)
+    os.close(fd)
+    leaves = payload.pop("leaves")
+    np.savez(tmp, header=np.frombuffer(json.dumps(payload).encode(), np.uint8),
+             **{f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)})  # fmt: skip
+    os.replace(tmp, path)
+
+
+def _load(path: Path) -> tuple[dict, list[np.ndarray]]:
+    with np.load(path) as z:
+        header = json.loads(bytes(z["header"]).decode())
+        leaves = [z[f"leaf{i}"] for i in range(len(z.files) - 1)]
+    return header, leaves
+
+
+def run(
+    loss,
+    u0: Tunable,
+    settings: Settings,
+    *,
+    checkpoint: Path | None = None,
+    resume: bool = False,
+    log: Callable[[str], None] = print,
+) -> tuple[Tunable, dict[str, list]]:
+    """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
+
+    Non-finite losses or gradients skip the step (and say so). Every ``checkpoint_every``
+    steps the state is written atomically to ``checkpoint``; ``resume`` continues from it and
+    ends where an uninterrupted run would. Returns the final internal parameters and the
+    history (per step: loss, error, chattering, gradient norm, skipped, internal params).
+    """
+    labels = Tunable(*("free" if n in settings.free else "frozen" for n in PARAM_NAMES))
+    opt = make_optimizer(settings, labels)
+    u, state = u0, opt.init(u0)
+    history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
+                                "params": []}  # fmt: skip
+    start_step = 0
+    if resume and checkpoint is not None and checkpoint.exists():
+        header, leaves = _load(checkpoint)
+        u, state = jax.tree.unflatten(jax.tree.structure((u, state)), [jnp.asarray(x) for x in leaves])
+        history, start_step = header["history"], header["step"]
+        log(f"tune: resumed from {checkpoint} at step {start_step}")
+
+    mode = settings.mode
+    if mode == "auto":
+        timings = {}
+        for m in ("reverse", "forward"):
+            f = _value_and_grad(loss, m)
+            jax.block_until_ready(f(u))  # compile
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(u))
+            timings[m] = time.perf_counter() - t0
+        mode = min(timings, key=timings.get)
+        log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
+            f"forward {timings['forward']:.3f} s)")  # fmt: skip
+    value_and_grad = _value_and_grad(loss, mode)
+
+    @jax.jit
+    def update(u, state, grad):
+        updates, state = opt.update(grad, state, u)
+        return optax.apply_updates(u, updates), state
+
+    t_start = time.perf_counter()
+    for step in range(start_step, settings.steps):
+        (value, (err, chat)), grad = value_and_grad(u)
+        gnorm = float(optax.tree.norm(grad))
+        finite = bool(np.isfinite(float(value))) and np.isfinite(gnorm)
+        history["params"].append([np.asarray(x).tolist() for x in u])
+        if finite:
+            u, state = update(u, state, grad)
+        else:
+            log(f"tune: step {step}: non-finite loss or gradient, step skipped")
+        for k, v in (("loss", value), ("error", err), ("chattering", chat), ("grad_norm", gnorm)):
+            history[k].append(float(v))
+        history["skipped"].append(not finite)
+        log(f"step {step + 1:4d}/{settings.steps}  loss {float(value):.5f}  error {float(err):.5f}  "
+            f"chattering {float(chat):.5f}  |grad| {gnorm:.3e}  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
+        done = step + 1
+        if checkpoint is not None and settings.checkpoint_every and (
+            done % settings.checkpoint_every == 0 or done == settings.steps
+        ):
+            _save(checkpoint, {"step": done, "history": history, "leaves": jax.tree.leaves((u, state))})
+    return u, history

@@ -1,0 +1,126 @@
+"""Tuning: constraint maps, gradients against finite differences, NaN guard, frozen
+parameters, and a resumed run ending exactly where an uninterrupted one does."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fosmc_jax as fj
+from fosmc_jax import _tuning as T
+
+P = fj.paper
+
+
+def problem(n_steps=200, dt=2e-3, samples=3):
+    ref = fj.Cycloid(jnp.array(P.THETA_START), jnp.array(P.THETA_END), jnp.array(0.5))
+    base = fj.Controller(*(jnp.asarray(x) for x in (P.C, P.POLES, P.GAMMA, P.DELTA_SETS[1], P.A_ROWS, P.B_ROWS)))
+    box = (P.A_LOWER, P.A_UPPER, P.B_LOWER, P.B_UPPER)
+    plants = fj.uncertain_plants(P.A_ROWS, P.B_ROWS, "sample", box=box, samples=samples, seed=3)
+    plants = fj.LinearPlant(*(jnp.asarray(x) for x in plants))
+    X0s = fj.desired_state(ref(0.0))[None] + jnp.array([[0.02] + [0.0] * 8])
+    opts = dict(n_steps=n_steps, integrator="rk4", switching="ratio", checkpoint_every=50)
+    return T.Problem(plants, base, ref, X0s, jnp.asarray(dt), opts)
+
+
+def test_constraint_maps_round_trip_and_respect_bounds():
+    prob = problem()
+    p = T.Tunable(jnp.array([200.0, 100.0, 60.0]), jnp.array([350.0, 300.0, 30.0]), jnp.array(P.POLES))
+    u = T.to_internal(p, prob.base)
+    back = T.to_physical(u, prob.base)
+    for a, b in zip(back, p):
+        np.testing.assert_allclose(a, b, rtol=1e-12)
+    # any unconstrained point maps to positive delta, gamma and negative poles
+    rand = T.Tunable(*(jax.random.normal(jax.random.PRNGKey(i), np.shape(x)) * 5 for i, x in enumerate(p)))
+    q = T.to_physical(rand, prob.base)
+    assert np.all(q.delta > 0) and np.all(q.gamma > 0) and np.all(q.poles < 0)
+    # with the floor, gamma stays above the (pole-dependent) bound (24)-(26)
+    floor = T.GammaFloor(5.987, 0.62, "paper")
+    q = T.to_physical(rand, prob.base, floor)
+    K = fj.gain_from_poles(prob.base.a_rows, prob.base.b_rows, q.poles)
+    bound = fj.gamma_bounds(5.987, 0.62, prob.base.C, prob.base.b_rows, K, "paper")
+    assert np.all(q.gamma > bound)
+    with pytest.raises(ValueError, match="gamma"):
+        T.to_internal(p._replace(gamma=jnp.array([1.0, 1.0, 1.0])), prob.base, floor)
+
+
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
+def test_gradient_matches_central_differences(mode):
+    prob = problem()
+    obj = T.Objective(error_ref=0.05, chattering_ref=5.0, worst_case="cvar", worst_weight=0.5, cvar_alpha=0.5)
+    loss = T.make_loss(prob, obj, None)
+    p0 = T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles)
+    u0 = T.to_internal(p0, prob.base)
+    (_, _), grad = T._value_and_grad(loss, mode)(u0)
+    flat, unravel = jax.flatten_util.ravel_pytree(u0)
+    g = jax.flatten_util.ravel_pytree(grad)[0]
+    f = jax.jit(lambda x: loss(unravel(x))[0])
+    h = 1e-5
+    for i in range(flat.size):
+        e = jnp.zeros_like(flat).at[i].set(h)
+        fd = (f(flat + e) - f(flat - e)) / (2 * h)
+        np.testing.assert_allclose(g[i], fd, rtol=2e-4, atol=1e-8, err_msg=f"parameter {i}")
+
+
+def quadratic(target):
+    def loss(u):
+        parts = [jnp.sum((a - b) ** 2) for a, b in zip(u, target)]
+        return sum(parts), (parts[0], parts[1])
+
+    return loss
+
+
+def start_point():
+    return T.Tunable(jnp.zeros(3), jnp.zeros(3), jnp.zeros((3, 3)))
+
+
+def test_frozen_parameters_do_not_move_and_free_ones_converge():
+    target = T.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
+    s = T.Settings(steps=300, learning_rate=0.1, schedule="constant", mode="reverse", free=("delta", "poles"),
+                   checkpoint_every=0)
+    u, hist = T.run(quadratic(target), start_point(), s, log=lambda _: None)
+    np.testing.assert_array_equal(u.gamma, 0.0)
+    np.testing.assert_allclose(u.delta, 1.0, atol=1e-2)
+    np.testing.assert_allclose(u.poles, -1.0, atol=1e-2)
+    assert hist["loss"][-1] < hist["loss"][0]
+
+
+def test_nan_guard_skips_the_step():
+    target = T.Tunable(jnp.ones(3), jnp.ones(3), jnp.ones((3, 3)))
+    base = quadratic(target)
+
+    def loss(u):
+        v, aux = base(u)
+        # the loss is NaN wherever delta's first coordinate is exactly 0: the start point
+        return jnp.where(u.delta[0] == 0, jnp.nan, v), aux
+
+    messages = []
+    s = T.Settings(steps=3, mode="reverse", checkpoint_every=0)
+    u, hist = T.run(loss, start_point(), s, log=messages.append)
+    assert hist["skipped"] == [True, True, True]
+    assert any("skipped" in m for m in messages)
+    for a, b in zip(u, start_point()):
+        np.testing.assert_array_equal(a, b)  # nothing applied
+
+
+def test_resume_equals_uninterrupted(tmp_path):
+    prob = problem(n_steps=100)
+    obj = T.Objective(error_ref=0.05, chattering_ref=5.0)
+    loss = T.make_loss(prob, obj, None)
+    u0 = T.to_internal(T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
+    s = T.Settings(steps=6, learning_rate=0.05, mode="reverse", checkpoint_every=2)
+    full, hist_full = T.run(loss, u0, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
+
+    class Killed(Exception):
+        pass
+
+    def killer(msg):
+        if msg.startswith("step    5/"):
+            raise Killed  # dies after step 5 is logged: the last checkpoint is at step 4
+
+    with pytest.raises(Killed):
+        T.run(loss, u0, s, checkpoint=tmp_path / "b.npz", log=killer)
+    resumed, hist = T.run(loss, u0, s, checkpoint=tmp_path / "b.npz", resume=True, log=lambda _: None)
+    for a, b in zip(full, resumed):
+        np.testing.assert_array_equal(a, b)
+    assert hist["loss"] == hist_full["loss"]
