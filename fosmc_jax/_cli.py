@@ -103,9 +103,20 @@ def _print_rollouts(rollouts: list[dict]) -> None:
 
 def cmd_bounds(args) -> int:
     cfg = _config.load(args.config)
-    box = tuple(np.asarray(cfg["plant"]["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
     start = time.perf_counter()
-    d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"], cfg["controller"]["poles"])
+    arm = cfg["plant"]["kind"] == "arm"
+    if arm:
+        from ._arm import ARM_PARAMS, arm_box, envelope_samples
+
+        lo, hi = min(cfg["plant"]["payloads"]), max(cfg["plant"]["payloads"])
+        _log(f"fosmc bounds: sampling the arm's rows along the reference, payloads {lo:g}..{hi:g} kg ...")
+        with jax.enable_x64(True):
+            abox = arm_box(ARM_PARAMS, np.linspace(lo, hi, 11), envelope_samples())
+        a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
+    else:
+        box = tuple(np.asarray(cfg["plant"]["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+        a_rows, b_rows = cfg["model"]["A_rows"], cfg["model"]["B_rows"]
+    d = summarize(a_rows, b_rows, box, cfg["controller"]["C"], cfg["controller"]["poles"])
     elapsed = time.perf_counter() - start
     out = {
         "alpha": d.alpha.value,
@@ -122,10 +133,27 @@ def cmd_bounds(args) -> int:
             "gamma_min": _paper.GAMMA_MIN_PRINTED,
         },
     }
+    if arm:
+        out["box"] = dict(zip(("A_lower", "A_upper", "B_lower", "B_upper"), box))
+        out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
     if args.json:
         print(json.dumps(_jsonable(out), indent=1))
         return 0
     fmt = lambda v: "  ".join(f"{x:10.4f}" for x in np.ravel(v))
+    if arm:
+        print("The arm's box (sampled along the reference x payloads) beside the paper's Appendix box")
+        print("and nominal (29); rows 3, 6, 9 of A (columns 1-9) and B (columns 1-3):")
+        print(f"  {'entry':<8}{'arm lower':>11}{'arm upper':>11}{'arm nominal':>12}   "
+              f"{'paper lower':>11}{'paper upper':>12}{'paper (29)':>11}")  # fmt: skip
+        paper_box = (_paper.A_LOWER, _paper.A_UPPER, _paper.B_LOWER, _paper.B_UPPER)
+        for m, nom, pnom, (lo_, hi_), (plo, phi) in (
+            ("A", a_rows, _paper.A_ROWS, box[:2], paper_box[:2]),
+            ("B", b_rows, _paper.B_ROWS, box[2:], paper_box[2:]),
+        ):
+            for i in range(3):
+                for j in range(nom.shape[1]):
+                    print(f"  {m}({3 * i + 3},{j + 1})".ljust(10) + f"{lo_[i, j]:11.3f}{hi_[i, j]:11.3f}{nom[i, j]:12.3f}"
+                          f"   {plo[i, j]:11.3f}{phi[i, j]:12.3f}{pnom[i, j]:11.3f}")  # fmt: skip
     print(f"alpha = max ||B_bar^-1 dA_r||_2 over {d.alpha.vertices_checked} box vertices = {d.alpha.value:.4f}"
           f"   (paper (31): {_paper.ALPHA_PRINTED})")  # fmt: skip
     print(f"beta  = max ||B_bar^-1 dB_r||_2 over {d.beta.vertices_checked} box vertices = {d.beta.value:.4f}"
@@ -269,6 +297,44 @@ def _fmt3(v) -> str:
     return " ".join(f"{x:.4e}" for x in v)
 
 
+# ---------------------------------------------------------------------------- certify
+
+
+def cmd_certify(args) -> int:
+    from . import _certify
+
+    cfg = _config.load(args.config)
+    switching = cfg["controller"]["switching"] if args.configured_switching else "sign"
+    opts = {"switching": switching, "seed": args.seed}
+    if args.vertices != "all":
+        if not args.vertices.isdigit() or int(args.vertices) < 1:
+            raise _config.ConfigError(f"--vertices: expected 'all' or a positive integer, got {args.vertices!r}")
+        opts["vertices"] = int(args.vertices)
+    _log(f"fosmc certify: {cfg['plant']['kind']} plant, {switching} switching ...")
+    start = time.perf_counter()
+    r = _certify.report(cfg, **opts)
+    _log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")
+    if args.json:
+        print(json.dumps(_jsonable(r), indent=1))
+        return 0
+    w = r["where"]
+    print(f"hitting condition (20): max s^T s'/||s|| = {r['max_hitting']:.4g} -> "
+          f"{'HOLDS' if r['holds'] else 'VIOLATED'} at all {r['points_checked']:.4g} points checked")  # fmt: skip
+    print(f"  plants: {r['vertices']}; evaluations: {r['evaluations']}")
+    for k, v in r["envelope"].items():
+        print(f"  {k}: {v}")
+    where = f", payload {w['payload']:g} kg" if "payload" in w else f", vertex code {w['vertex_code']}"
+    print(f"  worst at t = {w['t']:.4g} s, s = {np.round(w['s'], 4).tolist()}, "
+          f"||Z|| = {np.linalg.norm(w['Z']):.4g}{where}")  # fmt: skip
+    g = r["gamma_bounds"]
+    print(f"gamma bounds (24)-(26), alpha = {g['alpha']:.4f}, beta = {g['beta']:.4f}, "
+          f"checked at (1 +- {g['eps']}) x bound:")  # fmt: skip
+    for c in g["conventions"]:
+        print(f"  {c['convention']:<9} bound {np.round(c['bound'], 3).tolist()}: {c['verdict']} in this example "
+              f"(max at +eps {c['max_hitting_above']:.4g}, at -eps {c['max_hitting_below']:.4g})")  # fmt: skip
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -301,6 +367,13 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     t.set_defaults(func=cmd_tune)
+    c = sub.add_parser("certify", help="check the hitting condition (20) numerically; gamma-bound verdicts")
+    c.add_argument("--config", help="TOML config (default: the paper's setup)")
+    c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    c.add_argument("--vertices", default="all", help="'all' (exact over the box) or N sampled vertices")
+    c.add_argument("--configured-switching", action="store_true", help="use controller.switching instead of SGN")
+    c.add_argument("--seed", type=int, default=0, help="seed of the sampled points")
+    c.set_defaults(func=cmd_certify)
     return p
 
 

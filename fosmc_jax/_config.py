@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _paper as paper
+from ._arm import PAYLOAD_RANGE, arm_sweep
 from ._controller import LAWS, SWITCHING, Controller
 from ._design import CONVENTIONS, DesignError, check_design
 from ._linear_plant import UNCERTAINTY, uncertain_plants
@@ -36,7 +37,9 @@ class ConfigError(ValueError):
     """A configuration key is missing its expected form (one-line message naming the key)."""
 
 
-PLANT_KINDS = ("linear",)
+PLANT_KINDS = ("linear", "arm")
+#: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
+MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
 
 
@@ -59,6 +62,7 @@ def defaults() -> dict[str, Any]:
         },
         "plant": {
             "kind": "linear",
+            "payloads": list(paper.PAYLOADS),
             "uncertainty": "none",
             "dA_rows": np.zeros((3, 9)).tolist(),
             "dB_rows": np.zeros((3, 3)).tolist(),
@@ -106,11 +110,13 @@ def defaults() -> dict[str, Any]:
 
 def _array(shape: tuple[int, ...], what: str, check: Callable[[np.ndarray], bool] | None = None):
     def validate(key: str, value: Any) -> Any:
+        if not _all_numbers(value):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
         try:
             a = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{key}: expected {what}, got {value!r}") from None
-        if isinstance(value, (bool, str)) or a.dtype == object or a.shape != shape:
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}") from None
+        if a.shape != shape:
             raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
         if not np.all(np.isfinite(a)):
             raise ConfigError(f"{key}: expected {what} (finite), got {_short(value)}")
@@ -121,12 +127,25 @@ def _array(shape: tuple[int, ...], what: str, check: Callable[[np.ndarray], bool
     return validate
 
 
+def _all_numbers(value: Any) -> bool:
+    """True for a number (not a bool) or a (nested) list of them."""
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _number(what: str, check: Callable[[float], bool] = lambda x: True):
     def validate(key: str, value: Any) -> Any:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:
+            finite = False
+        if not finite:
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
         if not check(value):
-            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
         return float(value)
 
     return validate
@@ -135,7 +154,7 @@ def _number(what: str, check: Callable[[float], bool] = lambda x: True):
 def _integer(what: str, check: Callable[[int], bool]):
     def validate(key: str, value: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, int) or not check(value):
-            raise ConfigError(f"{key}: expected {what}, got {value!r}")
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
         return int(value)
 
     return validate
@@ -144,7 +163,7 @@ def _integer(what: str, check: Callable[[int], bool]):
 def _choice(choices: tuple[str, ...]):
     def validate(key: str, value: Any) -> Any:
         if value not in choices:
-            raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {value!r}")
+            raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {_short(value)}")
         return value
 
     return validate
@@ -152,17 +171,25 @@ def _choice(choices: tuple[str, ...]):
 
 def _boolean(key: str, value: Any) -> Any:
     if not isinstance(value, bool):
-        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        raise ConfigError(f"{key}: expected true or false, got {_short(value)}")
     return value
 
 
 def _names(choices: tuple[str, ...]):
     def validate(key: str, value: Any) -> Any:
         if not isinstance(value, list) or not value or any(v not in choices for v in value):
-            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(choices)}; got {value!r}")
+            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(choices)}; got {_short(value)}")
         return list(dict.fromkeys(value))
 
     return validate
+
+
+def _payloads(key: str, value: Any) -> Any:
+    lo, hi = PAYLOAD_RANGE
+    what = f"a non-empty list of payloads in [{lo:g}, {hi:g}] kg"
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+    return _array((len(value),), what, lambda a: np.all((a >= lo) & (a <= hi)))(key, value)
 
 
 def _offsets(key: str, value: Any) -> Any:
@@ -201,6 +228,7 @@ SCHEMA: dict[str, Any] = {
     },
     "plant": {
         "kind": _choice(PLANT_KINDS),
+        "payloads": _payloads,
         "uncertainty": _choice(UNCERTAINTY),
         "dA_rows": _array((3, 9), "a 3x9 matrix"),
         "dB_rows": _array((3, 3), "a 3x3 matrix"),
@@ -248,7 +276,8 @@ def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
         raise ConfigError(f"{prefix or 'config'}: expected a table, got {_short(user)}")
     out = dict(base)
     for key, value in user.items():
-        name = f"{prefix}.{key}" if prefix else key
+        shown = key if str(key).isidentifier() else repr(key)
+        name = f"{prefix}.{shown}" if prefix else shown
         if key not in schema:
             known = ", ".join(sorted(schema))
             raise ConfigError(f"{name}: unknown key (known here: {known})")
@@ -287,6 +316,8 @@ def _check_consistency(cfg: dict) -> None:
     sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    if sim["t_final"] / sim["dt"] > MAX_STEPS:
+        raise ConfigError(f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}")
     for m in ("A", "B"):
         if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
             raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")
@@ -320,8 +351,9 @@ def n_steps(cfg: dict) -> int:
 def build(cfg: dict) -> Problem:
     """Simulator inputs for a resolved config, in its ``sim.precision``.
 
-    The initial states are X_d(0) + each ``sim.initial_offset``; the batch is every plant
-    crossed with every initial state (plant-major).
+    The plants are the linear model's uncertainty realizations (``kind = "linear"``) or one arm
+    per payload (``kind = "arm"``). The initial states are X_d(0) + each ``sim.initial_offset``;
+    the batch is every plant crossed with every initial state (plant-major).
     """
     dtype = jnp.dtype(cfg["sim"]["precision"])
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
@@ -331,12 +363,15 @@ def build(cfg: dict) -> Problem:
         cast(ctl["C"]), cast(ctl["poles"]), cast(ctl["gamma"]), cast(ctl["delta"]),
         cast(model["A_rows"]), cast(model["B_rows"]),
     )  # fmt: skip
-    box = tuple(np.asarray(plant["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
-    plants = uncertain_plants(
-        model["A_rows"], model["B_rows"], plant["uncertainty"], box=box,
-        dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
-    )  # fmt: skip
-    plants = type(plants)(*(cast(x) for x in plants))
+    if plant["kind"] == "arm":
+        plants = arm_sweep(cast(plant["payloads"]))
+    else:
+        box = tuple(np.asarray(plant["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+        plants = uncertain_plants(
+            model["A_rows"], model["B_rows"], plant["uncertainty"], box=box,
+            dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
+        )  # fmt: skip
+        plants = type(plants)(*(cast(x) for x in plants))
     offsets = np.atleast_2d(np.asarray(cfg["sim"]["initial_offset"], dtype=float))
     X0s = desired_state(reference(jnp.zeros((), dtype)))[None] + cast(offsets)
     options = {
