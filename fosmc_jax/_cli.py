@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import sys
@@ -245,8 +246,15 @@ def cmd_tune(args) -> int:
         raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
     out.mkdir(parents=True, exist_ok=True)
     built = _config.build(cfg)
-    options = dict(built.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
-    problem = T.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt, options)
+    plain = T.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt,
+                      dict(built.options, save_every=0))  # fmt: skip
+    # the training simulation may use a coarser step (a surrogate); results use the plain one
+    train_cfg = copy.deepcopy(cfg)
+    if tcfg["train_dt"]:
+        train_cfg["sim"]["dt"] = tcfg["train_dt"]
+    train = _config.build(train_cfg)
+    options = dict(train.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
+    problem = T.Problem(train.plants, train.controller, train.reference, train.X0s, train.dt, options)
     p0 = T.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
     floor = None
     if tcfg["keep_gamma_bound"]:
@@ -255,10 +263,10 @@ def cmd_tune(args) -> int:
                       cfg["controller"]["poles"])  # fmt: skip
         floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     n_rollouts = built.X0s.shape[0] * jax.tree.leaves(built.plants)[0].shape[0]
-    _log(f"tune: {n_rollouts} rollouts x {built.options['n_steps']} steps per evaluation; "
-         f"free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
-    initial = T.evaluate(problem, p0)
-    m = initial["metrics"]
+    _log(f"tune: {n_rollouts} rollouts x {options['n_steps']} steps (dt = {train_cfg['sim']['dt']} s) per "
+         f"training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
+    m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    initial = T.evaluate(plain, p0)
     obj = T.Objective(
         tcfg["weight_error"], tcfg["weight_chattering"],
         float(np.mean(m["rms_error"])), float(np.mean(m["chattering"])),
@@ -274,7 +282,7 @@ def cmd_tune(args) -> int:
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=out / "checkpoint.npz",
                        resume=args.resume, log=_log)  # fmt: skip
     final_params = T.to_physical(u, built.controller, floor)
-    final = T.evaluate(problem, final_params)
+    final = T.evaluate(plain, final_params)
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = {
         "initial": {"params": as_dict(p0), **initial},

@@ -99,6 +99,7 @@ def defaults() -> dict[str, Any]:
             "mode": "auto",
             "checkpoint_every": 10,
             "remat_steps": 100,
+            "train_dt": 0.0,
             "keep_gamma_bound": False,
             "gamma_bound_convention": "paper",
         },
@@ -265,6 +266,7 @@ SCHEMA: dict[str, Any] = {
         "mode": _choice(MODES),
         "checkpoint_every": _integer("a non-negative integer", lambda n: n >= 0),
         "remat_steps": _integer("a non-negative integer", lambda n: n >= 0),
+        "train_dt": _number("a non-negative number (s; 0: sim.dt)", lambda x: x >= 0),
         "keep_gamma_bound": _boolean,
         "gamma_bound_convention": _choice(CONVENTIONS),
     },
@@ -316,6 +318,8 @@ def _check_consistency(cfg: dict) -> None:
     sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    if cfg["tune"]["train_dt"] > sim["t_final"]:
+        raise ConfigError(f"tune.train_dt: expected at most sim.t_final = {sim['t_final']}, got {cfg['tune']['train_dt']}")
     if sim["t_final"] / sim["dt"] > MAX_STEPS:
         raise ConfigError(f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}")
     for m in ("A", "B"):
