@@ -80,6 +80,11 @@ def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy
         ax.grid(alpha=0.3)
         if logy:
             ax.set_yscale("log")
+            # exact zeros (e.g. s(0) = 0) would stretch the axis over many empty decades
+            values = np.concatenate([np.abs(np.asarray(Y)[:, j]) for _, _, Y in series])
+            positive = values[values > 0]
+            if positive.size:
+                ax.set_ylim(bottom=np.percentile(positive, 0.5) / 10)
         if xlim is not None:
             ax.set_xlim(*xlim)
     axes[-1].set_xlabel("time (s)")
