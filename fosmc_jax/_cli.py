@@ -8,6 +8,7 @@ import json
 import math
 import sys
 import time
+import warnings
 from typing import Any
 
 import jax
@@ -15,7 +16,7 @@ import numpy as np
 
 from . import _config, _paper
 from ._design import CONVENTIONS, summarize
-from ._metrics import METRIC_NAMES
+from ._metrics import METRIC_NAMES, batch_summary
 from ._simulator import simulate_batch
 
 
@@ -54,7 +55,12 @@ def cmd_simulate(args) -> int:
     _log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
          f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}): compiling and running ...")  # fmt: skip
     start = time.perf_counter()
-    result = simulate_batch(*problem[:5], **problem.options)
+    if args.devices > 1:
+        from ._sharding import simulate_sharded
+
+        result = simulate_sharded(*problem[:5], devices=args.devices, **problem.options)
+    else:
+        result = simulate_batch(*problem[:5], **problem.options)
     result = jax.block_until_ready(result)
     _log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
 
@@ -78,10 +84,15 @@ def cmd_simulate(args) -> int:
                       title=f"FOSMC, {cfg['controller']['switching']} switching, "
                             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
         _log(f"fosmc: wrote {args.plot}")
+    summary = batch_summary(result.metrics, result.diverged)
     if args.json:
-        print(json.dumps(_jsonable({"rollouts": rollouts, "config": cfg}), indent=1))
+        print(json.dumps(_jsonable({"rollouts": rollouts, "summary": summary, "config": cfg}), indent=1))
     else:
         _print_rollouts(rollouts)
+        if n_rollouts > 1:
+            print(f"batch of {n_rollouts}: {summary['diverged_excluded']} diverged (excluded below)")
+            for name in METRIC_NAMES:
+                print(f"  {name:<16} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
     return 0
 
 
@@ -357,6 +368,7 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
     s.add_argument("--params", metavar="JSON", help="use delta, gamma, poles from a `fosmc tune` result.json")
+    s.add_argument("--devices", type=int, default=1, help="split the batch over N devices (on CPU: N host devices)")
     s.set_defaults(func=cmd_simulate)
     b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
     b.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -388,8 +400,24 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def _warn(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"fosmc: warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
+    warnings.showwarning = _warn
+    if getattr(args, "devices", 1) > 1:
+        from ._sharding import use_host_devices
+
+        try:
+            use_host_devices(args.devices)  # before the first JAX operation
+        except RuntimeError as e:
+            print(f"fosmc: error: --devices: {e}", file=sys.stderr)
+            return 2
+    elif getattr(args, "devices", 1) < 1:
+        print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
+        return 2
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     try:
         return args.func(args)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -21,7 +22,7 @@ import numpy as np
 from . import _paper as paper
 from ._arm import PAYLOAD_RANGE, arm_sweep
 from ._controller import LAWS, SWITCHING, Controller
-from ._design import CONVENTIONS, DesignError, check_design
+from ._design import CONVENTIONS, DesignError, check_design, stable_step
 from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
@@ -331,6 +332,13 @@ def _check_consistency(cfg: dict) -> None:
         check_design(np.asarray(model["B_rows"]), np.asarray(ctl["C"]), np.asarray(ctl["poles"]))
     except DesignError as e:
         raise ConfigError(f"controller: {e}") from None
+    h = stable_step(model["A_rows"], model["B_rows"], ctl["poles"], sim["integrator"])
+    if sim["dt"] > h:
+        warnings.warn(
+            f"sim.dt = {sim['dt']} s exceeds the {sim['integrator']} stability limit {h:.3g} s of the "
+            "nominal model's fastest mode: expect divergence",
+            stacklevel=2,
+        )
 
 
 # ---------------------------------------------------------------------------- objects

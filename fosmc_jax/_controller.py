@@ -54,11 +54,15 @@ def derive(ctrl: Controller) -> Derived:
     return Derived(K, CB_inv, S)
 
 
-def safe_norm(x: Array) -> Array:
-    """Euclidean norm with a zero (not NaN) gradient at x = 0 (the "double where" trick)."""
-    sq = jnp.sum(x * x)
+def safe_sqrt(sq: Array) -> Array:
+    """sqrt(sq) for sq >= 0, with a zero (not NaN) gradient at sq = 0 (the "double where" trick)."""
     nonzero = sq > 0
     return jnp.where(nonzero, jnp.sqrt(jnp.where(nonzero, sq, 1.0)), 0.0)
+
+
+def safe_norm(x: Array) -> Array:
+    """Euclidean norm with a zero (not NaN) gradient at x = 0."""
+    return safe_sqrt(jnp.sum(x * x))
 
 
 def switch(s: Array, delta: Array, switching: str) -> Array:

@@ -73,6 +73,22 @@ def closed_loop_matrix(a_rows: Array, b_rows: Array, K: Array) -> Array:
 
 # ---------------------------------------------------------------------------- checks
 
+#: Extent of the stability region of each fixed-step scheme on the negative real axis.
+_STABILITY_EXTENT = {"euler": 2.0, "rk4": 2.785}
+
+
+def stable_step(a_rows, b_rows, poles, integrator: str) -> float:
+    """Largest step (s) at which ``integrator`` is stable on the fastest mode of the nominal
+    model: of A (open loop) and of A + BK (the sliding dynamics (19)), by the extent of the
+    scheme's stability region on the real axis over the largest |eigenvalue|. A rule of
+    thumb for a warning, not a guarantee (the switching term adds its own fast dynamics)."""
+    with jax.enable_x64(True):
+        a, b, p = (jnp.asarray(np.asarray(x, dtype=np.float64)) for x in (a_rows, b_rows, poles))
+        K = gain_from_poles(a, b, p)
+        modes = [np.asarray(closed_loop_matrix(a, b, G)) for G in (jnp.zeros_like(K), K)]
+    fastest = max(np.abs(np.linalg.eigvals(M)).max() for M in modes)
+    return _STABILITY_EXTENT[integrator] / fastest
+
 
 def check_design(b_rows, C, poles) -> None:
     """Raise :class:`DesignError` if CB is singular or a pole is not in the open left half-plane.

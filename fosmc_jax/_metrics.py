@@ -90,3 +90,17 @@ def finish(acc: Accumulator, t_final: Array) -> Metrics:
         _safe_sqrt(acc.sum_u2 / acc.count),
         acc.max_u,
     )
+
+
+def batch_summary(metrics: Metrics, diverged) -> dict:
+    """Mean and worst (max) of each metric over the rollouts of a batch that did not diverge
+    (leading batch axis), with the number excluded. NumPy, for reports."""
+    import numpy as np
+
+    ok = ~np.asarray(diverged, dtype=bool)
+    out = {"rollouts": int(ok.size), "diverged_excluded": int((~ok).sum()), "mean": {}, "max": {}}
+    for name in METRIC_NAMES:
+        v = np.asarray(getattr(metrics, name))[ok]
+        out["mean"][name] = v.mean(axis=0).tolist() if v.size else [float("nan")] * 3
+        out["max"][name] = v.max(axis=0).tolist() if v.size else [float("nan")] * 3
+    return out

@@ -127,7 +127,8 @@ def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     def loss(u: Tunable):
         p = to_physical(u, problem.base, floor)
         ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
-        r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, **problem.options)
+        r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, fast=False,
+                           **problem.options)  # fmt: skip
         J, e, c = rollout_costs(r.metrics, r.diverged, obj)
         return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
 
@@ -217,13 +218,13 @@ def run(
     history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
                                 "params": []}  # fmt: skip
     start_step = 0
+    mode = settings.mode
     if resume and checkpoint is not None and checkpoint.exists():
         header, leaves = _load(checkpoint)
         u, state = jax.tree.unflatten(jax.tree.structure((u, state)), [jnp.asarray(x) for x in leaves])
-        history, start_step = header["history"], header["step"]
-        log(f"tune: resumed from {checkpoint} at step {start_step}")
+        history, start_step, mode = header["history"], header["step"], header["mode"]
+        log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
-    mode = settings.mode
     if mode == "auto":
         timings = {}
         for m in ("reverse", "forward"):
@@ -261,5 +262,5 @@ def run(
         if checkpoint is not None and settings.checkpoint_every and (
             done % settings.checkpoint_every == 0 or done == settings.steps
         ):
-            _save(checkpoint, {"step": done, "history": history, "leaves": jax.tree.leaves((u, state))})
+            _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
     return u, history

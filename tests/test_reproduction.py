@@ -57,3 +57,9 @@ def test_replace_block_round_trip():
     assert R.replace_block(text, "x", "new\n") == "a\n<!-- begin:x -->\nnew\n<!-- end:x -->\nb\n"
     with pytest.raises(ValueError, match="no block"):
         R.replace_block(text, "y", "")
+
+
+def test_readme_arm_table_equals_calibration_output():
+    cal = (ROOT / "tuning/results/arm_calibration.md").read_text()
+    table = cal[cal.index("| entry") : cal.index("The last column")].rstrip() + "\n"
+    assert block((ROOT / "README.md").read_text(), "arm") == table

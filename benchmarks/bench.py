@@ -1,0 +1,317 @@
+"""Throughput of fosmc_jax against baselines and the machine's matmul roof, one command:
+
+    python benchmarks/bench.py            # full: 4 s at dt = 1e-4 (40,000 steps), batches 1..16,384
+    python benchmarks/bench.py --quick    # CI: fewer steps and batches, under 2 minutes on 2 cores
+
+Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
+second (rollouts x steps / wall seconds of a compiled call, best of 3; compile time apart).
+The CPU is shown as two devices (``use_host_devices(2)``) for the 1- vs 2-device figures;
+single-device runs use device 0.
+
+FLOP count of the minimal algorithm per rollout-step (linear plant, batch-independent work
+such as the reference and Omega not counted; comparisons, selects and the divergence check
+not counted):
+  plant rows 3, 6, 9: a X + b U      3 x (12 mul + 11 add)          =  69
+  integrator chains and update       9 x 2                          =  18 (Euler)
+  integral state: Z, S Z, w update   9 + 3 x 17 + 3 x 2             =  66
+  control: Z, C Z - w, ||Z||, rho, ratio (28), (CB)^-1 f, Omega - . 9 + 54 + 18 + 3 + 9 + 3 + 15 + 3 = 114
+  metrics: e, e^2, |e|, |du|, u^2, |u|                              =  36
+  Euler total                                                       = 303
+  RK4: 4 x (69 + 9 + 51) plant + integral evaluations, 3 x 24 stage states, 12 x 6 combination,
+  + control 114 + metrics 36                                         = 810
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fosmc_jax._sharding import simulate_sharded, use_host_devices  # noqa: E402
+
+use_host_devices(2)
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import baselines  # noqa: E402
+
+import fosmc_jax as fj  # noqa: E402
+from fosmc_jax import _tuning, paper  # noqa: E402
+
+FLOPS = {"euler": 303, "rk4": 810}
+BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
+DT = 1e-4
+
+
+def load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def best(fn, reps=3):
+    out, times = None, []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return min(times), out
+
+
+def problem(batch: int, dtype, arm: bool = False):
+    """batch = P plants (box samples, or payloads for the arm) x O initial offsets."""
+    P = int(2 ** np.ceil(np.log2(batch) / 2))
+    O = batch // P
+    c = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype)
+    ctrl = fj.Controller(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(paper.DELTA_SETS[0]),
+                         c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
+    ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
+    if arm:
+        from fosmc_jax._arm import arm_sweep
+
+        plants = arm_sweep(c(np.linspace(0.0, 10.0, P)))
+    else:
+        p = fj.uncertain_plants(paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=P, seed=0)
+        plants = fj.LinearPlant(c(p.a_rows), c(p.b_rows))
+    X0 = np.asarray(baselines.reference(np.zeros(1))[0, :3].T.reshape(9))
+    offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (O, 9)) * (O > 1)
+    return plants, ctrl, ref, c(X0 + offsets), c(DT)
+
+
+def time_jax(batch, dtype, integrator, steps, arm=False, devices=0):
+    args = problem(batch, dtype, arm)
+    opts = dict(n_steps=steps, integrator=integrator)
+    if devices:
+        fn = lambda: simulate_sharded(*args, devices=devices, **opts)
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        compile_s = None
+        first = time.perf_counter() - t0
+    else:
+        t0 = time.perf_counter()
+        compiled = fj.simulate_batch.lower(*args, **opts).compile()
+        compile_s = time.perf_counter() - t0
+        fn = lambda: compiled(*args)
+        first = None
+    reps = 3 if batch * steps <= 4e8 else 1
+    wall, r = best(fn, reps)
+    rs = batch * steps / wall
+    return {"kind": "fosmc_jax" + (f" ({devices} devices)" if devices else ""), "plant": "arm" if arm else "linear",
+            "integrator": integrator, "dtype": np.dtype(dtype).name, "batch": batch, "steps": steps,
+            "wall_s": wall, "compile_s": compile_s, "first_call_s": first, "rollout_steps_per_s": rs,
+            "flop_per_s": None if arm else rs * FLOPS[integrator], "reps": reps, "load": load(),
+            "rms_error": float(np.nanmean(np.asarray(r.metrics.rms_error)))}  # fmt: skip
+
+
+def baseline(kind, batch, dtype, integrator, steps, extrapolated=False):
+    plants, *_ , X0s, _ = problem(batch, dtype)
+    P, O = plants.a_rows.shape[0], X0s.shape[0]
+    a = np.repeat(np.asarray(plants.a_rows), O, axis=0)
+    b = np.repeat(np.asarray(plants.b_rows), O, axis=0)
+    X0 = np.tile(np.asarray(X0s), (P, 1))
+    fn = {"numpy_loop": baselines.numpy_loop, "numpy_vectorised": baselines.numpy_vectorised,
+          "numba_prange": baselines.numba_prange}.get(kind)  # fmt: skip
+    compile_s = None
+    if kind == "scipy_ivp":
+        run = lambda: baselines.scipy_ivp(a, b, X0, DT, steps * DT)
+    else:
+        run = lambda: fn(a, b, X0, DT, steps, integrator)
+        if kind == "numba_prange":
+            t0 = time.perf_counter()
+            if run() is None:
+                return None
+            compile_s = time.perf_counter() - t0
+    reps = 1 if kind in ("numpy_loop", "scipy_ivp") else 3
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        rms = run()
+        times.append(time.perf_counter() - t0)
+    wall = min(times)
+    rs = batch * steps / wall
+    return {"kind": kind, "plant": "linear", "integrator": integrator if kind != "scipy_ivp" else "RK45 (adaptive, max_step=dt)",
+            "dtype": np.dtype(dtype).name, "batch": batch, "steps": steps, "wall_s": wall, "compile_s": compile_s,
+            "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS.get(integrator, 0), "reps": reps,
+            "extrapolated": extrapolated, "load": load(), "rms_error": rms}  # fmt: skip
+
+
+def roof(n):
+    out = {}
+    for dtype in (np.float32, np.float64):
+        x = jnp.asarray(np.random.default_rng(0).standard_normal((n, n)), dtype)
+        f = jax.jit(lambda a: a @ a)
+        jax.block_until_ready(f(x))
+        wall, _ = best(lambda: f(x), 3)
+        out[np.dtype(dtype).name] = 2 * n**3 / wall
+    out["load"] = load()
+    return out
+
+
+def gradient(batch, steps, checkpoint_every):
+    plants, ctrl, ref, X0s, dt = problem(batch, np.float32)
+    opts = dict(n_steps=steps, integrator="euler", checkpoint_every=checkpoint_every)
+    prob = _tuning.Problem(plants, ctrl, ref, X0s, dt, opts)
+    loss = _tuning.make_loss(prob, _tuning.Objective(), None)
+    u = _tuning.to_internal(_tuning.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
+    vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    fwd = jax.jit(loss)
+    t0 = time.perf_counter()
+    vgc = vg.lower(u).compile()
+    compile_s = time.perf_counter() - t0
+    fwdc = fwd.lower(u).compile()
+    t_vg, _ = best(lambda: vgc(u))
+    t_f, _ = best(lambda: fwdc(u))
+    temp = lambda n: jax.jit(jax.value_and_grad(_tuning.make_loss(prob._replace(options=dict(opts, n_steps=n)),
+                             _tuning.Objective(), None), has_aux=True)).lower(u).compile().memory_analysis().temp_size_in_bytes  # fmt: skip
+    return {"batch": batch, "steps": steps, "checkpoint_every": checkpoint_every, "value_and_grad_s": t_vg,
+            "forward_s": t_f, "ratio": t_vg / t_f, "compile_s": compile_s,
+            "rollout_steps_per_s": batch * steps / t_vg,
+            "temp_bytes": {str(n): temp(n) for n in (steps // 2, steps, 2 * steps)}, "load": load()}  # fmt: skip
+
+
+def machine():
+    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    try:
+        mem = subprocess.run(["free", "-g"], capture_output=True, text=True).stdout.split("\n")[1].split()[1] + " GiB"
+    except Exception:
+        mem = "?"
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory": mem, "python": platform.python_version(),
+            "jax": jax.__version__, "numpy": np.__version__, "platform": platform.platform()}  # fmt: skip
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="CI mode: under 2 minutes on 2 cores")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    args = ap.parse_args(argv)
+    q = args.quick
+    steps = 2000 if q else 40000
+    batches = (1, 64, 1024) if q else (1, 64, 1024, 4096, 16384)
+    head = 1024 if q else 4096
+    t_start = time.perf_counter()
+    rows = []
+    say = lambda r: print(f"{r['kind']:22s} {r['plant']:6s} {r['integrator'][:5]:5s} {r['dtype']:7s} batch {r['batch']:6d} "
+                          f"{r['rollout_steps_per_s']:.3e} rollout-steps/s  load {r['load']}", flush=True)  # fmt: skip
+    info = {"machine": machine(), "quick": q, "steps": steps, "dt": DT, "load_start": load()}
+    info["roof_flop_per_s"] = roof(1024 if q else 2048)
+    print("roof", info["roof_flop_per_s"], flush=True)
+    for dtype in (np.float32, np.float64):
+        for integrator in ("euler", "rk4"):
+            for batch in batches:
+                rows.append(time_jax(batch, dtype, integrator, steps)), say(rows[-1])
+    rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
+    rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
+    try:
+        import fosmc_jax._arm  # noqa: F401
+
+        arm_steps = 200 if q else 4000
+        for batch in (1, 64) if q else (1, 64, 1024):
+            rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
+    except ImportError:
+        print("arm: fosmc_jax._arm not available, skipped")
+    base_steps = 100 if q else 1000
+    for integrator in ("euler", "rk4"):
+        rows.append(baseline("numpy_vectorised", head, np.float32, integrator, base_steps)), say(rows[-1])
+    rows.append(baseline("numpy_loop", 4, np.float64, "euler", base_steps, extrapolated=True)), say(rows[-1])
+    rows.append(baseline("scipy_ivp", 1, np.float64, "rk4", base_steps, extrapolated=True)), say(rows[-1])
+    nb = baseline("numba_prange", head, np.float32, "euler", steps // 4)
+    if nb is None:
+        print("numba: not installed, skipped")
+    else:
+        rows.append(nb), say(nb)
+    try:
+        import diffrax  # noqa: F401
+
+        info["diffrax"] = "installed but not benchmarked"
+    except ImportError:
+        info["diffrax"] = "not installed"
+    info["gradient"] = gradient(64 if q else 256, 1000 if q else 4000, 50 if q else 100)
+    print("gradient", info["gradient"], flush=True)
+    info["rows"] = rows
+    info["total_s"] = time.perf_counter() - t_start
+    info["load_end"] = load()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / ("bench-quick" if q else "bench")
+    stem.with_suffix(".json").write_text(json.dumps(info, indent=1))
+    stem.with_suffix(".md").write_text(markdown(info, head))
+    plot(info, stem.with_suffix(".png"))
+    print(f"wrote {stem}.json/.md/.png in {info['total_s']:.0f} s")
+
+
+def pick(rows, **kw):
+    return [r for r in rows if all(r.get(k) == v for k, v in kw.items())]
+
+
+def markdown(info, head):
+    rows, roof_ = info["rows"], info["roof_flop_per_s"]
+    m = info["machine"]
+    lines = [f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory']}; Python {m['python']}, JAX {m['jax']}, "
+             f"NumPy {m['numpy']}. Steps per rollout: {info['steps']} (dt = {info['dt']}). "
+             f"Load average at start/end: {info['load_start']}/{info['load_end']}. "
+             f"Matmul roof: float32 {roof_['float32']:.3g} FLOP/s, float64 {roof_['float64']:.3g} FLOP/s.", "",
+             "| implementation | plant | integrator | dtype | batch | steps | rollout-steps/s | FLOP/s | of roof | compile s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in rows:
+        flop = r.get("flop_per_s")
+        frac = f"{flop / roof_[r['dtype']]:.1%}" if flop else ""
+        kind = r["kind"] + (" (extrapolated)" if r.get("extrapolated") else "")
+        comp = f"{r['compile_s']:.1f}" if r.get("compile_s") is not None else ""
+        lines.append(f"| {kind} | {r['plant']} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['steps']} | "
+                     f"{r['rollout_steps_per_s']:.3g} | {flop or 0:.3g} | {frac} | {comp} | {r['load']} |")  # fmt: skip
+    ours = pick(rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=head)
+    npv = pick(rows, kind="numpy_vectorised", integrator="euler")
+    nb = pick(rows, kind="numba_prange")
+    lines.append("")
+    if ours and npv:
+        lines.append(f"Batch {head}, linear, Euler, float32: {ours[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
+                     f"{ours[0]['rollout_steps_per_s'] / npv[0]['rollout_steps_per_s']:.1f}x NumPy-vectorised"
+                     + (f", {ours[0]['rollout_steps_per_s'] / nb[0]['rollout_steps_per_s']:.2f}x Numba" if nb else ", Numba not installed")
+                     + f"; {ours[0]['flop_per_s'] / roof_['float32']:.1%} of the float32 matmul roof.")  # fmt: skip
+    g = info["gradient"]
+    lines.append(f"Gradient: value-and-grad of the tuning objective, {g['batch']} rollouts x {g['steps']} steps "
+                 f"(checkpoint every {g['checkpoint_every']}): {g['value_and_grad_s']:.3f} s = {g['ratio']:.2f}x the "
+                 f"forward {g['forward_s']:.3f} s; compile {g['compile_s']:.1f} s; XLA temp memory by horizon "
+                 + ", ".join(f"{k} steps: {v / 2**20:.1f} MiB" for k, v in g["temp_bytes"].items()) + ".")  # fmt: skip
+    lines.append(f"diffrax: {info['diffrax']}.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(info, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    rows = info["rows"]
+    for dtype in ("float32", "float64"):
+        for integ in ("euler", "rk4"):
+            r = pick(rows, kind="fosmc_jax", plant="linear", dtype=dtype, integrator=integ)
+            if r:
+                ax.plot([x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "o-", label=f"fosmc_jax {integ} {dtype}")
+    r = pick(rows, kind="fosmc_jax", plant="arm")
+    if r:
+        ax.plot([x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "s--", label="fosmc_jax arm euler float32")
+    for r in rows:
+        if r["kind"] != "fosmc_jax" and r["plant"] == "linear":
+            ax.plot([r["batch"]], [r["rollout_steps_per_s"]], "x", ms=9, label=f"{r['kind']} {r['integrator'][:5]} {r['dtype']}")
+    ax.set_xscale("log"), ax.set_yscale("log")
+    ax.set_xlabel("batch (rollouts)"), ax.set_ylabel("rollout-steps / s")
+    ax.set_title(f"{info['machine']['cpu']} ({info['machine']['cores']} cores), {info['steps']} steps")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,132 @@
+"""The batch of rollouts split over several devices, with JAX's own SPMD machinery.
+
+:func:`simulate_sharded` is :func:`fosmc_jax.simulate_batch` with the rollouts laid out over
+a one-axis device mesh named ``batch`` (``jax.sharding.Mesh`` + ``NamedSharding``) and run
+under ``jax.shard_map``: each device integrates its own slice of the batch with no
+communication inside the time loop, and the results come back as one global array per
+field, in the same order as the single-device run and equal to it (rollouts are independent;
+each runs the same operations).
+
+Devices. On GPUs the devices are the GPUs; on several hosts, after
+``jax.distributed.initialize()`` on each, ``jax.devices()`` lists every host's devices and the
+same call spans them all (each host supplies its own shards of the inputs, which every host
+holds in full). On CPU, XLA shows one device per process unless asked for more before JAX
+initialises: call :func:`use_host_devices` first, or set
+``XLA_FLAGS=--xla_force_host_platform_device_count=N`` in the environment.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as Spec
+
+from ._simulator import Result, simulate_batch
+
+AXIS = "batch"
+
+
+def use_host_devices(n: int) -> None:
+    """Make the CPU show ``n`` devices (one per host core, say). Must run before JAX
+    initialises its backends (before the first JAX operation); afterwards it only checks
+    that at least ``n`` devices are there and raises ``RuntimeError`` if not."""
+    try:
+        jax.config.update("jax_num_cpu_devices", n)
+    except RuntimeError:
+        if jax.device_count() < n:
+            raise RuntimeError(
+                f"{n} devices requested but JAX is already initialised with {jax.device_count()}; "
+                f"call use_host_devices({n}) before any JAX operation, or set "
+                f"XLA_FLAGS=--xla_force_host_platform_device_count={n}"
+            ) from None
+        return
+    flag = f"--xla_force_host_platform_device_count={n}"
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), flag]).strip()
+
+
+def batch_mesh(devices: int | Sequence[jax.Device] | None = None) -> Mesh:
+    """A one-axis mesh named ``batch`` over ``devices``: a count (the first n of
+    ``jax.devices()``), a list of devices, or ``None`` for all of them."""
+    available = jax.devices()
+    if devices is None:
+        devices = available
+    elif isinstance(devices, int):
+        if not 1 <= devices <= len(available):
+            raise ValueError(
+                f"devices = {devices}, but {len(available)} available (on CPU, see use_host_devices)"
+            )
+        devices = available[:devices]
+    return Mesh(np.asarray(devices), (AXIS,))
+
+
+def _global(x, sharding: NamedSharding) -> Array:
+    """``x`` (held in full by every process) as a global array laid out by ``sharding``."""
+    x = jnp.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
+def simulate_sharded(
+    plants,
+    controller,
+    reference,
+    X0s: Array,
+    dt: Array,
+    *,
+    devices: int | Sequence[jax.Device] | None = None,
+    **options,
+) -> Result:
+    """:func:`fosmc_jax.simulate_batch` with the batch split over ``devices``.
+
+    The initial states ``X0s`` (O, 9) are split over the devices (padded with copies of the
+    last one up to a multiple of their number, the padding dropped from the results); if O
+    does not divide but the number of plants P does, the plants are split instead. Each
+    device runs ``simulate_batch`` on its slice. ``options`` are ``simulate_batch``'s.
+
+    Returns the :class:`Result` of all P x O rollouts, plant-major, shape (P*O, ...), equal
+    to ``simulate_batch``'s.
+    """
+    mesh = batch_mesh(devices)
+    n = mesh.devices.size
+    P = jax.tree.leaves(plants)[0].shape[0]
+    O = X0s.shape[0]
+    split_plants = O % n != 0 and P % n == 0
+    pad = 0 if split_plants else (-O) % n
+    if pad:
+        X0s = jnp.concatenate([jnp.asarray(X0s), jnp.repeat(jnp.asarray(X0s)[-1:], pad, axis=0)])
+    over = Spec(AXIS)
+    plant_spec, x0_spec = (over, Spec()) if split_plants else (Spec(), over)
+    result = _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt)
+    return jax.tree.map(lambda r: r[:, :O].reshape((P * O,) + r.shape[2:]), result)
+
+
+def _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt) -> Result:
+    put = lambda tree, spec: jax.tree.map(lambda x: _global(x, NamedSharding(mesh, spec)), tree)
+    args = (put(plants, plant_spec), put(controller, Spec()), put(reference, Spec()),
+            put(X0s, x0_spec), put(dt, Spec()))  # fmt: skip
+    return _sharded(mesh, plant_spec, x0_spec, tuple(sorted(options.items())), *args)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+def _sharded(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt) -> Result:
+    options = dict(options)
+
+    def local(plants, controller, reference, X0s, dt):
+        p, o = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0]
+        r = simulate_batch(plants, controller, reference, X0s, dt, **options)
+        return jax.tree.map(lambda x: x.reshape((p, o) + x.shape[1:]), r)
+
+    out = Spec(AXIS) if plant_spec == Spec(AXIS) else Spec(None, AXIS)
+    return jax.shard_map(
+        local,
+        mesh=mesh,
+        in_specs=(plant_spec, Spec(), Spec(), x0_spec, Spec()),
+        out_specs=out,
+        check_vma=False,  # rollouts are independent: nothing is reduced over the mesh
+    )(plants, controller, reference, X0s, dt)

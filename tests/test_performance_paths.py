@@ -1,0 +1,113 @@
+"""The fast paths against the reference path: the structure-of-arrays LinearPlant batch of
+simulate_batch against vmap of simulate (values, divergence, gradients, float32), and the
+sharded batch against the single-device one (in a subprocess with two host devices)."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fosmc_jax as fj
+from fosmc_jax import paper
+
+BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
+
+
+def setup(P=3, O=4, dtype=np.float64, gamma=paper.GAMMA):
+    c = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype)
+    ctrl = fj.Controller(c(paper.C), c(paper.POLES), c(gamma), c(paper.DELTA_SETS[0]),
+                         c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
+    ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
+    p = fj.uncertain_plants(paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=P, seed=3)
+    plants = fj.LinearPlant(c(p.a_rows), c(p.b_rows))
+    X0 = np.asarray(ref(0.0)[:3].T.reshape(9))
+    X0s = c(X0 + np.random.default_rng(1).uniform(-0.05, 0.05, (O, 9)))
+    return plants, ctrl, ref, X0s
+
+
+def reference_path(plants, ctrl, ref, X0s, dt, **options):
+    """vmap of simulate, the path every other plant takes."""
+    one = lambda p, x: fj.simulate(p, ctrl, ref, x, dt, **options)
+    r = jax.vmap(jax.vmap(one, in_axes=(None, 0)), in_axes=(0, None))(plants, X0s)
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), r)
+
+
+def assert_close(a, b, rtol=1e-10):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        assert x.shape == y.shape and x.dtype == y.dtype
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=1e-300)
+
+
+@pytest.mark.parametrize(
+    "integrator, switching, law",
+    # every integrator, switching function and law at least once (each case compiles twice)
+    [("euler", "sign", "paper"), ("rk4", "ratio", "paper"), ("euler", "sat", "equivalent"),
+     ("rk4", "tanh", "equivalent")],
+)  # fmt: skip
+def test_fast_batch_equals_vmap_of_simulate(integrator, switching, law):
+    plants, ctrl, ref, X0s = setup()
+    opts = dict(n_steps=400, integrator=integrator, switching=switching, law=law)
+    fast = fj.simulate_batch(plants, ctrl, ref, X0s, 1e-3, **opts)
+    assert fast.trace is None and fast.metrics.rms_error.shape == (12, 3)
+    assert_close(fast, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
+
+
+def test_fast_batch_freezes_diverged_rollouts_like_simulate():
+    plants, ctrl, ref, X0s = setup(gamma=[5e4, 5e4, 5e4])  # far too stiff for dt: blows up
+    opts = dict(n_steps=300, integrator="euler", divergence_bound=50.0)
+    fast = fj.simulate_batch(plants, ctrl, ref, X0s, 2e-2, **opts)
+    slow = reference_path(plants, ctrl, ref, X0s, 2e-2, **opts)
+    assert np.asarray(fast.diverged).any()
+    assert_close(fast, slow)
+
+
+def test_fast_batch_float32():
+    plants, ctrl, ref, X0s = setup(dtype=np.float32)
+    opts = dict(n_steps=400, integrator="rk4")
+    fast = fj.simulate_batch(plants, ctrl, ref, X0s, np.float32(1e-3), **opts)
+    assert fast.metrics.rms_error.dtype == jnp.float32
+    assert_close(fast, reference_path(plants, ctrl, ref, X0s, np.float32(1e-3), **opts), rtol=1e-4)
+
+
+def test_fast_batch_gradient_with_checkpointing():
+    plants, ctrl, ref, X0s = setup(P=2, O=2)
+
+    def loss(delta, batch, checkpoint_every):
+        r = batch(plants, ctrl._replace(delta=delta), ref, X0s, 1e-3, n_steps=200,
+                  integrator="rk4", checkpoint_every=checkpoint_every)  # fmt: skip
+        return jnp.mean(r.metrics.rms_error) + jnp.mean(r.metrics.chattering)
+
+    g = jax.grad(loss)(ctrl.delta, reference_path, 0)
+    np.testing.assert_allclose(jax.grad(loss)(ctrl.delta, fj.simulate_batch, 16), g, rtol=1e-9)
+
+
+def test_sharded_equals_single_device():
+    code = textwrap.dedent(
+        """
+        from fosmc_jax._sharding import simulate_sharded, use_host_devices
+        use_host_devices(2)
+        import jax, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        import fosmc_jax as fj
+        sys_path_test = __import__("test_performance_paths")
+        assert jax.device_count() == 2
+        traced = dict(n_steps=90, save_every=30)
+        for P, O, cases in ((3, 4, 2), (2, 3, 1), (3, 5, 1)):  # split X0s; split plants; pad X0s
+            args = sys_path_test.setup(P, O)
+            for opts in (dict(n_steps=300, integrator="rk4"), traced)[:cases]:
+                a = simulate_sharded(*args, 1e-3, devices=2, **opts)
+                b = fj.simulate_batch(*args, 1e-3, **opts)
+                sys_path_test.assert_close(a, b, rtol=1e-12)
+                assert len(a.metrics.rms_error.sharding.device_set) == 2
+        print("ok")
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")]))
+    env.pop("XLA_FLAGS", None)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
