@@ -112,7 +112,7 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0):
 
 
 def baseline(kind, batch, dtype, integrator, steps, extrapolated=False):
-    plants, *_ , X0s, _ = problem(batch, dtype)
+    plants, *_, X0s, _ = problem(batch, dtype)
     P, O = plants.a_rows.shape[0], X0s.shape[0]
     a = np.repeat(np.asarray(plants.a_rows), O, axis=0)
     b = np.repeat(np.asarray(plants.b_rows), O, axis=0)
@@ -178,7 +178,10 @@ def gradient(batch, steps, checkpoint_every):
 
 
 def machine():
-    cpu = next((line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")), platform.processor())
+    cpu = next(
+        (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
+        platform.processor(),
+    )
     try:
         mem = subprocess.run(["free", "-g"], capture_output=True, text=True).stdout.split("\n")[1].split()[1] + " GiB"
     except Exception:
@@ -297,13 +300,26 @@ def plot(info, path):
         for integ in ("euler", "rk4"):
             r = pick(rows, kind="fosmc_jax", plant="linear", dtype=dtype, integrator=integ)
             if r:
-                ax.plot([x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "o-", label=f"fosmc_jax {integ} {dtype}")
+                ax.plot(
+                    [x["batch"] for x in r],
+                    [x["rollout_steps_per_s"] for x in r],
+                    "o-",
+                    label=f"fosmc_jax {integ} {dtype}",
+                )
     r = pick(rows, kind="fosmc_jax", plant="arm")
     if r:
-        ax.plot([x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "s--", label="fosmc_jax arm euler float32")
+        ax.plot(
+            [x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "s--", label="fosmc_jax arm euler float32"
+        )
     for r in rows:
         if r["kind"] != "fosmc_jax" and r["plant"] == "linear":
-            ax.plot([r["batch"]], [r["rollout_steps_per_s"]], "x", ms=9, label=f"{r['kind']} {r['integrator'][:5]} {r['dtype']}")
+            ax.plot(
+                [r["batch"]],
+                [r["rollout_steps_per_s"]],
+                "x",
+                ms=9,
+                label=f"{r['kind']} {r['integrator'][:5]} {r['dtype']}",
+            )
     ax.set_xscale("log"), ax.set_yscale("log")
     ax.set_xlabel("batch (rollouts)"), ax.set_ylabel("rollout-steps / s")
     ax.set_title(f"{info['machine']['cpu']} ({info['machine']['cores']} cores), {info['steps']} steps")

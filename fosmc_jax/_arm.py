@@ -300,7 +300,7 @@ def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     Returns:
       ``a_rows`` (3, 9) (units 1/s^k), ``b_rows`` (3, 3) (rad/(s^3 V)).
     """
-    q, dq, ddq = X[0::3], X[1::3], X[2::3]
+    q, dq = X[0::3], X[1::3]
     p = cast_params(arm.params, X.dtype)
     m = arm.payload
     M = mass_matrix(p, m, q)
@@ -311,7 +311,9 @@ def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     dc_dq, dc_ddq = jax.jacfwd(cq, argnums=(0, 1))(q, dq)
     dG = jax.jacfwd(gravity, argnums=2)
     G_bar = jnp.einsum(
-        "n,nij->ij", jnp.asarray(_GL_WEIGHTS, X.dtype), jax.vmap(lambda s: dG(p, m, s * q))(jnp.asarray(_GL_NODES, X.dtype))
+        "n,nij->ij",
+        jnp.asarray(_GL_WEIGHTS, X.dtype),
+        jax.vmap(lambda s: dG(p, m, s * q))(jnp.asarray(_GL_NODES, X.dtype)),
     )
     r, k, kb = p.R / p.L, p.Kt / p.L, p.Kt * p.Kb / p.L
     F = jnp.diag(p.F)

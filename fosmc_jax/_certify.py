@@ -52,26 +52,18 @@ class Terms(NamedTuple):
     r: Array  # (3,) theta_d''' + (A_r + B_bar K) Z
 
 
-def terms(
-    ctrl: Controller, derived: Derived, derivatives: Array, Z: Array, law: str = "paper"
-) -> Terms:
+def terms(ctrl: Controller, derived: Derived, derivatives: Array, Z: Array, law: str = "paper") -> Terms:
     """:class:`Terms` at reference ``derivatives`` (4, 3) (a reference's output at t) and
     tracking error ``Z`` (9,), with the controller's nominal model for Omega (10)."""
     X_d = desired_state(derivatives)
     Omega = feedforward(ctrl.a_rows, ctrl.b_rows, derivatives)
-    rho = (
-        ctrl.gamma[0] * safe_norm(Z)
-        + ctrl.gamma[1] * safe_norm(X_d)
-        + ctrl.gamma[2] * safe_norm(Omega)
-    )
+    rho = ctrl.gamma[0] * safe_norm(Z) + ctrl.gamma[1] * safe_norm(X_d) + ctrl.gamma[2] * safe_norm(Omega)
     U0 = Omega + derived.K @ Z if law == "equivalent" else Omega
     r = derivatives[3] + (ctrl.a_rows + ctrl.b_rows @ derived.K) @ Z
     return Terms(X_d + Z, rho, U0, r)
 
 
-def control(
-    ctrl: Controller, derived: Derived, tm: Terms, s: Array, switching: str = "sign"
-) -> Array:
+def control(ctrl: Controller, derived: Derived, tm: Terms, s: Array, switching: str = "sign") -> Array:
     """U (3,) of (23) at sliding variable ``s`` (3,), volts."""
     return tm.U0 - derived.CB_inv @ (tm.rho * switch(s, ctrl.delta, switching))
 
@@ -203,8 +195,7 @@ def _controller(cfg: dict, gamma=None) -> tuple[Controller, Cycloid]:
 
 def _box(cfg: dict) -> tuple[np.ndarray, ...]:
     return tuple(
-        np.asarray(cfg["plant"]["box"][k], dtype=np.float64)
-        for k in ("A_lower", "A_upper", "B_lower", "B_upper")
+        np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in ("A_lower", "A_upper", "B_lower", "B_upper")
     )
 
 
@@ -215,9 +206,7 @@ _STATIC = ("switching", "law")
 def _box_values(ctrl, derivs, Zs, S, box, switching, law):
     """box_max_hitting over the grid derivs (T, 4, 3) x Zs (nZ, 9) x S (nS, 3): (T, nZ, nS)."""
     one = lambda d, Z, s: box_max_hitting(ctrl, d, Z, s, box, switching, law)[0]
-    return jax.lax.map(
-        lambda d: jax.vmap(lambda Z: jax.vmap(lambda s: one(d, Z, s))(S))(Zs), derivs
-    )
+    return jax.lax.map(lambda d: jax.vmap(lambda Z: jax.vmap(lambda s: one(d, Z, s))(S))(Zs), derivs)
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
@@ -271,7 +260,8 @@ def certify(
     """Check the hitting condition (20) numerically for a resolved config (``_config.resolve``).
 
     Sampled points (defaults: ``n_times`` 81, ``n_z`` 200 on the linear plant, 21 and 30 on the
-    arm, whose rows cost a model evaluation per point): ``n_times`` instants evenly over [0, sim.t_final]; tracking errors Z from
+    arm, whose rows cost a model evaluation per point): ``n_times`` instants evenly over
+    [0, sim.t_final]; tracking errors Z from
     :func:`z_samples` with ``n_z`` random ones inside the envelope |Z_i| <= scale of its state
     component (``z_scales`` = (theta rad, theta' rad/s, theta'' rad/s^2), same for each joint);
     s directions from :func:`s_directions` (26 sign patterns + ``n_s - 26`` random), times each
@@ -298,11 +288,7 @@ def certify(
     with jax.enable_x64(True):
         ctrl, ref = _controller(cfg, gamma)
         if s_norms is None:
-            s_norms = (
-                (1.0,)
-                if switching == "sign"
-                else tuple(float(np.max(ctrl.delta)) * k for k in (0.1, 1, 10, 100))
-            )
+            s_norms = (1.0,) if switching == "sign" else tuple(float(np.max(ctrl.delta)) * k for k in (0.1, 1, 10, 100))
         times = np.linspace(0.0, cfg["sim"]["t_final"], n_times)
         Zs = z_samples(n_z, scales, rng)
         dirs = s_directions(n_s - 26, rng)
@@ -328,9 +314,7 @@ def certify(
                 values = _box_values(ctrl, derivs, Zj, Sj, boxj, switching, law)  # (T, nZ, nS)
                 vmax, k = _argmax(values)
                 it, iz, i_s = np.unravel_index(int(k), values.shape)
-                _, a_v, b_v = box_max_hitting(
-                    ctrl, derivs[it], Zj[iz], Sj[i_s], boxj, switching, law
-                )
+                _, a_v, b_v = box_max_hitting(ctrl, derivs[it], Zj[iz], Sj[i_s], boxj, switching, law)
                 a_v, b_v = np.asarray(a_v), np.asarray(b_v)
                 code = _code_of(
                     np.concatenate([a_v, b_v], 1),
@@ -353,16 +337,12 @@ def certify(
                     "A_rows": V[iv, :, :9].tolist(),
                     "B_rows": V[iv, :, 9:].tolist(),
                 }
-                label = (
-                    "all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}"
-                ) + " vertices (seeded)"
+                label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
                 points = evaluations = n_pts * codes.size
         else:
             payloads = np.linspace(*PAYLOAD_RANGE, n_payloads)
             params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float64), ARM_PARAMS)
-            values = _arm_values(
-                ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law
-            )  # (P, T, nZ, nS)
+            values = _arm_values(ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law)  # (P, T, nZ, nS)
             vmax, k = _argmax(values)
             ip, it, iz, i_s = np.unravel_index(int(k), values.shape)
             where = {"payload": float(payloads[ip])}
@@ -370,9 +350,7 @@ def certify(
             points = evaluations = n_pts * n_payloads
         vmax = float(vmax)
         where = {"t": float(times[it]), "Z": Zs[iz].tolist(), "s": S[i_s].tolist(), **where}
-    return Certificate(
-        vmax, bool(vmax < 0), int(points), int(evaluations), where, label, plant, envelope
-    )
+    return Certificate(vmax, bool(vmax < 0), int(points), int(evaluations), where, label, plant, envelope)
 
 
 # ---------------------------------------------------------------------------- gamma bounds
@@ -390,9 +368,7 @@ class BoundVerdict(NamedTuple):
     verdict: str  # "sufficient and necessary", "sufficient, not necessary", "necessary, not sufficient", "neither"
 
 
-def gamma_verdicts(
-    cfg: dict, eps: float = 0.01, **options
-) -> tuple[dict[str, float], list[BoundVerdict]]:
+def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, float], list[BoundVerdict]]:
     """For each convention of (24)-(26) (``CONVENTIONS``), :func:`certify` at gamma = (1 +- eps)
     times the bound computed from the config's box (alpha, beta by vertex enumeration), the
     model and the poles. ``options`` go to :func:`certify`. Returns ({alpha, beta}, verdicts).
@@ -420,17 +396,11 @@ def gamma_verdicts(
             (False, True): "necessary, not sufficient",
             (False, False): "neither",
         }[(suff, nec)]  # fmt: skip
-        out.append(
-            BoundVerdict(
-                c, bound.tolist(), above.max_hitting, below.max_hitting, suff, nec, verdict
-            )
-        )
+        out.append(BoundVerdict(c, bound.tolist(), above.max_hitting, below.max_hitting, suff, nec, verdict))
     return {"alpha": d.alpha.value, "beta": d.beta.value}, out
 
 
-def critical_scale(
-    cfg: dict, direction, lo: float = 0.0, hi: float = 64.0, iters: int = 12, **options
-) -> float:
+def critical_scale(cfg: dict, direction, lo: float = 0.0, hi: float = 64.0, iters: int = 12, **options) -> float:
     """Smallest lambda in [lo, hi] (bisection, ``iters`` steps) such that :func:`certify` holds
     with gamma = lambda * ``direction`` (3,); +inf if it fails at ``hi``. Assumes the check is
     monotone in lambda along the ray (it is for ``sign`` where larger gamma only adds a term

@@ -105,7 +105,9 @@ def _print_rollouts(rollouts: list[dict]) -> None:
     print(head)
     for i, r in enumerate(rollouts):
         for k, name in enumerate(METRIC_NAMES):
-            lead = f"{i:>7} {r['plant_index']:>5} {r['offset_index']:>6} {str(r['diverged']):>8}" if k == 0 else " " * 29
+            lead = (
+                f"{i:>7} {r['plant_index']:>5} {r['offset_index']:>6} {str(r['diverged']):>8}" if k == 0 else " " * 29
+            )
             vals = " ".join(f"{v:>11.4e}" for v in r["metrics"][name])
             print(f"{lead}  {name + ' (' + units[name] + ')':<22}{vals}")
 
@@ -164,8 +166,9 @@ def cmd_bounds(args) -> int:
         ):
             for i in range(3):
                 for j in range(nom.shape[1]):
-                    print(f"  {m}({3 * i + 3},{j + 1})".ljust(10) + f"{lo_[i, j]:11.3f}{hi_[i, j]:11.3f}{nom[i, j]:12.3f}"
-                          f"   {plo[i, j]:11.3f}{phi[i, j]:12.3f}{pnom[i, j]:11.3f}")  # fmt: skip
+                    arm_cols = f"{lo_[i, j]:11.3f}{hi_[i, j]:11.3f}{nom[i, j]:12.3f}"
+                    paper_cols = f"{plo[i, j]:11.3f}{phi[i, j]:12.3f}{pnom[i, j]:11.3f}"
+                    print(f"  {m}({3 * i + 3},{j + 1})".ljust(10) + arm_cols + "   " + paper_cols)
     print(f"alpha = max ||B_bar^-1 dA_r||_2 over {d.alpha.vertices_checked} box vertices = {d.alpha.value:.4f}"
           f"   (paper (31): {_paper.ALPHA_PRINTED})")  # fmt: skip
     print(f"beta  = max ||B_bar^-1 dB_r||_2 over {d.beta.vertices_checked} box vertices = {d.beta.value:.4f}"
@@ -173,7 +176,10 @@ def cmd_bounds(args) -> int:
     print(f"({elapsed:.1f} s)\nK (3x9), placing the poles exactly (A + BK, (16)):")
     for row in d.K:
         print("  " + "  ".join(f"{x:9.4f}" for x in row))
-    print("eig(A + BK): " + ", ".join(f"{z.real:.4g}" + (f"{z.imag:+.3g}j" if z.imag else "") for z in d.closed_loop_poles))
+    print(
+        "eig(A + BK): "
+        + ", ".join(f"{z.real:.4g}" + (f"{z.imag:+.3g}j" if z.imag else "") for z in d.closed_loop_poles)
+    )
     print("CB:")
     for row in d.CB:
         print("  " + fmt(row))

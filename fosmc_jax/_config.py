@@ -320,9 +320,13 @@ def _check_consistency(cfg: dict) -> None:
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
     if cfg["tune"]["train_dt"] > sim["t_final"]:
-        raise ConfigError(f"tune.train_dt: expected at most sim.t_final = {sim['t_final']}, got {cfg['tune']['train_dt']}")
+        raise ConfigError(
+            f"tune.train_dt: expected at most sim.t_final = {sim['t_final']}, got {cfg['tune']['train_dt']}"
+        )
     if sim["t_final"] / sim["dt"] > MAX_STEPS:
-        raise ConfigError(f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}")
+        raise ConfigError(
+            f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}"
+        )
     for m in ("A", "B"):
         if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
             raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")

@@ -232,7 +232,6 @@ def gamma_bounds(alpha, beta, C: Array, b_rows: Array, K: Array, convention: str
     return jnp.stack([alpha * n_cb + n_cbk, alpha * n_cb, beta * n_cb]) / (1 + beta)
 
 
-
 # ---------------------------------------------------------------------------- summary
 
 

@@ -56,9 +56,7 @@ class Accumulator(NamedTuple):
 
 def start(e: Array, u: Array) -> Accumulator:
     """The accumulator after sample k = 0, with error ``e`` (3,) and control ``u`` (3,)."""
-    return Accumulator(
-        jnp.ones((), e.dtype), e**2, jnp.abs(e), e, jnp.zeros_like(u), u**2, jnp.abs(u)
-    )
+    return Accumulator(jnp.ones((), e.dtype), e**2, jnp.abs(e), e, jnp.zeros_like(u), u**2, jnp.abs(u))
 
 
 def add(acc: Accumulator, e: Array, u: Array, u_prev: Array) -> Accumulator:

@@ -76,7 +76,7 @@ def plants_under_test(kind: str, dtype) -> list[tuple[str, Any]]:
 
 
 def run_cases(
-    kind: str, settings: Settings = Settings(), dtype=jnp.float64, log: Callable[[str], None] = print
+    kind: str, settings: Settings | None = None, dtype=jnp.float64, log: Callable[[str], None] = print
 ) -> list[Case]:
     """Simulate every case. Per plant group, SGN is one vmapped call over the group's plants and
     the three Table 1 sets are one call over (set x plant): four compilations in all."""
@@ -97,7 +97,8 @@ def run_cases(
         n = sum(sizes)
         for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
             start = time.perf_counter()
-            batch = jax.tree.map(lambda x: jnp.concatenate([x] * len(sets)), plants)
+            repeats = len(sets)
+            batch = jax.tree.map(lambda x, r=repeats: jnp.concatenate([x] * r), plants)
             ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)])
             # every step of the primary plant's SGN runs is kept, to show the chattering period
             save_every = 1 if switching == "sign" and g == 0 else settings.save_every
@@ -197,22 +198,22 @@ def design_facts() -> str:
     worst = np.unravel_index(np.abs(mid_B).argmax(), mid_B.shape)
     s_cb = np.linalg.svd(d.CB, compute_uv=False)
     f3 = lambda v: " / ".join(f"{x:.4g}" for x in v)
-    one_minus = {
-        c: d.gamma_min[c] * (1 + d.beta.value) / (1 - d.beta.value) for c in d.gamma_min
-    }
+    one_minus = {c: d.gamma_min[c] * (1 + d.beta.value) / (1 - d.beta.value) for c in d.gamma_min}
     lines = [
         "| quantity | computed by fosmc_jax | printed in the paper |",
         "|---|---|---|",
         f"| alpha (31), max over {d.alpha.vertices_checked} vertices | {d.alpha.value:.4f} | {paper.ALPHA_PRINTED} |",
         f"| beta (31), max over {d.beta.vertices_checked} vertices | {d.beta.value:.4f} | {paper.BETA_PRINTED} |",
         f"| largest \\|box midpoint - nominal (29)\\|, A rows | {np.abs(mid_A).max():.3g} | 0 (rounding) |",
-        f"| largest \\|box midpoint - nominal (29)\\|, B rows | {np.abs(mid_B).max():.3g} at B({3 * worst[0] + 3},{worst[1] + 1}) | 0 |",
+        f"| largest \\|box midpoint - nominal (29)\\|, B rows | {np.abs(mid_B).max():.3g} "
+        f"at B({3 * worst[0] + 3},{worst[1] + 1}) | 0 |",
         f"| eig(A + BK), K placed from (33) | {fmt_eig(d.closed_loop_poles)} | (33) |",
         f"| eig(A + B K_printed) | {fmt_eig(plus)} | (33) claimed |",
         f"| eig(A - B K_printed) | {fmt_eig(minus)} | (33) claimed |",
         f"| singular values of CB | {f3(s_cb)} | - |",
         f"| gamma bounds, `spectral` (24)-(26) | {f3(d.gamma_min['spectral'])} | {f3(paper.GAMMA_MIN_PRINTED)} (35) |",
-        f"| gamma bounds, `paper` (\\|\\|CB\\|\\| = sigma_min) | {f3(d.gamma_min['paper'])} | {f3(paper.GAMMA_MIN_PRINTED)} (35) |",
+        f"| gamma bounds, `paper` (\\|\\|CB\\|\\| = sigma_min) | {f3(d.gamma_min['paper'])} "
+        f"| {f3(paper.GAMMA_MIN_PRINTED)} (35) |",
         f"| `spectral` bounds with 1 - beta for 1 + beta | {f3(one_minus['spectral'])} | - |",
         f"| `paper` bounds with 1 - beta for 1 + beta | {f3(one_minus['paper'])} | - |",
         f"| gains used (36) | {f3(paper.GAMMA)} | {f3(paper.GAMMA)} |",

@@ -59,9 +59,7 @@ def batch_mesh(devices: int | Sequence[jax.Device] | None = None) -> Mesh:
         devices = available
     elif isinstance(devices, int):
         if not 1 <= devices <= len(available):
-            raise ValueError(
-                f"devices = {devices}, but {len(available)} available (on CPU, see use_host_devices)"
-            )
+            raise ValueError(f"devices = {devices}, but {len(available)} available (on CPU, see use_host_devices)")
         devices = available[:devices]
     return Mesh(np.asarray(devices), (AXIS,))
 

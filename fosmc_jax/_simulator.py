@@ -211,9 +211,7 @@ def simulate(
 
         carry, (ks, samples) = jax.lax.scan(block, carry, None, length=blocks)
         carry = advance(carry, rest)
-        stack = lambda head, body, tail: jnp.concatenate(
-            [head[None], body] + ([tail[None]] if rest else [])
-        )
+        stack = lambda head, body, tail: jnp.concatenate([head[None], body] + ([tail[None]] if rest else []))
         ks = stack(jnp.zeros((), jnp.int32), ks, carry.k)
         samples = jax.tree.map(stack, first, samples, carry.sample)
         trace = Trace(ks.astype(dtype) * dt, *samples)

@@ -259,8 +259,10 @@ def run(
         log(f"step {step + 1:4d}/{settings.steps}  loss {float(value):.5f}  error {float(err):.5f}  "
             f"chattering {float(chat):.5f}  |grad| {gnorm:.3e}  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
         done = step + 1
-        if checkpoint is not None and settings.checkpoint_every and (
-            done % settings.checkpoint_every == 0 or done == settings.steps
+        if (
+            checkpoint is not None
+            and settings.checkpoint_every
+            and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
             _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
     return u, history

@@ -26,9 +26,7 @@ SMALL = dict(n_times=5, n_z=6, n_s=28)
 
 def paper_controller(gamma=_paper.GAMMA, delta=_paper.DELTA_SETS[0]):
     f = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64))
-    ctrl = Controller(
-        f(_paper.C), f(_paper.POLES), f(gamma), f(delta), f(_paper.A_ROWS), f(_paper.B_ROWS)
-    )
+    ctrl = Controller(f(_paper.C), f(_paper.POLES), f(gamma), f(delta), f(_paper.A_ROWS), f(_paper.B_ROWS))
     ref = Cycloid(f(_paper.THETA_START), f(_paper.THETA_END), f(_paper.TAU))
     return ctrl, ref
 
@@ -38,22 +36,14 @@ def numpy_hitting(t, Z, s, a_true, b_true, gamma, delta, switching, law):
     (only K comes from the library)."""
     A, B = _paper.full_A(_paper.A_ROWS), _paper.full_B(_paper.B_ROWS)
     At, Bt = _paper.full_A(a_true), _paper.full_B(b_true)
-    K = np.asarray(
-        gain_from_poles(
-            jnp.asarray(_paper.A_ROWS), jnp.asarray(_paper.B_ROWS), jnp.asarray(_paper.POLES)
-        )
-    )
+    K = np.asarray(gain_from_poles(jnp.asarray(_paper.A_ROWS), jnp.asarray(_paper.B_ROWS), jnp.asarray(_paper.POLES)))
     C = _paper.C
     # reference (30) and its derivatives, by hand
     d = _paper.THETA_END - _paper.THETA_START
     tau = _paper.TAU
     w = 2 * np.pi / tau
     inside = 0 <= t < tau
-    th = (
-        _paper.THETA_START + d / (2 * np.pi) * (w * t - np.sin(w * t))
-        if inside
-        else _paper.THETA_END
-    )
+    th = _paper.THETA_START + d / (2 * np.pi) * (w * t - np.sin(w * t)) if inside else _paper.THETA_END
     d1 = d / tau * (1 - np.cos(w * t)) if inside else 0 * d
     d2 = d * w / tau * np.sin(w * t) if inside else 0 * d
     d3 = d * w**2 / tau * np.cos(w * t) if inside else 0 * d
@@ -62,11 +52,7 @@ def numpy_hitting(t, Z, s, a_true, b_true, gamma, delta, switching, law):
     Omega = np.linalg.solve(B[[2, 5, 8]], Xd_dot[[2, 5, 8]] - (A @ X_d)[[2, 5, 8]])
     assert np.allclose(A @ X_d + B @ Omega, Xd_dot)  # (10)
     X = X_d + Z
-    rho = (
-        gamma[0] * np.linalg.norm(Z)
-        + gamma[1] * np.linalg.norm(X_d)
-        + gamma[2] * np.linalg.norm(Omega)
-    )
+    rho = gamma[0] * np.linalg.norm(Z) + gamma[1] * np.linalg.norm(X_d) + gamma[2] * np.linalg.norm(Omega)
     f = np.sign(s) if switching == "sign" else s / (np.abs(s) + delta)
     U = Omega - np.linalg.solve(C @ B, rho * f) + (K @ Z if law == "equivalent" else 0)
     Zdot = At @ X + Bt @ U - Xd_dot
@@ -80,9 +66,7 @@ def random_vertex(rng):
     return a, b
 
 
-@pytest.mark.parametrize(
-    "switching,law", [("sign", "paper"), ("ratio", "paper"), ("sign", "equivalent")]
-)
+@pytest.mark.parametrize("switching,law", [("sign", "paper"), ("ratio", "paper"), ("sign", "equivalent")])
 def test_hitting_matches_numpy(switching, law):
     rng = np.random.default_rng(1)
     ctrl, ref = paper_controller()
@@ -122,9 +106,7 @@ def test_box_max_equals_vertex_enumeration_on_a_small_box():
         d = ref(jnp.asarray(rng.uniform(0, 4)))
         Z, s = jnp.asarray(rng.normal(size=9) * 0.2), jnp.asarray(rng.normal(size=3))
         value, a, b = box_max_hitting(ctrl, d, Z, s, box)
-        each = [
-            float(hitting(ctrl, d, Z, s, jnp.asarray(v[:, :9]), jnp.asarray(v[:, 9:]))) for v in V
-        ]
+        each = [float(hitting(ctrl, d, Z, s, jnp.asarray(v[:, :9]), jnp.asarray(v[:, 9:]))) for v in V]
         np.testing.assert_allclose(float(value), max(each), rtol=1e-10)
         np.testing.assert_allclose(float(hitting(ctrl, d, Z, s, a, b)), max(each), rtol=1e-10)
 
@@ -132,9 +114,7 @@ def test_box_max_equals_vertex_enumeration_on_a_small_box():
 def test_box_max_bounds_every_vertex_of_the_paper_box():
     rng = np.random.default_rng(3)
     ctrl, ref = paper_controller()
-    box = tuple(
-        jnp.asarray(x) for x in (_paper.A_LOWER, _paper.A_UPPER, _paper.B_LOWER, _paper.B_UPPER)
-    )
+    box = tuple(jnp.asarray(x) for x in (_paper.A_LOWER, _paper.A_UPPER, _paper.B_LOWER, _paper.B_UPPER))
     d = ref(jnp.asarray(0.7))
     Z, s = jnp.asarray(rng.normal(size=9) * 0.1), jnp.asarray(rng.normal(size=3))
     top = float(box_max_hitting(ctrl, d, Z, s, box)[0])
@@ -168,9 +148,7 @@ def test_points_checked_counts():
     cfg = _config.resolve({})
     c = certify(cfg, **SMALL)
     n = 5 * (1 + 18 + 6) * 28
-    assert (
-        c.evaluations == n and c.points_checked == n * 2**32 and c.vertices.startswith("all 2^32")
-    )
+    assert c.evaluations == n and c.points_checked == n * 2**32 and c.vertices.startswith("all 2^32")
     v = certify(cfg, vertices=7, **SMALL)
     assert v.points_checked == v.evaluations == n * 7 and v.vertices.startswith("sampled 7 of 2^32")
     assert v.max_hitting <= c.max_hitting + 1e-9  # a sample of vertices never beats the exact max
@@ -200,11 +178,7 @@ def test_samplers():
     assert d.shape == (30, 3) and np.allclose(np.linalg.norm(d, axis=1), 1)
     assert len({tuple(np.sign(x)) for x in d[:26]}) == 26
     z = z_samples(10, np.tile([0.1, 1, 10], 3), rng)
-    assert (
-        z.shape == (29, 9)
-        and np.all(z[0] == 0)
-        and np.all(np.abs(z) <= np.tile([0.1, 1, 10], 3) + 1e-12)
-    )
+    assert z.shape == (29, 9) and np.all(z[0] == 0) and np.all(np.abs(z) <= np.tile([0.1, 1, 10], 3) + 1e-12)
     codes = vertex_codes(32, 100, rng)
     assert codes.size == len(set(codes.tolist())) == 100
     assert np.array_equal(vertex_codes(3, 100, rng), np.arange(8))

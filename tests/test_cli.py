@@ -25,13 +25,16 @@ def run(capsys, tmp_path, text, *args):
 
 
 def test_simulate_json_has_one_entry_per_rollout(capsys, tmp_path):
-    text = SHORT + """
+    text = (
+        SHORT
+        + """
 initial_offset = [[0, 0, 0, 0, 0, 0, 0, 0, 0], [0.01, 0, 0, 0, 0, 0, 0, 0, 0]]
 [plant]
 uncertainty = "sample"
 samples = 3
 seed = 7
 """
+    )
     code, out, _ = run(capsys, tmp_path, text, "simulate", "--json")
     assert code == 0
     d = json.loads(out)

@@ -173,9 +173,7 @@ def _toml_value(v) -> str:
     if isinstance(v, int):
         return str(v)
     if isinstance(v, float):
-        return (
-            "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
-        )
+        return "nan" if math.isnan(v) else ("inf" if v > 0 else "-inf") if math.isinf(v) else repr(v)
     if isinstance(v, str):
         return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
     if isinstance(v, list):
@@ -187,12 +185,7 @@ def _toml_value(v) -> str:
 
 def _toml(cfg: dict) -> str:
     top = [f'"{k}" = {_toml_value(v)}' for k, v in cfg.items() if not isinstance(v, dict)]
-    return (
-        "\n".join(
-            top + [f'"{k}" = {_toml_value(v)}' for k, v in cfg.items() if isinstance(v, dict)]
-        )
-        + "\n"
-    )
+    return "\n".join(top + [f'"{k}" = {_toml_value(v)}' for k, v in cfg.items() if isinstance(v, dict)]) + "\n"
 
 
 @settings(
@@ -233,9 +226,7 @@ def test_cli_unreadable_or_invalid_files(text, tmp_path, capsys):
         path.write_text(text)
     code = main(["simulate", "--config", str(path)])
     _, err = capsys.readouterr()
-    assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("fosmc: error: "), (
-        err
-    )
+    assert code == 2 and len(err.strip().splitlines()) == 1 and err.startswith("fosmc: error: "), err
 
 
 @pytest.mark.parametrize(
@@ -283,9 +274,7 @@ def test_unknown_key_with_newline_is_one_line():
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize(
-    "cfg", [{"controller": {"gamma": [1, 2, "3"]}}, {"plant": {"payloads": [True]}}]
-)
+@pytest.mark.parametrize("cfg", [{"controller": {"gamma": [1, 2, "3"]}}, {"plant": {"payloads": [True]}}])
 def test_non_numbers_inside_arrays_are_rejected(cfg):
     with pytest.raises(_config.ConfigError):
         _config.resolve(cfg)

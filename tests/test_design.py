@@ -75,8 +75,7 @@ def test_beta_equals_full_enumeration_in_numpy(alpha_beta):
     binv = np.linalg.inv(paper.B_ROWS)
     best = max(
         np.linalg.norm(
-            binv
-            @ (np.where(np.reshape(bits, (3, 3)), paper.B_UPPER, paper.B_LOWER) - paper.B_ROWS),
+            binv @ (np.where(np.reshape(bits, (3, 3)), paper.B_UPPER, paper.B_LOWER) - paper.B_ROWS),
             2,
         )
         for bits in itertools.product((0, 1), repeat=9)
@@ -125,9 +124,7 @@ def test_box_norm_bound_rejects_bad_boxes():
     with pytest.raises(fj.DesignError):
         fj.box_norm_bound(z, z + 1, z, np.eye(3))  # lower > upper
     with pytest.raises(fj.DesignError):
-        fj.box_norm_bound(
-            np.zeros((3, 11)), np.zeros((3, 11)), np.ones((3, 11)), np.eye(3), max_free=30
-        )
+        fj.box_norm_bound(np.zeros((3, 11)), np.zeros((3, 11)), np.ones((3, 11)), np.eye(3), max_free=30)
 
 
 # ------------------------------------------------------------------ closed-form lambda_max
@@ -172,29 +169,19 @@ def test_lambda_max_sym3_matches_eigvalsh():
 
 POLE_CASES = {
     "paper_33": paper.POLES,
-    "repeated_within_joint": np.array(
-        [[-1.0, -1.0, -2.0], [-2.0, -2.0, -2.0], [-0.5, -0.5, -0.05]]
-    ),
-    "complex_pair": np.array(
-        [[-1 + 2j, -1 - 2j, -4], [-0.3, -0.31, -3.0], [-0.2 + 0.05j, -0.2 - 0.05j, -0.03]]
-    ),
+    "repeated_within_joint": np.array([[-1.0, -1.0, -2.0], [-2.0, -2.0, -2.0], [-0.5, -0.5, -0.05]]),
+    "complex_pair": np.array([[-1 + 2j, -1 - 2j, -4], [-0.3, -0.31, -3.0], [-0.2 + 0.05j, -0.2 - 0.05j, -0.03]]),
 }
 
 
 @pytest.mark.parametrize("case", sorted(POLE_CASES))
 def test_gain_from_poles_places_poles(case):
     poles = POLE_CASES[case]
-    K = np.asarray(
-        fj.gain_from_poles(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS), jnp.asarray(poles))
-    )
+    K = np.asarray(fj.gain_from_poles(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS), jnp.asarray(poles)))
     assert K.shape == (3, 9) and K.dtype == np.float64
-    np.testing.assert_allclose(
-        K, numpy_gain(paper.A_ROWS, paper.B_ROWS, poles), rtol=1e-10, atol=1e-12
-    )
+    np.testing.assert_allclose(K, numpy_gain(paper.A_ROWS, paper.B_ROWS, poles), rtol=1e-10, atol=1e-12)
 
-    A_cl_lib = np.asarray(
-        fj.closed_loop_matrix(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS), jnp.asarray(K))
-    )
+    A_cl_lib = np.asarray(fj.closed_loop_matrix(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS), jnp.asarray(K)))
     A_cl_np = A_NOM + B_NOM @ K  # independent 9x9 construction
     np.testing.assert_allclose(A_cl_lib, A_cl_np, rtol=1e-13, atol=1e-12)
 
@@ -276,12 +263,8 @@ def test_gamma_bounds_match_numpy_in_both_conventions():
         args = (alpha, beta, jnp.asarray(C), jnp.asarray(b_rows), jnp.asarray(K))
         spec = np.asarray(fj.gamma_bounds(*args, convention="spectral"))
         pap = np.asarray(fj.gamma_bounds(*args, convention="paper"))
-        np.testing.assert_allclose(
-            spec, numpy_gamma_bounds(alpha, beta, C, b_rows, K, "max"), rtol=1e-12
-        )
-        np.testing.assert_allclose(
-            pap, numpy_gamma_bounds(alpha, beta, C, b_rows, K, "min"), rtol=1e-12
-        )
+        np.testing.assert_allclose(spec, numpy_gamma_bounds(alpha, beta, C, b_rows, K, "max"), rtol=1e-12)
+        np.testing.assert_allclose(pap, numpy_gamma_bounds(alpha, beta, C, b_rows, K, "min"), rtol=1e-12)
     with pytest.raises(fj.DesignError):
         fj.gamma_bounds(*args, convention="frobenius")
 

@@ -36,9 +36,7 @@ def feedforward_variation_rate():
 def runs():
     """{integrator: (SGN metrics, Table 1 metrics with a leading set axis)}, NumPy."""
     plant = fj.LinearPlant(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS))
-    ref = fj.Cycloid(
-        jnp.asarray(paper.THETA_START), jnp.asarray(paper.THETA_END), jnp.asarray(paper.TAU)
-    )
+    ref = fj.Cycloid(jnp.asarray(paper.THETA_START), jnp.asarray(paper.THETA_END), jnp.asarray(paper.TAU))
     ctrl = fj.Controller(
         *(
             jnp.asarray(x)
@@ -69,9 +67,7 @@ def runs():
     out = {}
     for integrator in fj.INTEGRATORS:
         sign = run(ctrl.delta, integrator, "sign")
-        sets = jax.vmap(run, in_axes=(0, None, None))(
-            jnp.asarray(paper.DELTA_SETS), integrator, "ratio"
-        )
+        sets = jax.vmap(run, in_axes=(0, None, None))(jnp.asarray(paper.DELTA_SETS), integrator, "ratio")
         assert not bool(sign.diverged) and not np.any(np.asarray(sets.diverged))
         out[integrator] = (
             jax.tree.map(np.asarray, sign.metrics),

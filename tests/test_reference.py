@@ -9,12 +9,8 @@ import pytest
 import fosmc_jax as fj
 from fosmc_jax import paper
 
-PAPER_CYCLOID = fj.Cycloid(
-    jnp.asarray(paper.THETA_START), jnp.asarray(paper.THETA_END), jnp.asarray(paper.TAU)
-)
-OTHER_CYCLOID = fj.Cycloid(
-    jnp.array([0.3, -2.0, 0.0]), jnp.array([-0.4, 1.0, 0.05]), jnp.asarray(0.7)
-)
+PAPER_CYCLOID = fj.Cycloid(jnp.asarray(paper.THETA_START), jnp.asarray(paper.THETA_END), jnp.asarray(paper.TAU))
+OTHER_CYCLOID = fj.Cycloid(jnp.array([0.3, -2.0, 0.0]), jnp.array([-0.4, 1.0, 0.05]), jnp.asarray(0.7))
 SINUSOID = fj.Sinusoid(
     jnp.array([0.1, -0.5, 1.0]),
     jnp.array([0.8, 0.2, -0.3]),
@@ -41,9 +37,7 @@ def test_cycloid_derivatives_match_autodiff(ref):
         assert got.shape == (4, 3)
         np.testing.assert_allclose(got, derivatives_by_autodiff(ref, t), rtol=1e-12, atol=1e-12)
     # after tau: at rest at the end point
-    np.testing.assert_allclose(
-        np.asarray(ref(jnp.asarray(1.5 * tau)))[0], np.asarray(ref.end), atol=1e-14
-    )
+    np.testing.assert_allclose(np.asarray(ref(jnp.asarray(1.5 * tau)))[0], np.asarray(ref.end), atol=1e-14)
     np.testing.assert_allclose(np.asarray(ref(jnp.asarray(1.5 * tau)))[1:], 0.0, atol=0)
     # and before 0: at rest at the start point
     np.testing.assert_allclose(np.asarray(ref(jnp.asarray(-0.1)))[0], np.asarray(ref.start), atol=0)
@@ -53,14 +47,8 @@ def test_cycloid_position_formula():
     # (30) written out in NumPy at a few t.
     s, e, tau = paper.THETA_START, paper.THETA_END, paper.TAU
     for t in (0.0, 0.3, 1.0, 1.7, 2.0, 2.5):
-        want = (
-            s + (e - s) / (2 * np.pi) * (2 * np.pi * t / tau - np.sin(2 * np.pi * t / tau))
-            if t < tau
-            else e
-        )
-        np.testing.assert_allclose(
-            np.asarray(PAPER_CYCLOID(jnp.asarray(t)))[0], want, rtol=0, atol=1e-14
-        )
+        want = s + (e - s) / (2 * np.pi) * (2 * np.pi * t / tau - np.sin(2 * np.pi * t / tau)) if t < tau else e
+        np.testing.assert_allclose(np.asarray(PAPER_CYCLOID(jnp.asarray(t)))[0], want, rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize("ref", [PAPER_CYCLOID, OTHER_CYCLOID], ids=["paper", "other"])
@@ -122,17 +110,11 @@ def test_feedforward_satisfies_10(ref, model):
 def test_reference_fields_can_be_traced():
     # The reference is a pytree: jit/vmap over its fields (e.g. a batch of end points).
     ends = jnp.stack([PAPER_CYCLOID.end, PAPER_CYCLOID.end + 0.1])
-    f = jax.jit(
-        jax.vmap(
-            lambda e: fj.Cycloid(PAPER_CYCLOID.start, e, PAPER_CYCLOID.duration)(jnp.asarray(0.9))
-        )
-    )
+    f = jax.jit(jax.vmap(lambda e: fj.Cycloid(PAPER_CYCLOID.start, e, PAPER_CYCLOID.duration)(jnp.asarray(0.9))))
     got = np.asarray(f(ends))
     for i in range(2):
         np.testing.assert_allclose(
             got[i],
-            np.asarray(
-                fj.Cycloid(PAPER_CYCLOID.start, ends[i], PAPER_CYCLOID.duration)(jnp.asarray(0.9))
-            ),
+            np.asarray(fj.Cycloid(PAPER_CYCLOID.start, ends[i], PAPER_CYCLOID.duration)(jnp.asarray(0.9))),
             rtol=1e-14,
         )

@@ -71,11 +71,7 @@ def np_simulate(plant_a, plant_b, ctrl, ref, X0, dt, n, integrator, switching, l
         Omega = np.linalg.solve(b_rows, d[3] - a_rows @ X_d)
         Z = X - X_d
         s = C @ Z - w
-        rho = (
-            gamma[0] * np.linalg.norm(Z)
-            + gamma[1] * np.linalg.norm(X_d)
-            + gamma[2] * np.linalg.norm(Omega)
-        )
+        rho = gamma[0] * np.linalg.norm(Z) + gamma[1] * np.linalg.norm(X_d) + gamma[2] * np.linalg.norm(Omega)
         U = Omega - CB_inv @ (rho * f(s))
         if law == "equivalent":
             U = U + K @ Z
@@ -91,9 +87,7 @@ def np_simulate(plant_a, plant_b, ctrl, ref, X0, dt, n, integrator, switching, l
     for k in range(n + 1):
         t = k * dt
         U, s, X_d = control(t, y[:9], y[9:])
-        if not (
-            np.all(np.isfinite(y)) and np.all(np.isfinite(U)) and np.all(np.abs(y[:9]) <= bound)
-        ):
+        if not (np.all(np.isfinite(y)) and np.all(np.isfinite(U)) and np.all(np.abs(y[:9]) <= bound)):
             bad = k
             break
         Xs.append(y[:9]), Xds.append(X_d), Us.append(U), ss.append(s)
@@ -135,9 +129,7 @@ def cycloid(start=paper.THETA_START, end=paper.THETA_END, tau=paper.TAU, dtype=n
 
 
 def np_ref(start=paper.THETA_START, end=paper.THETA_END, tau=paper.TAU):
-    return functools.partial(
-        np_cycloid, np.asarray(start, float), np.asarray(end, float), float(tau)
-    )
+    return functools.partial(np_cycloid, np.asarray(start, float), np.asarray(end, float), float(tau))
 
 
 def nominal_plant(dtype=np.float64):
@@ -159,9 +151,7 @@ def unbatch(plants, i):
 
 def assert_metrics_close(got, want, rtol, atol=0.0):
     for name in fj.METRIC_NAMES:
-        np.testing.assert_allclose(
-            np.asarray(getattr(got, name)), want[name], rtol=rtol, atol=atol, err_msg=name
-        )
+        np.testing.assert_allclose(np.asarray(getattr(got, name)), want[name], rtol=rtol, atol=atol, err_msg=name)
 
 
 def take(tree, i):
@@ -274,8 +264,7 @@ def test_convergence_order(integrator, dts, order):
     X0 = X_d + OFFSET
     U = np.linalg.solve(paper.B_ROWS, -paper.A_ROWS @ X_d)
     S = paper.C @ (
-        paper.full_A(paper.A_ROWS)
-        + paper.full_B(paper.B_ROWS) @ np_gain(paper.A_ROWS, paper.B_ROWS, paper.POLES)
+        paper.full_A(paper.A_ROWS) + paper.full_B(paper.B_ROWS) @ np_gain(paper.A_ROWS, paper.B_ROWS, paper.POLES)
     )
     X_T, s_T = exact_final(plant, U, X0, X_d, S, paper.C, T)
     # One compilation for all steps: n_steps is static, dt is not, so every run takes the
@@ -297,9 +286,7 @@ def test_convergence_order(integrator, dts, order):
             divergence_bound=1e300,
         )
         assert float(res.trace.t[k]) == pytest.approx(T, rel=1e-12)
-        np.testing.assert_allclose(
-            np.asarray(res.trace.U[: k + 1]), np.broadcast_to(U, (k + 1, 3)), rtol=1e-12
-        )
+        np.testing.assert_allclose(np.asarray(res.trace.U[: k + 1]), np.broadcast_to(U, (k + 1, 3)), rtol=1e-12)
         errs.append(
             max(
                 np.max(np.abs(np.asarray(res.trace.X[k]) - X_T)) / np.max(np.abs(X_T)),
@@ -350,9 +337,7 @@ def test_vmap_of_simulate_equals_one_by_one():
 
 
 def test_second_call_with_new_values_does_not_recompile():
-    opts = dict(
-        n_steps=37, integrator="euler", switching="tanh", law="equivalent"
-    )  # a config no other test uses
+    opts = dict(n_steps=37, integrator="euler", switching="tanh", law="equivalent")  # a config no other test uses
     before = fj.simulate._cache_size()
     fj.simulate(
         unbatch(sampled_plants(seed=1), 0),
@@ -386,9 +371,7 @@ def test_second_call_with_new_values_does_not_recompile():
     assert fj.simulate._cache_size() == first + 1
 
     b0 = fj.simulate_batch._cache_size()
-    fj.simulate_batch(
-        sampled_plants(seed=1), controller(), cycloid(), jnp.asarray(X_start()[None]), 1e-3, **opts
-    )
+    fj.simulate_batch(sampled_plants(seed=1), controller(), cycloid(), jnp.asarray(X_start()[None]), 1e-3, **opts)
     b1 = fj.simulate_batch._cache_size()
     fj.simulate_batch(
         sampled_plants(seed=3),
@@ -452,9 +435,7 @@ def test_float32_run_stays_float32_and_agrees_with_float64():
             getattr(r32.metrics, name), getattr(r64.metrics, name), rtol=0, atol=4e-6, err_msg=name
         )
     for name in ("control_rms", "max_abs_control", "chattering"):
-        np.testing.assert_allclose(
-            getattr(r32.metrics, name), getattr(r64.metrics, name), rtol=3e-5, err_msg=name
-        )
+        np.testing.assert_allclose(getattr(r32.metrics, name), getattr(r64.metrics, name), rtol=3e-5, err_msg=name)
     np.testing.assert_allclose(r32.trace.X, r64.trace.X, rtol=0, atol=2e-5)
 
 
@@ -463,9 +444,7 @@ def test_float32_run_stays_float32_and_agrees_with_float64():
 
 def test_divergence_is_flagged_frozen_and_isolated():
     n, dt, bound = 400, 1e-3, 1e3
-    gammas = jnp.asarray(
-        np.stack([paper.GAMMA, -paper.GAMMA])
-    )  # negative gains push away from s = 0
+    gammas = jnp.asarray(np.stack([paper.GAMMA, -paper.GAMMA]))  # negative gains push away from s = 0
     base = controller()
     run = lambda g: fj.simulate(
         nominal_plant(),

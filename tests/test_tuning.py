@@ -76,8 +76,9 @@ def start_point():
 
 def test_frozen_parameters_do_not_move_and_free_ones_converge():
     target = T.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
-    s = T.Settings(steps=300, learning_rate=0.1, schedule="constant", mode="reverse", free=("delta", "poles"),
-                   checkpoint_every=0)
+    s = T.Settings(
+        steps=300, learning_rate=0.1, schedule="constant", mode="reverse", free=("delta", "poles"), checkpoint_every=0
+    )
     u, hist = T.run(quadratic(target), start_point(), s, log=lambda _: None)
     np.testing.assert_array_equal(u.gamma, 0.0)
     np.testing.assert_allclose(u.delta, 1.0, atol=1e-2)
