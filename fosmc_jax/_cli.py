@@ -16,6 +16,7 @@ import numpy as np
 
 from . import _config, _paper
 from ._design import CONVENTIONS, summarize
+from ._io import write_text
 from ._metrics import METRIC_NAMES, batch_summary
 from ._simulator import simulate_batch
 
@@ -219,7 +220,7 @@ def cmd_reproduce(args) -> int:
     files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts(),
              "metrics_short.csv": R.to_csv(short)}  # fmt: skip
     for name, text in files.items():
-        _write_text(out / name, text)
+        write_text(out / name, text)
     _log("fosmc reproduce: drawing figures ...")
     figures = R.write_figures(cases, out, args.plant)
     if args.report:
@@ -227,23 +228,12 @@ def cmd_reproduce(args) -> int:
         text = report.read_text()
         text = R.replace_block(text, "metrics", files["metrics.md"])
         text = R.replace_block(text, "design", files["design.md"])
-        _write_text(report, text)
+        write_text(report, text)
         _log(f"fosmc reproduce: updated {report}")
     print(files["metrics.md"])
     _log(f"fosmc reproduce: wrote {', '.join(list(files) + figures)} to {out}/ "
          f"in {time.perf_counter() - start:.1f} s (total wall time)")  # fmt: skip
     return 0
-
-
-def _write_text(path, text: str) -> None:
-    """Atomic write: a temporary file beside ``path``, then rename."""
-    import os
-    import tempfile
-
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 # ---------------------------------------------------------------------------- tune
@@ -311,7 +301,7 @@ def cmd_tune(args) -> int:
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg,
     }
-    _write_text(out / "result.json", json.dumps(_jsonable(result), indent=1))
+    write_text(out / "result.json", json.dumps(_jsonable(result), indent=1))
     params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), built.controller, floor))
                       for p in history["params"]]  # fmt: skip
     plot_tuning(history, params_history, out / "tuning.png")

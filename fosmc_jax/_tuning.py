@@ -19,8 +19,6 @@ plain simulator (:func:`evaluate`).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +31,7 @@ import optax
 
 from ._controller import Controller
 from ._design import gain_from_poles, gamma_bounds
+from ._io import atomic_write
 from ._simulator import simulate_batch
 
 PARAM_NAMES = ("delta", "gamma", "poles")
@@ -180,13 +179,10 @@ def _value_and_grad(loss, mode: str):
 
 def _save(path: Path, payload: dict) -> None:
     """Atomically write a checkpoint (NumPy .npz with a JSON header)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".npz", dir=path.parent)
-    os.close(fd)
     leaves = payload.pop("leaves")
-    np.savez(tmp, header=np.frombuffer(json.dumps(payload).encode(), np.uint8),
-             **{f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)})  # fmt: skip
-    os.replace(tmp, path)
+    header = np.frombuffer(json.dumps(payload).encode(), np.uint8)
+    arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    atomic_write(path, lambda tmp: np.savez(tmp, header=header, **arrays))
 
 
 def _load(path: Path) -> tuple[dict, list[np.ndarray]]:
