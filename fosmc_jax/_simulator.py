@@ -86,6 +86,19 @@ def _rk4(f, t, y, dt):
 _STEPPERS = {"euler": _euler, "rk4": _rk4}
 
 
+def _guard(diverged, diverged_at, ok, t, old, fresh):
+    """Freeze rollouts that have diverged or fail ``ok`` now: keep ``old`` there, ``fresh``
+    elsewhere; returns (kept, diverged, time of the first failure)."""
+    keep = diverged | ~ok
+    kept = jax.tree.map(lambda a, b: jnp.where(keep, a, b), old, fresh)
+    return kept, keep, jnp.where(~diverged & ~ok, t, diverged_at)
+
+
+def _scan_steps(body, carry, steps: int):
+    """``steps`` iterations of the scan ``body`` (none when 0)."""
+    return carry if steps == 0 else jax.lax.scan(body, carry, None, length=steps)[0]
+
+
 def _finite_and_bounded(tree, X, bound) -> Array:
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
     return finite & jnp.all(jnp.abs(X) <= bound)
@@ -165,27 +178,14 @@ def simulate(
         k = c.k + 1
         new = sample(plant_state, w, k.astype(dtype) * dt)
         ok = _finite_and_bounded((plant_state, w, new), new.X, divergence_bound)
-        keep = c.diverged | ~ok
-        pick = lambda old, fresh: jax.tree.map(lambda a, b: jnp.where(keep, a, b), old, fresh)
         acc = _metrics.add(c.acc, new.X[theta] - new.X_d[theta], new.U, c.sample.U)
-        newly = ~c.diverged & ~ok
-        return (
-            _Carry(
-                k,
-                pick(c.plant_state, plant_state),
-                pick(c.w, w),
-                pick(c.sample, new),
-                pick(c.acc, acc),
-                c.diverged | ~ok,
-                jnp.where(newly, k.astype(dtype) * dt, c.diverged_at),
-            ),
-            None,
-        )
+        kept, diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, k.astype(dtype) * dt, (c.plant_state, c.w, c.sample, c.acc),
+            (plant_state, w, new, acc),
+        )  # fmt: skip
+        return _Carry(k, *kept, diverged, diverged_at), None
 
-    def advance(c: _Carry, steps: int) -> _Carry:
-        if steps == 0:
-            return c
-        return jax.lax.scan(body, c, None, length=steps)[0]
+    advance = functools.partial(_scan_steps, body)
 
     plant_state = plant.init(X0)
     w = jnp.zeros(3, dtype)
@@ -340,27 +340,13 @@ def _linear_batch(
         k = c.k + 1
         U, s, e = once(sample)(x, w, k.astype(dtype) * dt)
         ok = ok_of(x, w, U, s)
-        keep = c.diverged | ~ok
         acc = tuple(_metrics.add(a, ej, uj, pj) for a, ej, uj, pj in zip(c.acc, e, U, c.U))
-        pick = lambda old, fresh: jax.tree.map(lambda a, b: jnp.where(keep, a, b), old, fresh)
-        newly = ~c.diverged & ~ok
-        return (
-            _Batch(
-                k,
-                pick(c.x, x),
-                pick(c.w, w),
-                pick(c.U, U),
-                pick(c.acc, acc),
-                c.diverged | ~ok,
-                jnp.where(newly, k.astype(dtype) * dt, c.diverged_at),
-            ),
-            None,
+        kept, diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, k.astype(dtype) * dt, (c.x, c.w, c.U, c.acc), (x, w, U, acc)
         )
+        return _Batch(k, *kept, diverged, diverged_at), None
 
-    def advance(c: _Batch, steps: int) -> _Batch:
-        if steps == 0:
-            return c
-        return jax.lax.scan(body, c, None, length=steps)[0]
+    advance = functools.partial(_scan_steps, body)
 
     x = tuple(jnp.broadcast_to(X0s[:, i], (P, O)) for i in range(9))
     w = (jnp.zeros((P, O), dtype),) * 3
