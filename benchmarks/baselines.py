@@ -195,3 +195,85 @@ def _numba_kernel(numba):
 
     _KERNEL = kernel
     return kernel
+
+
+# ---------------------------------------------------------------------------- arm (NumPy)
+# How it is built: the kinematics of fosmc_jax._arm._frames rewritten in NumPy over the batch;
+# the link Jacobians J_v in closed form (geometric Jacobian: column i = axis_i x (p - o_i),
+# exact for this chain); G = g sum m J_v[z] (exact, = dV/dq); C from the Christoffel symbols of
+# M with dM/dq by central finite differences of the NumPy M (h = 1e-4, in float64 whatever the
+# run's dtype: float32 differences would lose the term). The JAX arm uses autodiff instead.
+
+
+def _arm_M(p, payload, theta):
+    """M (N, 3, 3) and the z rows of J_v of p2, p3, tool (3 x (N, 3)) for theta (N, 3)."""
+    c, s = np.cos(theta), np.sin(theta)
+    N, z0 = theta.shape[0], np.zeros(theta.shape[0], theta.dtype)
+    o = np.ones_like(z0)
+    R1 = np.stack([np.stack([c[:, 0], -s[:, 0], z0], 1), np.stack([s[:, 0], c[:, 0], z0], 1),
+                   np.stack([z0, z0, o], 1)], 1)  # fmt: skip
+    Ry = lambda j: np.stack([np.stack([c[:, j], z0, s[:, j]], 1), np.stack([z0, o, z0], 1),
+                             np.stack([-s[:, j], z0, c[:, j]], 1)], 1)  # fmt: skip
+    R2 = R1 @ Ry(1)
+    R3 = R2 @ Ry(2)
+    y1, zax = R1[:, :, 1], np.broadcast_to(np.array([0.0, 0.0, 1.0], theta.dtype), (N, 3))
+    down2, down3 = -R2[:, :, 2], -R3[:, :, 2]
+    shoulder = p["d1"] * zax + p["d2"] * y1
+    elbow = shoulder + p["l2"] * down2 + p["d3"] * y1
+    p2, p3, tool = shoulder + p["c2"] * down2, elbow + p["c3"] * down3, elbow + p["l3"] * down3
+    jac = lambda q, third: np.stack([np.cross(zax, q), np.cross(y1, q - shoulder),
+                                     np.cross(y1, q - elbow) if third else np.zeros_like(q)], 2)  # fmt: skip
+    J2, J3, Jt = jac(p2, False), jac(p3, True), jac(tool, True)
+    JtJ = lambda J: np.einsum("nki,nkj->nij", J, J)
+    Jw2 = np.stack([zax, y1, np.zeros_like(y1)], 2)
+    Jw3 = np.stack([zax, y1, y1], 2)
+    rot = lambda R, I, Jw: (lambda A: np.einsum("nki,k,nkj->nij", A, I, A))(np.swapaxes(R, 1, 2) @ Jw)
+    M = p["m2"] * JtJ(J2) + p["m3"] * JtJ(J3) + payload[:, None, None] * JtJ(Jt)
+    M = M + rot(R2, p["I2"], Jw2) + rot(R3, p["I3"], Jw3)
+    M = M + np.diag(p["Jm"] + np.array([p["I1"], 0.0, 0.0]))
+    return (M + np.swapaxes(M, 1, 2)) / 2, (J2[:, 2], J3[:, 2], Jt[:, 2])
+
+
+def _arm_accel(p, payload, theta, dtheta, current, h=1e-4):
+    """theta'' = M^-1 (Kt i - C theta' - G - F theta') (N, 3), and the torque balance."""
+    M, (z2, z3, zt) = _arm_M(p, payload, theta)
+    G = p["g"] * (p["m2"] * z2 + p["m3"] * z3 + payload[:, None] * zt)
+    th64 = theta.astype(np.float64)
+    dM = np.stack([(_arm_M(p, payload, th64 + h * e)[0] - _arm_M(p, payload, th64 - h * e)[0]) / (2 * h)
+                   for e in np.eye(3)], 3).astype(theta.dtype)  # fmt: skip  # [n, i, j, k] = dM_ij/dq_k
+    gamma = (dM + np.swapaxes(dM, 2, 3) - np.transpose(dM, (0, 3, 1, 2))) / 2
+    Cm = np.einsum("nijk,nk->nij", gamma, dtheta)
+    balance = np.einsum("nij,nj->ni", Cm, dtheta) + G + p["F"] * dtheta
+    return np.linalg.solve(M, (p["Kt"] * current - balance)[..., None])[..., 0], M, balance
+
+
+def numpy_arm(payloads, X0, dt, n):
+    """NumPy vectorised over the batch (payloads (N,), X0 (N, 9)), Python loop in time, Euler:
+    the arm of fosmc_jax._arm under the same controller; returns the mean RMS tracking error."""
+    from fosmc_jax._arm import ARM_PARAMS
+
+    dtype = X0.dtype
+    p = {k: np.asarray(v, dtype) for k, v in ARM_PARAMS._asdict().items()}
+    payload = np.asarray(payloads, dtype)
+    C, S, CB_inv, B_inv, a_nom, gamma, delta = design(dtype)
+    X_d, Omega, _ = _tables(n, dt, dtype)
+    nX = np.linalg.norm(X_d, axis=1) * gamma[1] + np.linalg.norm(Omega, axis=1) * gamma[2]
+    theta, dtheta, ddtheta = X0[:, 0::3].copy(), X0[:, 1::3].copy(), X0[:, 2::3]
+    _, M, balance = _arm_accel(p, payload, theta, dtheta, np.zeros_like(theta))
+    current = (np.einsum("nij,nj->ni", M, ddtheta) + balance) / p["Kt"]
+    w = np.zeros((X0.shape[0], 3), dtype)
+    sum_e2 = np.zeros((X0.shape[0], 3), dtype)
+    acc = _arm_accel(p, payload, theta, dtheta, current)[0]
+    for k in range(n + 1):
+        X = np.stack([theta, dtheta, acc], 2).reshape(-1, 9)
+        Z = X - X_d[k]
+        sum_e2 += Z[:, ::3] ** 2
+        if k == n:
+            break
+        s = Z @ C.T - w
+        rho = gamma[0] * np.linalg.norm(Z, axis=1) + nX[k]
+        U = Omega[k] - (rho[:, None] * s / (np.abs(s) + delta)) @ CB_inv.T
+        di = (U - p["R"] * current - p["Kb"] * dtheta) / p["L"]
+        theta, dtheta, current, w = theta + dt * dtheta, dtheta + dt * acc, current + dt * di, w + dt * (Z @ S.T)
+        acc = _arm_accel(p, payload, theta, dtheta, current)[0]
+    return float(np.sqrt(sum_e2 / (n + 1)).mean())

@@ -1,6 +1,6 @@
 """Throughput of fosmc_jax against baselines and the machine's matmul roof, one command:
 
-    python benchmarks/bench.py            # full: 4 s at dt = 1e-4 (40,000 steps), batches 1..16,384
+    python benchmarks/bench.py            # full: 4,000 steps, batches 1..16,384, one 40,000-step check
     python benchmarks/bench.py --quick    # CI: fewer steps and batches, under 2 minutes on 2 cores
 
 Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
@@ -155,26 +155,48 @@ def roof(n):
     return out
 
 
-def gradient(batch, steps, checkpoint_every):
+def gradient(batch, steps, checkpoint_every, horizons, plain_horizons=()):
+    """The tuner's path exactly: _tuning.make_loss (simulate_batch fast=False, vmap of simulate),
+    Euler float32, reverse mode, scan checkpointed every ``checkpoint_every`` steps (the CLI's
+    default remat_steps = 100). One value_and_grad against one forward call of the same loss,
+    both compiled; XLA temp memory of the compiled value_and_grad at each horizon (with and,
+    for ``plain_horizons``, without checkpointing)."""
     plants, ctrl, ref, X0s, dt = problem(batch, np.float32)
     opts = dict(n_steps=steps, integrator="euler", checkpoint_every=checkpoint_every)
     prob = _tuning.Problem(plants, ctrl, ref, X0s, dt, opts)
-    loss = _tuning.make_loss(prob, _tuning.Objective(), None)
     u = _tuning.to_internal(_tuning.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
-    vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
-    fwd = jax.jit(loss)
+    loss_of = lambda **o: _tuning.make_loss(prob._replace(options=dict(opts, **o)), _tuning.Objective(), None)
+    vg_of = lambda **o: jax.jit(jax.value_and_grad(loss_of(**o), has_aux=True)).lower(u).compile()
     t0 = time.perf_counter()
-    vgc = vg.lower(u).compile()
+    vgc = vg_of()
     compile_s = time.perf_counter() - t0
-    fwdc = fwd.lower(u).compile()
+    t0 = time.perf_counter()
+    fwdc = jax.jit(loss_of()).lower(u).compile()
+    fwd_compile_s = time.perf_counter() - t0
     t_vg, _ = best(lambda: vgc(u))
     t_f, _ = best(lambda: fwdc(u))
-    temp = lambda n: jax.jit(jax.value_and_grad(_tuning.make_loss(prob._replace(options=dict(opts, n_steps=n)),
-                             _tuning.Objective(), None), has_aux=True)).lower(u).compile().memory_analysis().temp_size_in_bytes  # fmt: skip
-    return {"batch": batch, "steps": steps, "checkpoint_every": checkpoint_every, "value_and_grad_s": t_vg,
-            "forward_s": t_f, "ratio": t_vg / t_f, "compile_s": compile_s,
-            "rollout_steps_per_s": batch * steps / t_vg,
-            "temp_bytes": {str(n): temp(n) for n in (steps // 2, steps, 2 * steps)}, "load": load()}  # fmt: skip
+    mem = lambda c: {"temp": c.memory_analysis().temp_size_in_bytes, "total": c.memory_analysis().temp_size_in_bytes
+                     + c.memory_analysis().argument_size_in_bytes + c.memory_analysis().output_size_in_bytes}  # fmt: skip
+    temp = {str(n): mem(vgc if n == steps else vg_of(n_steps=n)) for n in horizons}
+    plain = {str(n): mem(vg_of(n_steps=n, checkpoint_every=0)) for n in plain_horizons}
+    return {"path": "tuner: make_loss, simulate_batch(fast=False), euler, float32, reverse mode",
+            "batch": batch, "steps": steps, "checkpoint_every": checkpoint_every, "value_and_grad_s": t_vg,
+            "forward_s": t_f, "ratio": t_vg / t_f, "compile_s": compile_s, "forward_compile_s": fwd_compile_s,
+            "rollout_steps_per_s": batch * steps / t_vg, "temp_bytes": {k: v["temp"] for k, v in temp.items()},
+            "memory_bytes": temp, "memory_bytes_no_checkpoint": plain, "load": load()}  # fmt: skip
+
+
+def arm_baseline(batch, dtype, steps):
+    plants, _, _, X0s, _ = problem(batch, dtype, arm=True)
+    P, O = plants.payload.shape[0], X0s.shape[0]
+    payloads = np.repeat(np.asarray(plants.payload), O)
+    X0 = np.tile(np.asarray(X0s), (P, 1))
+    t0 = time.perf_counter()
+    rms = baselines.numpy_arm(payloads, X0, DT, steps)
+    wall = time.perf_counter() - t0
+    return {"kind": "numpy_arm", "plant": "arm", "integrator": "euler", "dtype": np.dtype(dtype).name,
+            "batch": batch, "steps": steps, "wall_s": wall, "compile_s": None, "rollout_steps_per_s": batch * steps / wall,
+            "flop_per_s": None, "reps": 1, "load": load(), "rms_error": rms}  # fmt: skip
 
 
 def machine():
@@ -194,30 +216,40 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="CI mode: under 2 minutes on 2 cores")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--steps", type=int, help="steps per rollout (default 2,000 quick, 4,000 full)")
+    ap.add_argument("--batches", type=lambda s: tuple(int(x) for x in s.split(",")), help="e.g. 1,64,1024")
+    ap.add_argument("--long-steps", type=int, help="one extra Euler float32 point at the head batch "
+                    "with this many steps, to confirm the per-step throughput (default 40,000 full, none quick)")  # fmt: skip
     args = ap.parse_args(argv)
     q = args.quick
-    steps = 2000 if q else 40000
-    batches = (1, 64, 1024) if q else (1, 64, 1024, 4096, 16384)
+    steps = args.steps or (2000 if q else 4000)
+    batches = args.batches or ((1, 64, 1024) if q else (1, 64, 1024, 4096, 16384))
     head = 1024 if q else 4096
+    long_steps = args.long_steps if args.long_steps is not None else (0 if q else 40000)
     t_start = time.perf_counter()
     rows = []
     say = lambda r: print(f"{r['kind']:22s} {r['plant']:6s} {r['integrator'][:5]:5s} {r['dtype']:7s} batch {r['batch']:6d} "
                           f"{r['rollout_steps_per_s']:.3e} rollout-steps/s  load {r['load']}", flush=True)  # fmt: skip
-    info = {"machine": machine(), "quick": q, "steps": steps, "dt": DT, "load_start": load()}
+    uptime = lambda: subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    info = {"machine": machine(), "quick": q, "steps": steps, "dt": DT, "load_start": load(), "uptime_start": uptime(),
+            "command": "python benchmarks/bench.py " + " ".join(sys.argv[1:] if argv is None else argv)}  # fmt: skip
     info["roof_flop_per_s"] = roof(1024 if q else 2048)
     print("roof", info["roof_flop_per_s"], flush=True)
     for dtype in (np.float32, np.float64):
         for integrator in ("euler", "rk4"):
             for batch in batches:
                 rows.append(time_jax(batch, dtype, integrator, steps)), say(rows[-1])
+    if long_steps:
+        rows.append(time_jax(head, np.float32, "euler", long_steps)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 
-        arm_steps = 200 if q else 4000
-        for batch in (1, 64) if q else (1, 64, 1024):
+        arm_steps = 200 if q else steps
+        for batch in (1, 64):
             rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
+        rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
     except ImportError:
         print("arm: fosmc_jax._arm not available, skipped")
     base_steps = 100 if q else 1000
@@ -225,10 +257,11 @@ def main(argv=None):
         rows.append(baseline("numpy_vectorised", head, np.float32, integrator, base_steps)), say(rows[-1])
     rows.append(baseline("numpy_loop", 4, np.float64, "euler", base_steps, extrapolated=True)), say(rows[-1])
     rows.append(baseline("scipy_ivp", 1, np.float64, "rk4", base_steps, extrapolated=True)), say(rows[-1])
-    nb = baseline("numba_prange", head, np.float32, "euler", steps // 4)
-    if nb is None:
-        print("numba: not installed, skipped")
-    else:
+    for batch in (head,) if q else (1024, head):
+        nb = baseline("numba_prange", batch, np.float32, "euler", steps)
+        if nb is None:
+            print("numba: not installed, skipped")
+            break
         rows.append(nb), say(nb)
     try:
         import diffrax  # noqa: F401
@@ -236,11 +269,13 @@ def main(argv=None):
         info["diffrax"] = "installed but not benchmarked"
     except ImportError:
         info["diffrax"] = "not installed"
-    info["gradient"] = gradient(64 if q else 256, 1000 if q else 4000, 50 if q else 100)
+    info["gradient"] = (gradient(64, 1000, 100, (500, 1000, 2000)) if q else
+                        gradient(256, 4000, 100, (1000, 2000, 4000, 8000), (1000, 2000, 4000)))  # fmt: skip
     print("gradient", info["gradient"], flush=True)
     info["rows"] = rows
     info["total_s"] = time.perf_counter() - t_start
     info["load_end"] = load()
+    info["uptime_end"] = uptime()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / ("bench-quick" if q else "bench")
@@ -270,20 +305,29 @@ def markdown(info, head):
         comp = f"{r['compile_s']:.1f}" if r.get("compile_s") is not None else ""
         lines.append(f"| {kind} | {r['plant']} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['steps']} | "
                      f"{r['rollout_steps_per_s']:.3g} | {flop or 0:.3g} | {frac} | {comp} | {r['load']} |")  # fmt: skip
-    ours = pick(rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=head)
+    ours = pick(rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=head,
+                steps=info["steps"])  # fmt: skip
     npv = pick(rows, kind="numpy_vectorised", integrator="euler")
-    nb = pick(rows, kind="numba_prange")
+    nb = pick(rows, kind="numba_prange", batch=head)
     lines.append("")
     if ours and npv:
         lines.append(f"Batch {head}, linear, Euler, float32: {ours[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
                      f"{ours[0]['rollout_steps_per_s'] / npv[0]['rollout_steps_per_s']:.1f}x NumPy-vectorised"
                      + (f", {ours[0]['rollout_steps_per_s'] / nb[0]['rollout_steps_per_s']:.2f}x Numba" if nb else ", Numba not installed")
                      + f"; {ours[0]['flop_per_s'] / roof_['float32']:.1%} of the float32 matmul roof.")  # fmt: skip
+    arm, narm = pick(rows, kind="fosmc_jax", plant="arm", batch=64), pick(rows, kind="numpy_arm")
+    if arm and narm:
+        lines.append(f"Arm, batch 64, Euler, float32: {arm[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
+                     f"{arm[0]['rollout_steps_per_s'] / narm[0]['rollout_steps_per_s']:.1f}x the NumPy arm "
+                     f"({narm[0]['rollout_steps_per_s']:.3g}).")  # fmt: skip
     g = info["gradient"]
     lines.append(f"Gradient: value-and-grad of the tuning objective, {g['batch']} rollouts x {g['steps']} steps "
                  f"(checkpoint every {g['checkpoint_every']}): {g['value_and_grad_s']:.3f} s = {g['ratio']:.2f}x the "
                  f"forward {g['forward_s']:.3f} s; compile {g['compile_s']:.1f} s; XLA temp memory by horizon "
-                 + ", ".join(f"{k} steps: {v / 2**20:.1f} MiB" for k, v in g["temp_bytes"].items()) + ".")  # fmt: skip
+                 + ", ".join(f"{k} steps: {v / 2**20:.1f} MiB" for k, v in g["temp_bytes"].items())
+                 + ("; without checkpointing " + ", ".join(f"{k} steps: {v['temp'] / 2**20:.1f} MiB"
+                    for k, v in g["memory_bytes_no_checkpoint"].items()) if g.get("memory_bytes_no_checkpoint") else "")
+                 + ".")  # fmt: skip
     lines.append(f"diffrax: {info['diffrax']}.")
     return "\n".join(lines) + "\n"
 
@@ -298,7 +342,7 @@ def plot(info, path):
     rows = info["rows"]
     for dtype in ("float32", "float64"):
         for integ in ("euler", "rk4"):
-            r = pick(rows, kind="fosmc_jax", plant="linear", dtype=dtype, integrator=integ)
+            r = pick(rows, kind="fosmc_jax", plant="linear", dtype=dtype, integrator=integ, steps=info["steps"])
             if r:
                 ax.plot(
                     [x["batch"] for x in r],
@@ -312,13 +356,13 @@ def plot(info, path):
             [x["batch"] for x in r], [x["rollout_steps_per_s"] for x in r], "s--", label="fosmc_jax arm euler float32"
         )
     for r in rows:
-        if r["kind"] != "fosmc_jax" and r["plant"] == "linear":
+        if r["kind"] != "fosmc_jax" or r["steps"] != info["steps"]:
             ax.plot(
                 [r["batch"]],
                 [r["rollout_steps_per_s"]],
                 "x",
                 ms=9,
-                label=f"{r['kind']} {r['integrator'][:5]} {r['dtype']}",
+                label=f"{r['kind']} {r['plant']} {r['integrator'][:5]} {r['dtype']} {r['steps']} steps",
             )
     ax.set_xscale("log"), ax.set_yscale("log")
     ax.set_xlabel("batch (rollouts)"), ax.set_ylabel("rollout-steps / s")
