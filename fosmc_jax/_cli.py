@@ -262,6 +262,8 @@ def cmd_tune(args) -> int:
     train_cfg = copy.deepcopy(cfg)
     if tcfg["train_dt"]:
         train_cfg["sim"]["dt"] = tcfg["train_dt"]
+    if tcfg["train_t_final"]:
+        train_cfg["sim"]["t_final"] = tcfg["train_t_final"]
     train = _config.build(train_cfg)
     options = dict(train.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
     problem = T.Problem(train.plants, train.controller, train.reference, train.X0s, train.dt, options)

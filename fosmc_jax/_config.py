@@ -101,6 +101,7 @@ def defaults() -> dict[str, Any]:
             "checkpoint_every": 10,
             "remat_steps": 100,
             "train_dt": 0.0,
+            "train_t_final": 0.0,
             "keep_gamma_bound": False,
             "gamma_bound_convention": "paper",
         },
@@ -268,6 +269,7 @@ SCHEMA: dict[str, Any] = {
         "checkpoint_every": _integer("a non-negative integer", lambda n: n >= 0),
         "remat_steps": _integer("a non-negative integer", lambda n: n >= 0),
         "train_dt": _number("a non-negative number (s; 0: sim.dt)", lambda x: x >= 0),
+        "train_t_final": _number("a non-negative number (s; 0: sim.t_final)", lambda x: x >= 0),
         "keep_gamma_bound": _boolean,
         "gamma_bound_convention": _choice(CONVENTIONS),
     },
@@ -319,9 +321,12 @@ def _check_consistency(cfg: dict) -> None:
     sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
-    if cfg["tune"]["train_dt"] > sim["t_final"]:
+    train_t = cfg["tune"]["train_t_final"] or sim["t_final"]
+    if train_t > sim["t_final"]:
+        raise ConfigError(f"tune.train_t_final: expected at most sim.t_final = {sim['t_final']}, got {train_t}")
+    if cfg["tune"]["train_dt"] > train_t:
         raise ConfigError(
-            f"tune.train_dt: expected at most sim.t_final = {sim['t_final']}, got {cfg['tune']['train_dt']}"
+            f"tune.train_dt: expected at most the training horizon {train_t}, got {cfg['tune']['train_dt']}"
         )
     if sim["t_final"] / sim["dt"] > MAX_STEPS:
         raise ConfigError(

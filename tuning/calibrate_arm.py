@@ -199,12 +199,27 @@ def table(p: ArmParams) -> str:
     order = [(i, j) for i in range(3) for j in range(9)] + [(i, 9 + j) for i in range(3) for j in range(3)]
     rows = []
     for name, (i, j) in zip(names, order):
-        rows.append((name, lo[i, j], nom[i, j], hi[i, j], a_lo[i, j], a_nom[i, j], a_hi[i, j],
-                     (a_nom[i, j] - nom[i, j]) / s[i, j], out[i, j] / s[i, j]))
+        rows.append(
+            (
+                name,
+                lo[i, j],
+                nom[i, j],
+                hi[i, j],
+                a_lo[i, j],
+                a_nom[i, j],
+                a_hi[i, j],
+                (a_nom[i, j] - nom[i, j]) / s[i, j],
+                out[i, j] / s[i, j],
+            )
+        )
     alpha, beta = box_alpha_beta(box)
     # alpha, beta of the arm's box measured from the paper's nominal, as the controller sees it
-    alpha_p = box_norm_bound(paper.A_ROWS, np.minimum(box.A_lower, paper.A_ROWS), np.maximum(box.A_upper, paper.A_ROWS), paper.B_ROWS)
-    beta_p = box_norm_bound(paper.B_ROWS, np.minimum(box.B_lower, paper.B_ROWS), np.maximum(box.B_upper, paper.B_ROWS), paper.B_ROWS)
+    alpha_p = box_norm_bound(
+        paper.A_ROWS, np.minimum(box.A_lower, paper.A_ROWS), np.maximum(box.A_upper, paper.A_ROWS), paper.B_ROWS
+    )
+    beta_p = box_norm_bound(
+        paper.B_ROWS, np.minimum(box.B_lower, paper.B_ROWS), np.maximum(box.B_upper, paper.B_ROWS), paper.B_ROWS
+    )
     md = [
         "# The arm's box and nominal vs the paper's (29) and Appendix",
         "",
@@ -227,7 +242,9 @@ def table(p: ArmParams) -> str:
         "",
         f"Arm box inside the Appendix box: {inside} of {len(rows)} entries.",
         "",
-        "Largest nominal misfits: " + ", ".join(f"{r[0]} ({r[5]:.2f} vs {r[2]:.2f}, {r[7]:+.2f} s)" for r in worst_mid) + ".",
+        "Largest nominal misfits: "
+        + ", ".join(f"{r[0]} ({r[5]:.2f} vs {r[2]:.2f}, {r[7]:+.2f} s)" for r in worst_mid)
+        + ".",
         "",
         "Largest excursions outside the Appendix box: "
         + ", ".join(f"{r[0]} (arm [{r[4]:.2f}, {r[6]:.2f}] vs [{r[1]:.2f}, {r[3]:.2f}])" for r in worst_out if r[8] > 0)

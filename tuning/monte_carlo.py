@@ -50,9 +50,7 @@ def log(msg: str) -> None:
 def run_case(plants, delta, switching, args, label):
     """All rollouts of one case, in chunks of ``args.chunk`` plants; metrics as NumPy arrays."""
     f = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64))
-    ctrl = Controller(
-        f(paper.C), f(paper.POLES), f(paper.GAMMA), f(delta), f(paper.A_ROWS), f(paper.B_ROWS)
-    )
+    ctrl = Controller(f(paper.C), f(paper.POLES), f(paper.GAMMA), f(delta), f(paper.A_ROWS), f(paper.B_ROWS))
     ref = Cycloid(f(paper.THETA_START), f(paper.THETA_END), f(paper.TAU))
     X0s = desired_state(ref(jnp.zeros(())))[None]
     n_steps = round(args.t_final / args.dt)
@@ -119,9 +117,7 @@ def markdown(results: dict, meta: dict) -> str:
     for key, r in results.items():
         plants, sw = key.split(" | ")
         e, c = r["max_abs_error_rad"], r["chattering_V_per_s"]
-        worst = f"{r['worst_index']}" + (
-            f" ({r['worst_payload_kg']:.2f} kg)" if "worst_payload_kg" in r else ""
-        )
+        worst = f"{r['worst_index']}" + (f" ({r['worst_payload_kg']:.2f} kg)" if "worst_payload_kg" in r else "")
         lines.append(
             f"| {plants} | {sw} | {r['n']} | {g(e['median'])} | {g(e['p95'])} | {g(e['max'])} | "
             f"{g(c['median'])} | {g(c['p95'])} | {g(c['max'])} | {r['diverged']} | {worst} |"
@@ -159,9 +155,7 @@ def figure(data: dict, path: pathlib.Path, meta: dict) -> None:
             ax.set_title(f"{pset}")
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
-    fig.suptitle(
-        f"FOSMC Monte Carlo: gains (36), {meta['integrator']} dt = {meta['dt']} s, {meta['t_final']} s"
-    )
+    fig.suptitle(f"FOSMC Monte Carlo: gains (36), {meta['integrator']} dt = {meta['dt']} s, {meta['t_final']} s")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -169,18 +163,12 @@ def figure(data: dict, path: pathlib.Path, meta: dict) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument(
-        "--samples", type=int, default=10_000, help="uniform box draws of the linear plant"
-    )
-    p.add_argument(
-        "--vertices", type=int, default=256, help="box vertices of the linear plant (0: none)"
-    )
+    p.add_argument("--samples", type=int, default=10_000, help="uniform box draws of the linear plant")
+    p.add_argument("--vertices", type=int, default=256, help="box vertices of the linear plant (0: none)")
     p.add_argument("--arm-samples", type=int, default=64, help="arm payload draws (0: none)")
     p.add_argument("--dt", type=float, default=1e-4)
     p.add_argument("--t-final", type=float, default=paper.T_FINAL)
-    p.add_argument(
-        "--chunk", type=int, default=2500, help="rollouts per compiled batch (memory bound)"
-    )
+    p.add_argument("--chunk", type=int, default=2500, help="rollouts per compiled batch (memory bound)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=pathlib.Path, default=OUT)
     args = p.parse_args()
@@ -190,28 +178,20 @@ def main() -> None:
     plant_sets = {}
     meta_sets = {}
     if args.samples:
-        lin = uncertain_plants(
-            paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=args.samples, seed=args.seed
-        )
+        lin = uncertain_plants(paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=args.samples, seed=args.seed)
         plant_sets["linear, uniform in box"] = lin
         meta_sets["linear, uniform in box"] = (
             f"{args.samples} uniform draws of rows 3, 6, 9 in the Appendix box (seed {args.seed})"
         )
     if args.vertices:
-        ver = uncertain_plants(
-            paper.A_ROWS, paper.B_ROWS, "vertices", box=BOX, samples=args.vertices, seed=args.seed
-        )
+        ver = uncertain_plants(paper.A_ROWS, paper.B_ROWS, "vertices", box=BOX, samples=args.vertices, seed=args.seed)
         plant_sets["linear, box vertices"] = ver
-        meta_sets["linear, box vertices"] = (
-            f"{args.vertices} distinct vertices of the 2^32 (seed {args.seed})"
-        )
+        meta_sets["linear, box vertices"] = f"{args.vertices} distinct vertices of the 2^32 (seed {args.seed})"
     payloads = None
     if args.arm_samples:
         payloads = np.random.default_rng(args.seed).uniform(*PAYLOAD_RANGE, args.arm_samples)
         plant_sets["arm"] = arm_sweep(jnp.asarray(payloads))
-        meta_sets["arm"] = (
-            f"{args.arm_samples} payloads uniform in {PAYLOAD_RANGE} kg (seed {args.seed})"
-        )
+        meta_sets["arm"] = f"{args.arm_samples} payloads uniform in {PAYLOAD_RANGE} kg (seed {args.seed})"
 
     results, arrays, timing = {}, {}, {}
     for pname, plants in plant_sets.items():
@@ -242,9 +222,7 @@ def main() -> None:
         "wall_s": time.perf_counter() - wall,
         "timing": timing,
     }
-    (args.out / "monte_carlo.json").write_text(
-        json.dumps({"meta": meta, "results": results}, indent=1)
-    )
+    (args.out / "monte_carlo.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
     (args.out / "monte_carlo.md").write_text(markdown(results, meta))
     np.savez_compressed(
         args.out / "monte_carlo.npz",
