@@ -3,6 +3,10 @@ controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class
 Dynamical System", for a 3-DOF direct-drive arm."""
 
 from . import _paper as paper
+from . import _tuning as tuning
+from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
+from ._certify import Certificate, certify
+from ._config import ConfigError
 from ._controller import LAWS, SWITCHING, Controller, control_law, safe_norm, sliding_surface, switch
 from ._design import (
     CONVENTIONS,
@@ -16,13 +20,31 @@ from ._design import (
     gamma_bounds,
     input_matrix_product,
     matching_condition,
+    stable_step,
+    summarize,
 )
 from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._metrics import METRIC_NAMES, Metrics
 from ._reference import Cycloid, Sinusoid, desired_state, feedforward
+from ._sharding import simulate_sharded, use_host_devices
 from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
 
 __all__ = [
+    "ARM_PARAMS",
+    "PAYLOAD_RANGE",
+    "Arm",
+    "ArmParams",
+    "Certificate",
+    "ConfigError",
+    "arm_box",
+    "arm_sweep",
+    "certify",
+    "simulate_sharded",
+    "stable_step",
+    "summarize",
+    "third_order_rows",
+    "tuning",
+    "use_host_devices",
     "CONVENTIONS",
     "INTEGRATORS",
     "LAWS",

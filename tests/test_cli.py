@@ -116,3 +116,8 @@ def test_resolve_is_idempotent_and_api_raises_valueerror():
     assert _config.resolve(cfg) == cfg
     with pytest.raises(ValueError, match="sim.dt"):
         _config.resolve({"sim": {"dt": -1.0}})
+
+
+def test_devices_must_be_positive(capsys):
+    assert main(["simulate", "--devices", "0"]) == 2
+    assert "--devices" in capsys.readouterr().err
