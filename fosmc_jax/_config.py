@@ -321,6 +321,8 @@ def _check_consistency(cfg: dict) -> None:
     sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
+        raise ConfigError("plant.uncertainty: applies to kind = 'linear' only (the arm's uncertainty is its payloads)")
     train_t = cfg["tune"]["train_t_final"] or sim["t_final"]
     if train_t > sim["t_final"]:
         raise ConfigError(f"tune.train_t_final: expected at most sim.t_final = {sim['t_final']}, got {train_t}")

@@ -92,6 +92,7 @@ A_upper = {(A + 0.5 * (np.abs(A) > 20)).tolist()}
         ("[nonsense]\nx = 1", "nonsense"),
         ("[plant]\nsamples = 0", "plant.samples"),
         ("[plant]\nuncertainty = 'gaussian'", "plant.uncertainty"),
+        ("[plant]\nkind = 'arm'\nuncertainty = 'sample'", "plant.uncertainty"),
         ("[plant.box]\nB_lower = [[1, 2], [3, 4]]", "plant.box.B_lower"),
         ("[trajectory]\nstart = [0, 0, nan]", "trajectory.start"),
         ("this is not toml", "not valid TOML"),
