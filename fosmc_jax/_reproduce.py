@@ -48,7 +48,7 @@ class Settings(NamedTuple):
     seed: int = 0
 
 
-#: The shortened run whose table ``reproduction/metrics_short.csv`` the tests recompute, so
+#: The shortened run whose table ``tuning/results/reproduction/metrics_short.csv`` the tests recompute, so
 #: the committed report cannot drift from the code.
 SHORT = Settings(t_final=0.1, vertices=8, save_every=100)
 

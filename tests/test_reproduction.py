@@ -9,7 +9,7 @@ import pytest
 from fosmc_jax import _reproduce as R
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "reproduction"
+OUT = ROOT / "tuning" / "results" / "reproduction"
 
 
 def block(text: str, name: str) -> str:
