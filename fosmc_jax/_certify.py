@@ -36,9 +36,10 @@ from jax import Array
 
 from . import _paper
 from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, third_order_rows
+from ._config import box_of, controller_of, reference_of
 from ._controller import Controller, Derived, derive, safe_norm, switch
 from ._design import CONVENTIONS, summarize
-from ._reference import Cycloid, desired_state, feedforward
+from ._reference import desired_state, feedforward
 
 # ---------------------------------------------------------------------------- array level
 
@@ -185,20 +186,6 @@ class Certificate(NamedTuple):
     envelope: dict[str, Any]
 
 
-def _controller(cfg: dict, gamma=None) -> tuple[Controller, Cycloid]:
-    f = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64))
-    c, m, tr = cfg["controller"], cfg["model"], cfg["trajectory"]
-    ctrl = Controller(f(c["C"]), f(c["poles"]), f(c["gamma"] if gamma is None else gamma), f(c["delta"]),
-                      f(m["A_rows"]), f(m["B_rows"]))  # fmt: skip
-    return ctrl, Cycloid(f(tr["start"]), f(tr["end"]), f(tr["duration"]))
-
-
-def _box(cfg: dict) -> tuple[np.ndarray, ...]:
-    return tuple(
-        np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in ("A_lower", "A_upper", "B_lower", "B_upper")
-    )
-
-
 _STATIC = ("switching", "law")
 
 
@@ -286,7 +273,7 @@ def certify(
     rng = np.random.default_rng(seed)
     scales = np.tile(np.asarray(z_scales, dtype=np.float64), 3)
     with jax.enable_x64(True):
-        ctrl, ref = _controller(cfg, gamma)
+        ctrl, ref = controller_of(cfg, jnp.float64, gamma), reference_of(cfg, jnp.float64)
         if s_norms is None:
             s_norms = (1.0,) if switching == "sign" else tuple(float(np.max(ctrl.delta)) * k for k in (0.1, 1, 10, 100))
         times = np.linspace(0.0, cfg["sim"]["t_final"], n_times)
@@ -307,7 +294,7 @@ def certify(
         Zj, Sj = jnp.asarray(Zs), jnp.asarray(S)
         n_pts = len(times) * len(Zs) * len(S)
         if plant == "linear":
-            box = _box(cfg)
+            box = box_of(cfg)
             m = int(sum(np.count_nonzero(hi - lo > 0) for lo, hi in (box[:2], box[2:])))
             if vertices == "all":
                 boxj = tuple(jnp.asarray(b) for b in box)
@@ -376,7 +363,7 @@ def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, f
     "Sufficient in this example" = no violation found above the bound (a sampled check, not a
     proof); "necessary" = a violation found just below it.
     """
-    box = _box(cfg)
+    box = box_of(cfg)
     d = summarize(
         cfg["model"]["A_rows"],
         cfg["model"]["B_rows"],

@@ -129,7 +129,7 @@ def cmd_bounds(args) -> int:
             abox = arm_box(ARM_PARAMS, np.linspace(lo, hi, 11), envelope_samples())
         a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
     else:
-        box = tuple(np.asarray(cfg["plant"]["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+        box = _config.box_of(cfg)
         a_rows, b_rows = cfg["model"]["A_rows"], cfg["model"]["B_rows"]
     d = summarize(a_rows, b_rows, box, cfg["controller"]["C"], cfg["controller"]["poles"])
     elapsed = time.perf_counter() - start
@@ -149,7 +149,7 @@ def cmd_bounds(args) -> int:
         },
     }
     if arm:
-        out["box"] = dict(zip(("A_lower", "A_upper", "B_lower", "B_upper"), box))
+        out["box"] = dict(zip(_config.BOX_KEYS, box))
         out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
     if args.json:
         print(json.dumps(_jsonable(out), indent=1))
@@ -270,7 +270,7 @@ def cmd_tune(args) -> int:
     p0 = T.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
     floor = None
     if tcfg["keep_gamma_bound"]:
-        box = tuple(np.asarray(cfg["plant"]["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
+        box = _config.box_of(cfg)
         d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
                       cfg["controller"]["poles"])  # fmt: skip
         floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])

@@ -39,6 +39,7 @@ class ConfigError(ValueError):
 
 
 PLANT_KINDS = ("linear", "arm")
+BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
@@ -366,6 +367,32 @@ class Problem(NamedTuple):
     options: dict  # simulate()'s static keyword arguments
 
 
+def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``[plant.box]`` as float64 arrays (A_lower, A_upper, B_lower, B_upper)."""
+    return tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
+
+
+def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
+    """The :class:`Controller` a config describes (``gamma`` overrides ``controller.gamma``)."""
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
+    ctl, model = cfg["controller"], cfg["model"]
+    gamma = ctl["gamma"] if gamma is None else gamma
+    return Controller(
+        cast(ctl["C"]),
+        cast(ctl["poles"]),
+        cast(gamma),
+        cast(ctl["delta"]),
+        cast(model["A_rows"]),
+        cast(model["B_rows"]),
+    )
+
+
+def reference_of(cfg: dict, dtype) -> Cycloid:
+    """The reference (30) a config describes."""
+    traj = cfg["trajectory"]
+    return Cycloid(*(jnp.asarray(np.asarray(traj[k], dtype=np.float64), dtype) for k in ("start", "end", "duration")))
+
+
 def n_steps(cfg: dict) -> int:
     """n = round(t_final / dt)."""
     return max(1, round(cfg["sim"]["t_final"] / cfg["sim"]["dt"]))
@@ -380,18 +407,14 @@ def build(cfg: dict) -> Problem:
     """
     dtype = jnp.dtype(cfg["sim"]["precision"])
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
-    traj, ctl, model, plant = cfg["trajectory"], cfg["controller"], cfg["model"], cfg["plant"]
-    reference = Cycloid(cast(traj["start"]), cast(traj["end"]), cast(traj["duration"]))
-    controller = Controller(
-        cast(ctl["C"]), cast(ctl["poles"]), cast(ctl["gamma"]), cast(ctl["delta"]),
-        cast(model["A_rows"]), cast(model["B_rows"]),
-    )  # fmt: skip
+    ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
+    reference = reference_of(cfg, dtype)
+    controller = controller_of(cfg, dtype)
     if plant["kind"] == "arm":
         plants = arm_sweep(cast(plant["payloads"]))
     else:
-        box = tuple(np.asarray(plant["box"][k]) for k in ("A_lower", "A_upper", "B_lower", "B_upper"))
         plants = uncertain_plants(
-            model["A_rows"], model["B_rows"], plant["uncertainty"], box=box,
+            model["A_rows"], model["B_rows"], plant["uncertainty"], box=box_of(cfg),
             dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
         )  # fmt: skip
         plants = type(plants)(*(cast(x) for x in plants))

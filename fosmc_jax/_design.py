@@ -8,6 +8,7 @@ vertices, but is not meant to be differentiated.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -138,6 +139,28 @@ def _lambda_max_sym3(G: Array) -> Array:
     return jnp.where(p > 0, q + 2 * p * jnp.cos(phi), q)
 
 
+@functools.partial(jax.jit, static_argnames="bits")
+def _vertex_max(H_lo: Array, steps: Array, bits: int) -> tuple[Array, Array]:
+    """max of lambda_max(H H^T) over H = H_lo + sum_j v_j steps[j], v in {0, 1}^m, enumerated in
+    chunks of 2^bits vertices; returns the value and the winning vertex's bit code. Compiled
+    once per box shape (module level, so repeated calls do not recompile)."""
+    m = steps.shape[0]
+    shifts = jnp.arange(m, dtype=jnp.int32)
+    local = jnp.arange(2**bits, dtype=jnp.int32)
+
+    def chunk(c):
+        idx = c * (2**bits) + local
+        v = ((idx[:, None] >> shifts) & 1).astype(H_lo.dtype)
+        H = H_lo + jnp.einsum("vm,mij->vij", v, steps)
+        lam = _lambda_max_sym3(H @ jnp.swapaxes(H, -1, -2))
+        k = jnp.argmax(lam)
+        return lam[k], idx[k]
+
+    lam, idx = jax.lax.map(chunk, jnp.arange(2 ** (m - bits), dtype=jnp.int32))
+    k = jnp.argmax(lam)
+    return lam[k], idx[k]
+
+
 class BoxBound(NamedTuple):
     """Result of :func:`box_norm_bound`: the bound and the box vertex that attains it."""
 
@@ -178,27 +201,7 @@ def box_norm_bound(
         e = np.zeros(shape)
         e.flat[flat] = width.flat[flat]
         steps[j] = b_inv @ e
-    bits = min(chunk_bits, m)
-    n_chunks = 2 ** (m - bits)
-
-    @jax.jit
-    def run(H_lo, steps):
-        shifts = jnp.arange(m, dtype=jnp.int32)
-        local = jnp.arange(2**bits, dtype=jnp.int32)
-
-        def chunk(c):
-            idx = c * (2**bits) + local
-            v = ((idx[:, None] >> shifts) & 1).astype(H_lo.dtype)
-            H = H_lo + jnp.einsum("vm,mij->vij", v, steps)
-            lam = _lambda_max_sym3(H @ jnp.swapaxes(H, -1, -2))
-            k = jnp.argmax(lam)
-            return lam[k], idx[k]
-
-        lam, idx = jax.lax.map(chunk, jnp.arange(n_chunks, dtype=jnp.int32))
-        k = jnp.argmax(lam)
-        return lam[k], idx[k]
-
-    lam, idx = run(jnp.asarray(H_lo), jnp.asarray(steps))
+    lam, idx = _vertex_max(jnp.asarray(H_lo), jnp.asarray(steps), bits=min(chunk_bits, m))
     idx = int(idx)
     vertex = lower.copy()
     for j, flat in enumerate(free):

@@ -20,6 +20,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
+from ._controller import safe_sqrt
+
 #: The metric names, in the order of :class:`Metrics`' fields.
 METRIC_NAMES = (
     "rms_error",
@@ -72,20 +74,14 @@ def add(acc: Accumulator, e: Array, u: Array, u_prev: Array) -> Accumulator:
     )
 
 
-def _safe_sqrt(x: Array) -> Array:
-    """sqrt with a zero (not NaN) gradient at x = 0 (the "double where" trick)."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
-
-
 def finish(acc: Accumulator, t_final: Array) -> Metrics:
     """The metrics from a finished accumulator; ``t_final`` = n dt (s)."""
     return Metrics(
-        _safe_sqrt(acc.sum_e2 / acc.count),
+        safe_sqrt(acc.sum_e2 / acc.count),
         acc.max_e,
         jnp.abs(acc.last_e),
         acc.total_variation / t_final,
-        _safe_sqrt(acc.sum_u2 / acc.count),
+        safe_sqrt(acc.sum_u2 / acc.count),
         acc.max_u,
     )
 

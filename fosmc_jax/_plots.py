@@ -97,8 +97,12 @@ def plot_tuning(history: dict, params: list[dict], path: str | Path) -> None:
     ax.set_ylabel("objective (unit-free)")
     ax.set_yscale("log")
     ax.legend()
-    for ax, key, unit in ((axes[0, 1], "delta", "delta (same unit as s)"), (axes[1, 0], "gamma", "gamma (gains of (23))"),
-                          (axes[1, 1], "poles", "-pole (1/s)")):  # fmt: skip
+    panels = (
+        (axes[0, 1], "delta", "delta (same unit as s)"),
+        (axes[1, 0], "gamma", "gamma (gains of (23))"),
+        (axes[1, 1], "poles", "-pole (1/s)"),
+    )
+    for ax, key, unit in panels:
         v = np.array([p[key] for p in params]).reshape(len(params), -1)
         v = -v if key == "poles" else v
         for i in range(v.shape[1]):
