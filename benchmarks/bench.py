@@ -33,6 +33,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fosmc_jax._io import write_text  # noqa: E402
+from fosmc_jax._plots import save_figure  # noqa: E402
 from fosmc_jax._sharding import simulate_sharded, use_host_devices  # noqa: E402
 
 use_host_devices(2)
@@ -279,8 +281,8 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / ("bench-quick" if q else "bench")
-    stem.with_suffix(".json").write_text(json.dumps(info, indent=1))
-    stem.with_suffix(".md").write_text(markdown(info, head))
+    write_text(stem.with_suffix(".json"), json.dumps(info, indent=1))
+    write_text(stem.with_suffix(".md"), markdown(info, head))
     plot(info, stem.with_suffix(".png"))
     print(f"wrote {stem}.json/.md/.png in {info['total_s']:.0f} s")
 
@@ -370,7 +372,7 @@ def plot(info, path):
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,8 @@ import numpy as np
 from pareto import CONFIG, OUT, load_problems, log, make_loss, plain_metrics
 
 from fosmc_jax import _tuning as T
+from fosmc_jax._io import write_text
+from fosmc_jax._plots import save_figure
 
 POP = 16
 
@@ -186,7 +188,7 @@ def main() -> None:
             row[name] = round(float(hit[0])) if hit else None
         targets[str(target)] = row
     result["rollouts_to_reach"] = targets
-    (OUT / "baselines.json").write_text(json.dumps(result, indent=1))
+    write_text(OUT / "baselines.json", json.dumps(result, indent=1))
     write_md(result)
     plot(result)
     log(f"wrote {OUT}/baselines.{{json,md,png}} in {time.perf_counter() - t_start:.0f} s")
@@ -213,7 +215,7 @@ def write_md(r: dict) -> None:
               "| method | rms error (rad) | chattering (V/s) |", "|---|---|---|"]  # fmt: skip
     for k, v in r["plain_final"].items():
         lines.append(f"| {k} | {v['rms_error']:.4g} | {v['chattering']:.4g} |")
-    (OUT / "baselines.md").write_text("\n".join(lines) + "\n")
+    write_text(OUT / "baselines.md", "\n".join(lines) + "\n")
 
 
 def plot(r: dict) -> None:
@@ -235,8 +237,7 @@ def plot(r: dict) -> None:
     ax.set_title("Arm, payloads 0 and 10 kg, start: paper gains + Table 1 set 2")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.savefig(OUT / "baselines.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, OUT / "baselines.png")
 
 
 if __name__ == "__main__":

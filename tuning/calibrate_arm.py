@@ -45,6 +45,7 @@ from fosmc_jax._arm import (  # noqa: E402
     rows_over,
 )
 from fosmc_jax._design import box_norm_bound  # noqa: E402
+from fosmc_jax._io import write_text  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results" / "arm_calibration.md"
 PAYLOADS = np.linspace(*PAYLOAD_RANGE, 5)
@@ -278,7 +279,7 @@ def main() -> None:
     ok = same(p, ARM_PARAMS)
     print("matches the stored ARM_PARAMS:", ok)
     OUT.parent.mkdir(parents=True, exist_ok=True)
-    OUT.write_text(table(p))
+    write_text(OUT, table(p))
     print(f"wrote {OUT}")
     if args.check and not ok:
         raise SystemExit("calibrated parameters differ from fosmc_jax._arm.ARM_PARAMS")

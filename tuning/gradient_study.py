@@ -34,6 +34,8 @@ import numpy as np  # noqa: E402
 
 from fosmc_jax import _config, paper  # noqa: E402
 from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._io import write_text  # noqa: E402
+from fosmc_jax._plots import save_figure  # noqa: E402
 from fosmc_jax._simulator import simulate_batch  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
@@ -151,8 +153,7 @@ def plot(rows: list[dict]) -> None:
     axes[0, 0].legend(fontsize=8)
     fig.suptitle("switching ratio, gains (36), Euler dt = 1e-3 s; u = (log delta, log gamma, log(-poles))")
     fig.tight_layout()
-    fig.savefig(OUT / "gradients.png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, OUT / "gradients.png")
 
 
 def main() -> None:
@@ -168,10 +169,10 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     if not args.skip_fd:
         result["fd_check"] = fd_check(args.dt, args.h)
-        (OUT / "gradients.json").write_text(json.dumps(result, indent=1))
+        write_text(OUT / "gradients.json", json.dumps(result, indent=1))
     result["sweep"] = sweep(args.dt, args.samples)
     result["total_s"] = time.perf_counter() - t0
-    (OUT / "gradients.json").write_text(json.dumps(result, indent=1))
+    write_text(OUT / "gradients.json", json.dumps(result, indent=1))
     plot(result["sweep"])
     log(f"wrote {OUT}/gradients.{{json,png}} in {result['total_s']:.0f} s")
 

@@ -35,6 +35,8 @@ import numpy as np  # noqa: E402
 
 from fosmc_jax import Controller, Cycloid, desired_state, paper, simulate_batch, uncertain_plants  # noqa: E402
 from fosmc_jax._arm import PAYLOAD_RANGE, arm_sweep  # noqa: E402
+from fosmc_jax._io import atomic_write, write_text  # noqa: E402
+from fosmc_jax._plots import save_figure  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -157,8 +159,7 @@ def figure(data: dict, path: pathlib.Path, meta: dict) -> None:
             ax.legend(fontsize=8)
     fig.suptitle(f"FOSMC Monte Carlo: gains (36), {meta['integrator']} dt = {meta['dt']} s, {meta['t_final']} s")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def main() -> None:
@@ -222,16 +223,19 @@ def main() -> None:
         "wall_s": time.perf_counter() - wall,
         "timing": timing,
     }
-    (args.out / "monte_carlo.json").write_text(json.dumps({"meta": meta, "results": results}, indent=1))
-    (args.out / "monte_carlo.md").write_text(markdown(results, meta))
-    np.savez_compressed(
+    write_text(args.out / "monte_carlo.json", json.dumps({"meta": meta, "results": results}, indent=1))
+    write_text(args.out / "monte_carlo.md", markdown(results, meta))
+    atomic_write(
         args.out / "monte_carlo.npz",
-        **{
-            f"{k}::{n}": a
-            for k, v in arrays.items()
-            for n, a in zip(("max_abs_error", "chattering", "diverged"), v, strict=True)
-        },
-        **({"arm_payloads": payloads} if payloads is not None else {}),
+        lambda tmp: np.savez_compressed(
+            tmp,
+            **{
+                f"{k}::{n}": a
+                for k, v in arrays.items()
+                for n, a in zip(("max_abs_error", "chattering", "diverged"), v, strict=True)
+            },
+            **({"arm_payloads": payloads} if payloads is not None else {}),
+        ),
     )
     figure(arrays, args.out / "monte_carlo.png", meta)
     log(f"wrote {args.out}/monte_carlo.{{json,md,png,npz}} in {meta['wall_s']:.0f} s")

@@ -38,6 +38,8 @@ import optax  # noqa: E402
 
 from fosmc_jax import _config, paper  # noqa: E402
 from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._io import write_text  # noqa: E402
+from fosmc_jax._plots import save_figure  # noqa: E402
 from fosmc_jax._simulator import simulate_batch  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
@@ -213,7 +215,7 @@ def main() -> None:
         "machine": f"{platform.machine()} CPU, jax {jax.__version__}",
     }
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "pareto.json").write_text(json.dumps(result, indent=1))
+    write_text(OUT / "pareto.json", json.dumps(result, indent=1))
     write_md(result)
     plot(result)
     log(f"wrote {OUT}/pareto.{{json,md,png}} in {time.perf_counter() - t_start:.0f} s")
@@ -245,7 +247,7 @@ def write_md(r: dict) -> None:
     lines += ["", "Table 1 sets dominated (lower error and lower chattering) by tuned points: "
               + "; ".join(f"set {k + 1}: {d if d else 'none'}" for k, d in enumerate(r["table1_dominated_by_tuned"]))
               + f". Front dominates all of Table 1: **{'yes' if r['front_dominates_table1'] else 'no'}**.", ""]  # fmt: skip
-    (OUT / "pareto.md").write_text("\n".join(lines))
+    write_text(OUT / "pareto.md", "\n".join(lines))
 
 
 def plot(r: dict) -> None:
@@ -275,8 +277,7 @@ def plot(r: dict) -> None:
     ax.set_title("Arm, payloads 0 and 10 kg; plain Euler dt = 1e-4 s, 4 s")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.savefig(OUT / "pareto.png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, OUT / "pareto.png")
 
 
 if __name__ == "__main__":
