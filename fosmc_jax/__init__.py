@@ -7,7 +7,18 @@ from . import _tuning as tuning
 from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
 from ._certify import Certificate, certify
 from ._config import ConfigError
-from ._controller import LAWS, SWITCHING, Controller, control_law, safe_norm, sliding_surface, switch
+from ._controller import (
+    FOSMC,
+    LAWS,
+    SWITCHING,
+    Controller,
+    DiscreteFOSMC,
+    FOSMCState,
+    control_law,
+    safe_norm,
+    sliding_surface,
+    switch,
+)
 from ._design import (
     CONVENTIONS,
     BoxBound,
@@ -24,7 +35,8 @@ from ._design import (
     summarize,
 )
 from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
-from ._metrics import METRIC_NAMES, Metrics
+from ._loop import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
+from ._metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._sharding import simulate_sharded, use_host_devices
 from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
@@ -45,7 +57,18 @@ __all__ = [
     "third_order_rows",
     "tuning",
     "use_host_devices",
+    "CHATTERING_CUTOFF",
     "CONVENTIONS",
+    "DERIVATIVES",
+    "DigitalLoop",
+    "DiscreteFOSMC",
+    "FOSMC",
+    "FOSMCState",
+    "Sensors",
+    "UNITS",
+    "measure",
+    "quantize",
+    "saturate",
     "INTEGRATORS",
     "LAWS",
     "METRIC_NAMES",

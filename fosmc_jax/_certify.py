@@ -36,7 +36,7 @@ from jax import Array
 
 from . import _paper
 from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, third_order_rows
-from ._config import box_of, controller_of, reference_of
+from ._config import ConfigError, box_of, controller_of, reference_of
 from ._controller import Controller, Derived, derive, safe_norm, switch
 from ._design import CONVENTIONS, summarize
 from ._reference import desired_state, feedforward
@@ -244,7 +244,8 @@ def certify(
     n_payloads: int = 11,
     seed: int = 0,
 ) -> Certificate:
-    """Check the hitting condition (20) numerically for a resolved config (``_config.resolve``).
+    """Check the hitting condition (20) numerically for a resolved config (``_config.resolve``)
+    of the paper's ideal loop (a digital loop's config is refused with a ``ConfigError``).
 
     Sampled points (defaults: ``n_times`` 81, ``n_z`` 200 on the linear plant, 21 and 30 on the
     arm, whose rows cost a model evaluation per point): ``n_times`` instants evenly over
@@ -262,6 +263,12 @@ def certify(
     the config's. ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
     Runs in float64.
     """
+    if cfg["controller"]["sample_period"]:
+        raise ConfigError(
+            "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "
+            "loop; a digital loop (sample_period > 0: sampling, sensors, delay, saturation) cannot be certified "
+            "this way (set sample_period = 0)"
+        )
     plant = plant or cfg["plant"]["kind"]
     law = law or cfg["controller"]["law"]
     if plant not in ("linear", "arm"):

@@ -17,7 +17,7 @@ import numpy as np
 from . import _config, _paper
 from ._design import CONVENTIONS, summarize
 from ._io import write_text
-from ._metrics import METRIC_NAMES, batch_summary
+from ._metrics import METRIC_NAMES, UNITS, batch_summary
 from ._simulator import simulate_batch
 
 
@@ -49,19 +49,21 @@ def cmd_simulate(args) -> int:
         cfg = _config.with_params(cfg, args.params)
     n = _config.n_steps(cfg)
     if args.plot and not cfg["sim"]["save_every"]:
-        cfg["sim"]["save_every"] = max(1, n // 4000)
+        m = _config.sample_steps(cfg)
+        cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
     problem = _config.build(cfg)
     n_plants = jax.tree.leaves(problem.plants)[0].shape[0]
-    n_rollouts = n_plants * problem.X0s.shape[0]
+    n_offsets, n_real = problem.X0s.shape[0], 1 if problem.keys is None else problem.keys.shape[0]
+    n_rollouts = n_plants * n_offsets * n_real
     _log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
          f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}): compiling and running ...")  # fmt: skip
     start = time.perf_counter()
     if args.devices > 1:
         from ._sharding import simulate_sharded
 
-        result = simulate_sharded(*problem[:5], devices=args.devices, **problem.options)
+        result = simulate_sharded(*problem.args, devices=args.devices, keys=problem.keys, **problem.options)
     else:
-        result = simulate_batch(*problem[:5], **problem.options)
+        result = simulate_batch(*problem.args, keys=problem.keys, **problem.options)
     result = jax.block_until_ready(result)
     _log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
 
@@ -69,8 +71,9 @@ def cmd_simulate(args) -> int:
     rollouts = []
     for r in range(n_rollouts):
         rollouts.append({
-            "plant_index": r // problem.X0s.shape[0],
-            "offset_index": r % problem.X0s.shape[0],
+            "plant_index": r // (n_offsets * n_real),
+            "offset_index": r // n_real % n_offsets,
+            "realization_index": r % n_real,
             "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
             "diverged": bool(result.diverged[r]),
             "diverged_at": float(result.diverged_at[r]),
@@ -93,7 +96,7 @@ def cmd_simulate(args) -> int:
         if n_rollouts > 1:
             print(f"batch of {n_rollouts}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
-                print(f"  {name:<16} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
+                print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
     return 0
 
 
@@ -101,8 +104,6 @@ def _print_rollouts(rollouts: list[dict]) -> None:
     head = f"{'rollout':>7} {'plant':>5} {'offset':>6} {'diverged':>8}  {'metric':<16} " + " ".join(
         f"{j:>11}" for j in ("joint 1", "joint 2", "joint 3")
     )
-    units = dict(rms_error="rad", max_abs_error="rad", final_abs_error="rad", chattering="V/s",
-                 control_rms="V", max_abs_control="V")  # fmt: skip
     print(head)
     for i, r in enumerate(rollouts):
         for k, name in enumerate(METRIC_NAMES):
@@ -110,7 +111,7 @@ def _print_rollouts(rollouts: list[dict]) -> None:
                 f"{i:>7} {r['plant_index']:>5} {r['offset_index']:>6} {str(r['diverged']):>8}" if k == 0 else " " * 29
             )
             vals = " ".join(f"{v:>11.4e}" for v in r["metrics"][name])
-            print(f"{lead}  {name + ' (' + units[name] + ')':<22}{vals}")
+            print(f"{lead}  {name + ' (' + UNITS[name] + ')':<26}{vals}")
 
 
 # ---------------------------------------------------------------------------- bounds
@@ -256,8 +257,8 @@ def cmd_tune(args) -> int:
         raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
     out.mkdir(parents=True, exist_ok=True)
     built = _config.build(cfg)
-    plain = T.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt,
-                      dict(built.options, save_every=0))  # fmt: skip
+    plain = T.Problem(built.plants, built.params, built.reference, built.X0s, built.dt,
+                      dict(built.options, save_every=0), built.keys, built.make)  # fmt: skip
     # the training simulation may use a coarser step (a surrogate); results use the plain one
     train_cfg = copy.deepcopy(cfg)
     if tcfg["train_dt"]:
@@ -266,8 +267,9 @@ def cmd_tune(args) -> int:
         train_cfg["sim"]["t_final"] = tcfg["train_t_final"]
     train = _config.build(train_cfg)
     options = dict(train.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
-    problem = T.Problem(train.plants, train.controller, train.reference, train.X0s, train.dt, options)
-    p0 = T.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
+    problem = T.Problem(train.plants, train.params, train.reference, train.X0s, train.dt, options, train.keys,
+                        train.make)  # fmt: skip
+    p0 = T.Tunable(built.params.delta, built.params.gamma, built.params.poles)
     floor = None
     if tcfg["keep_gamma_bound"]:
         box = _config.box_of(cfg)
@@ -285,7 +287,7 @@ def cmd_tune(args) -> int:
         tcfg["worst_case"], tcfg["worst_weight"], tcfg["cvar_alpha"], tcfg["penalty"],
     )  # fmt: skip
     try:
-        u0 = T.to_internal(p0, built.controller, floor)
+        u0 = T.to_internal(p0, built.params, floor)
     except ValueError as e:
         raise _config.ConfigError(str(e)) from None
     settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
@@ -293,7 +295,7 @@ def cmd_tune(args) -> int:
     start = time.perf_counter()
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=out / "checkpoint.npz",
                        resume=args.resume, log=_log)  # fmt: skip
-    final_params = T.to_physical(u, built.controller, floor)
+    final_params = T.to_physical(u, built.params, floor)
     final = T.evaluate(plain, final_params)
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = {
@@ -304,7 +306,7 @@ def cmd_tune(args) -> int:
         "config": cfg,
     }
     write_text(out / "result.json", json.dumps(_jsonable(result), indent=1))
-    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), built.controller, floor))
+    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), built.params, floor))
                       for p in history["params"]]  # fmt: skip
     plot_tuning(history, params_history, out / "tuning.png")
     _log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")

@@ -16,14 +16,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _paper as paper
 from ._arm import PAYLOAD_RANGE, arm_sweep
-from ._controller import LAWS, SWITCHING, Controller
+from ._controller import LAWS, SWITCHING, Controller, DiscreteFOSMC
 from ._design import CONVENTIONS, DesignError, check_design, stable_step
 from ._linear_plant import UNCERTAINTY, uncertain_plants
+from ._loop import DERIVATIVES, DigitalLoop, Sensors
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
 from ._tuning import MODES, PARAM_NAMES, WORST_CASE
@@ -61,7 +63,17 @@ def defaults() -> dict[str, Any]:
             "switching": "ratio",
             "delta": paper.DELTA_SETS[0].tolist(),
             "law": "paper",
+            "sample_period": 0.0,
+            "delay_samples": 0,
         },
+        "sensors": {
+            "encoder_counts": [0, 0, 0],
+            "derivatives": "measured",
+            "noise_std": [0.0] * 9,
+            "seed": 0,
+            "realizations": 1,
+        },
+        "actuator": {},  # u_max absent: no limit
         "plant": {
             "kind": "linear",
             "payloads": list(paper.PAYLOADS),
@@ -206,6 +218,14 @@ def _offsets(key: str, value: Any) -> Any:
     raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
 
 
+def _counts(key: str, value: Any) -> Any:
+    what = "a non-negative integer, or 3 of them (encoder counts per revolution; 0: exact)"
+    values = value if isinstance(value, list) else [value]
+    if len(values) not in (1, 3) or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in values):
+        raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+    return values * 3 if len(values) == 1 else values
+
+
 def _short(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
@@ -229,6 +249,18 @@ SCHEMA: dict[str, Any] = {
         "switching": _choice(SWITCHING),
         "delta": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
         "law": _choice(LAWS),
+        "sample_period": _number("a non-negative number (s; 0: the ideal loop)", lambda x: x >= 0),
+        "delay_samples": _integer("a non-negative integer (controller samples)", lambda n: n >= 0),
+    },
+    "sensors": {
+        "encoder_counts": _counts,
+        "derivatives": _choice(DERIVATIVES),
+        "noise_std": _array((9,), "9 non-negative numbers", lambda a: np.all(a >= 0)),
+        "seed": _integer("a non-negative integer", lambda n: n >= 0),
+        "realizations": _integer("a positive integer", lambda n: n >= 1),
+    },
+    "actuator": {
+        "u_max": _array((3,), "3 positive numbers (V)", lambda a: np.all(a > 0)),
     },
     "plant": {
         "kind": _choice(PLANT_KINDS),
@@ -335,6 +367,7 @@ def _check_consistency(cfg: dict) -> None:
         raise ConfigError(
             f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}"
         )
+    _check_loop(cfg)
     for m in ("A", "B"):
         if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
             raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")
@@ -353,6 +386,49 @@ def _check_consistency(cfg: dict) -> None:
         )
 
 
+def sample_steps(cfg: dict) -> int:
+    """m = controller.sample_period / sim.dt (1 for the ideal loop)."""
+    T = cfg["controller"]["sample_period"]
+    return max(1, round(T / cfg["sim"]["dt"])) if T else 1
+
+
+def _check_loop(cfg: dict) -> None:
+    ctl, sens, sim = cfg["controller"], cfg["sensors"], cfg["sim"]
+    T, dt = ctl["sample_period"], sim["dt"]
+    if T == 0:
+        digital = {"controller.delay_samples": ctl["delay_samples"] != 0,
+                   "sensors.encoder_counts": any(sens["encoder_counts"]),
+                   "sensors.derivatives": sens["derivatives"] != "measured",
+                   "sensors.noise_std": any(sens["noise_std"]),
+                   "sensors.realizations": sens["realizations"] != 1,
+                   "actuator.u_max": "u_max" in cfg["actuator"]}  # fmt: skip
+        for key, set_ in digital.items():
+            if set_:
+                raise ConfigError(
+                    f"{key}: needs controller.sample_period > 0 (the ideal loop reads the exact state; "
+                    f"sample_period = sim.dt = {dt} gives a digital loop at the simulation's rate)"
+                )
+        return
+    m = T / dt
+    if round(m) < 1 or abs(m - round(m)) > 1e-9 * max(1.0, m):
+        raise ConfigError(f"controller.sample_period: expected an integer multiple (>= 1) of sim.dt = {dt}, got {T}")
+    if sim["save_every"] % round(m):
+        raise ConfigError(
+            f"sim.save_every: expected a multiple of controller.sample_period / sim.dt = {round(m)}, "
+            f"got {sim['save_every']}"
+        )
+    train_dt = cfg["tune"]["train_dt"]
+    if train_dt and (T / train_dt < 1 - 1e-9 or abs(T / train_dt - round(T / train_dt)) > 1e-9 * T / train_dt):
+        raise ConfigError(
+            f"tune.train_dt: expected a step that divides controller.sample_period = {T}, got {train_dt}"
+        )
+    if sens["derivatives"] == "difference" and any(np.asarray(sens["noise_std"])[[1, 2, 4, 5, 7, 8]]):
+        raise ConfigError(
+            "sensors.noise_std: with sensors.derivatives = 'difference' only the theta entries (1, 4, 7) may be "
+            f"non-zero (the rates are differences of the measured angles), got {sens['noise_std']}"
+        )
+
+
 # ---------------------------------------------------------------------------- objects
 
 
@@ -360,11 +436,19 @@ class Problem(NamedTuple):
     """What a resolved config describes, as simulator inputs (see :func:`fosmc_jax.simulate`)."""
 
     plants: Any  # plant pytree with a leading batch axis P
-    controller: Controller
+    controller: Any  # what simulate() runs: make(params)
     reference: Cycloid
     X0s: Any  # (O, 9) initial states
     dt: Any
     options: dict  # simulate()'s static keyword arguments
+    keys: Any  # (R, 2) PRNG keys, one per noise realization (None: the ideal loop)
+    params: Controller  # the FOSMC parameters
+    make: Callable[[Controller], Any]  # FOSMC parameters -> the controller of the config's loop
+
+    @property
+    def args(self) -> tuple:
+        """simulate_batch's positional arguments."""
+        return self.plants, self.controller, self.reference, self.X0s, self.dt
 
 
 def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -387,6 +471,29 @@ def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
     )
 
 
+def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
+    """FOSMC parameters -> the controller of the config's loop: the parameters themselves (the
+    paper's ideal loop, ``controller.sample_period = 0``) or a :class:`DigitalLoop` around a
+    :class:`DiscreteFOSMC` with the config's sensors, delay and actuator."""
+    ctl, sens = cfg["controller"], cfg["sensors"]
+    if not ctl["sample_period"]:
+        return lambda params: params
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
+    T = cast(ctl["sample_period"])
+    sensors = Sensors(cast(sens["encoder_counts"]), cast(sens["noise_std"]), sens["derivatives"])
+    u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))
+    m, d = sample_steps(cfg), ctl["delay_samples"]
+    return lambda params: DigitalLoop(DiscreteFOSMC(params, T, ctl["switching"], ctl["law"]), sensors, u_max, T, m, d)
+
+
+def keys_of(cfg: dict) -> Any:
+    """One PRNG key per noise realization (``sensors.seed``, ``sensors.realizations``); None for
+    the ideal loop."""
+    if not cfg["controller"]["sample_period"]:
+        return None
+    return jax.random.split(jax.random.PRNGKey(cfg["sensors"]["seed"]), cfg["sensors"]["realizations"])
+
+
 def reference_of(cfg: dict, dtype) -> Cycloid:
     """The reference (30) a config describes."""
     traj = cfg["trajectory"]
@@ -403,13 +510,15 @@ def build(cfg: dict) -> Problem:
 
     The plants are the linear model's uncertainty realizations (``kind = "linear"``) or one arm
     per payload (``kind = "arm"``). The initial states are X_d(0) + each ``sim.initial_offset``;
-    the batch is every plant crossed with every initial state (plant-major).
+    the batch is every plant crossed with every initial state, crossed with every noise
+    realization of a digital loop (in that order).
     """
     dtype = jnp.dtype(cfg["sim"]["precision"])
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
     ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
     reference = reference_of(cfg, dtype)
-    controller = controller_of(cfg, dtype)
+    params = controller_of(cfg, dtype)
+    make = controller_factory(cfg, dtype)
     if plant["kind"] == "arm":
         plants = arm_sweep(cast(plant["payloads"]))
     else:
@@ -428,7 +537,8 @@ def build(cfg: dict) -> Problem:
         "save_every": cfg["sim"]["save_every"],
         "divergence_bound": cfg["sim"]["divergence_bound"],
     }
-    return Problem(plants, controller, reference, X0s, jnp.asarray(cfg["sim"]["dt"], dtype), options)
+    dt = jnp.asarray(cfg["sim"]["dt"], dtype)
+    return Problem(plants, make(params), reference, X0s, dt, options, keys_of(cfg), params, make)
 
 
 def with_params(cfg: dict, path: str | Path) -> dict:

@@ -1,5 +1,8 @@
 """The FOSMC controller: sliding surface (14), control law (23), switching functions (28).
 
+:class:`FOSMC` (the paper's ideal loop) and :class:`DiscreteFOSMC` (a sampled controller)
+wrap these functions in the controller interface of :mod:`fosmc_jax._simulator`.
+
 :class:`Controller` holds what may be traced and tuned (C, the poles, gamma, delta) plus the
 nominal design model (rows 3, 6, 9 of A and B) used for K, Omega and the integral term.
 Everything derived from it (K, (CB)^-1, CA + CBK) is computed once per rollout by
@@ -8,12 +11,16 @@ Everything derived from it (K, (CB)^-1, CA + CBK) is computed once per rollout b
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
 from ._design import closed_loop_matrix, gain_from_poles, input_matrix_product
+from ._reference import desired_state, feedforward
 
 #: Switching functions f(s) that replace SGN(s) in (23). ``ratio`` is (28).
 SWITCHING = ("sign", "ratio", "sat", "tanh")
@@ -108,3 +115,88 @@ def control_law(
     if law != "paper":
         raise ValueError(f"law must be one of {LAWS}, got {law!r}")
     return U
+
+
+# ---------------------------------------------------------------------------- controllers
+#
+# A controller is a pytree with the shape optax gives optimizers (see fosmc_jax._simulator):
+#   init(X0, r0, key) -> state
+#   update(state, Y, r, t) -> (U, state)     at each controller sample, from the measurement Y
+# and optionally derivative(state, X, r, t) -> state', the continuous-time part of its state,
+# integrated with the plant between samples (the ideal loop's integral of (14)).
+
+
+class FOSMCState(NamedTuple):
+    """State of :class:`FOSMC` and :class:`DiscreteFOSMC`."""
+
+    w: Array  # (3,) integral state of (14)
+    s: Array  # (3,) the sliding variable at the last sample (kept for traces)
+    derived: Derived  # constants from the parameters, computed once in init
+
+
+def _fosmc_sample(ctrl: Controller, state: FOSMCState, Y: Array, r: Array, switching: str, law: str):
+    X_d = desired_state(r)
+    Omega = feedforward(ctrl.a_rows, ctrl.b_rows, r)
+    Z = Y - X_d
+    s = sliding_surface(ctrl, Z, state.w)
+    return control_law(ctrl, state.derived, Z, X_d, Omega, s, switching, law), s, Z
+
+
+def _fosmc_init(ctrl: Controller, X0: Array, r0: Array) -> FOSMCState:
+    derived = derive(ctrl)
+    return FOSMCState(jnp.zeros(3, X0.dtype), ctrl.C @ (X0 - desired_state(r0)), derived)
+
+
+@functools.partial(
+    jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["switching", "law"]
+)
+@dataclasses.dataclass(frozen=True)
+class FOSMC:
+    """The FOSMC in the paper's ideal loop: U from the exact state at every simulation step,
+    and the integral w = int_0^t (CA + CBK) Z dtau of (14) integrated with the plant.
+
+    Fields: ``params`` (:class:`Controller`, traced); ``switching`` and ``law`` (static).
+    """
+
+    params: Controller
+    switching: str = "ratio"
+    law: str = "paper"
+
+    def init(self, X0: Array, r0: Array, key=None) -> FOSMCState:
+        return _fosmc_init(self.params, X0, r0)
+
+    def update(self, state: FOSMCState, Y: Array, r: Array, t: Array) -> tuple[Array, FOSMCState]:
+        U, s, _ = _fosmc_sample(self.params, state, Y, r, self.switching, self.law)
+        return U, state._replace(s=s)
+
+    def derivative(self, state: FOSMCState, X: Array, r: Array, t: Array) -> FOSMCState:
+        zero = jax.tree.map(jnp.zeros_like, state)
+        return zero._replace(w=state.derived.S @ (X - desired_state(r)))
+
+
+@functools.partial(
+    jax.tree_util.register_dataclass, data_fields=["params", "period"], meta_fields=["switching", "law"]
+)
+@dataclasses.dataclass(frozen=True)
+class DiscreteFOSMC:
+    """The FOSMC as a sampled controller with period T: at sample j, from the measurement Y_j,
+
+        Z_j = Y_j - X_d(t_j),  s_j = C Z_j - w_j,  U_j from (23),  w_{j+1} = w_j + T (CA + CBK) Z_j,
+
+    w_0 = 0. It knows only the Y_j: its integral is this sum, not the integral of the true error.
+
+    Fields: ``params`` (:class:`Controller`), ``period`` T (s, scalar) (traced); ``switching``,
+    ``law`` (static).
+    """
+
+    params: Controller
+    period: Array
+    switching: str = "ratio"
+    law: str = "paper"
+
+    def init(self, X0: Array, r0: Array, key=None) -> FOSMCState:
+        return _fosmc_init(self.params, X0, r0)
+
+    def update(self, state: FOSMCState, Y: Array, r: Array, t: Array) -> tuple[Array, FOSMCState]:
+        U, s, Z = _fosmc_sample(self.params, state, Y, r, self.switching, self.law)
+        return U, state._replace(w=state.w + self.period * (state.derived.S @ Z), s=s)

@@ -23,7 +23,7 @@ from . import _paper as paper
 from ._controller import Controller
 from ._design import summarize
 from ._linear_plant import LinearPlant, uncertain_plants
-from ._metrics import METRIC_NAMES
+from ._metrics import METRIC_NAMES, UNITS
 from ._reference import Cycloid, desired_state
 from ._simulator import simulate
 
@@ -122,8 +122,10 @@ def run_cases(
 
 # ---------------------------------------------------------------------------- tables
 
+#: The metrics of the reproduction tables (the paper's loop has no actuator limit).
+TABLE_METRICS = METRIC_NAMES[:6]
 COLUMNS = ["plant", "payload", "switching", "delta", "rollouts", "diverged"] + [
-    f"{m}_{j}" for m in METRIC_NAMES for j in (1, 2, 3)
+    f"{m}_{j}" for m in TABLE_METRICS for j in (1, 2, 3)
 ]
 
 
@@ -141,7 +143,7 @@ def metric_rows(cases: list[Case]) -> list[dict[str, Any]]:
             "rollouts": int(ok.size),
             "diverged": int((~ok).sum()),
         }
-        for m in METRIC_NAMES:
+        for m in TABLE_METRICS:
             v = np.asarray(getattr(c.result.metrics, m))[ok]
             worst = v.max(axis=0) if v.size else np.full(3, np.nan)
             for j in range(3):
@@ -169,14 +171,12 @@ def read_csv(text: str) -> list[dict[str, Any]]:
 
 def to_markdown(rows: list[dict[str, Any]]) -> str:
     """Markdown table; each metric cell lists joints 1 / 2 / 3."""
-    units = dict(rms_error="rad", max_abs_error="rad", final_abs_error="rad", chattering="V/s",
-                 control_rms="V", max_abs_control="V")  # fmt: skip
-    head = ["plant", "payload", "switching", "delta", "rollouts"] + [f"{m} ({units[m]})" for m in METRIC_NAMES]
+    head = ["plant", "payload", "switching", "delta", "rollouts"] + [f"{m} ({UNITS[m]})" for m in TABLE_METRICS]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r["plant"], r["payload"], r["switching"], r["delta"],
                  str(r["rollouts"]) + (f" ({r['diverged']} diverged)" if r["diverged"] else "")]  # fmt: skip
-        cells += [" / ".join(f"{r[f'{m}_{j}']:.3g}" for j in (1, 2, 3)) for m in METRIC_NAMES]
+        cells += [" / ".join(f"{r[f'{m}_{j}']:.3g}" for j in (1, 2, 3)) for m in TABLE_METRICS]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

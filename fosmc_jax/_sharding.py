@@ -78,6 +78,7 @@ def simulate_sharded(
     dt: Array,
     *,
     devices: int | Sequence[jax.Device] | None = None,
+    keys: Array | None = None,
     **options,
 ) -> Result:
     """:func:`fosmc_jax.simulate_batch` with the batch split over ``devices``.
@@ -87,8 +88,8 @@ def simulate_sharded(
     does not divide but the number of plants P does, the plants are split instead. Each
     device runs ``simulate_batch`` on its slice. ``options`` are ``simulate_batch``'s.
 
-    Returns the :class:`Result` of all P x O rollouts, plant-major, shape (P*O, ...), equal
-    to ``simulate_batch``'s.
+    Returns the :class:`Result` of all P x O (x R, for R ``keys``) rollouts, plant-major,
+    shape (P*O*R, ...), equal to ``simulate_batch``'s.
     """
     mesh = batch_mesh(devices)
     n = mesh.devices.size
@@ -100,31 +101,35 @@ def simulate_sharded(
         X0s = jnp.concatenate([jnp.asarray(X0s), jnp.repeat(jnp.asarray(X0s)[-1:], pad, axis=0)])
     over = Spec(AXIS)
     plant_spec, x0_spec = (over, Spec()) if split_plants else (Spec(), over)
-    result = _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt)
-    return jax.tree.map(lambda r: r[:, :O].reshape((P * O,) + r.shape[2:]), result)
+    if keys is None:
+        key = options.pop("key", None)
+        keys = (jax.random.PRNGKey(0) if key is None else key)[None]
+    R = keys.shape[0]
+    result = _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys)
+    return jax.tree.map(lambda r: r[:, :O].reshape((P * O * R,) + r.shape[3:]), result)
 
 
-def _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt) -> Result:
+def _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys) -> Result:
     put = lambda tree, spec: jax.tree.map(lambda x: _global(x, NamedSharding(mesh, spec)), tree)
     args = (put(plants, plant_spec), put(controller, Spec()), put(reference, Spec()),
-            put(X0s, x0_spec), put(dt, Spec()))  # fmt: skip
+            put(X0s, x0_spec), put(dt, Spec()), put(keys, Spec()))  # fmt: skip
     return _sharded(mesh, plant_spec, x0_spec, tuple(sorted(options.items())), *args)
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
-def _sharded(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt) -> Result:
+def _sharded(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys) -> Result:
     options = dict(options)
 
-    def local(plants, controller, reference, X0s, dt):
-        p, o = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0]
-        r = simulate_batch(plants, controller, reference, X0s, dt, **options)
-        return jax.tree.map(lambda x: x.reshape((p, o) + x.shape[1:]), r)
+    def local(plants, controller, reference, X0s, dt, keys):
+        p, o, r = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0], keys.shape[0]
+        res = simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
+        return jax.tree.map(lambda x: x.reshape((p, o, r) + x.shape[1:]), res)
 
     out = Spec(AXIS) if plant_spec == Spec(AXIS) else Spec(None, AXIS)
     return jax.shard_map(
         local,
         mesh=mesh,
-        in_specs=(plant_spec, Spec(), Spec(), x0_spec, Spec()),
+        in_specs=(plant_spec, Spec(), Spec(), x0_spec, Spec(), Spec()),
         out_specs=out,
         check_vma=False,  # rollouts are independent: nothing is reduced over the mesh
-    )(plants, controller, reference, X0s, dt)
+    )(plants, controller, reference, X0s, dt, keys)

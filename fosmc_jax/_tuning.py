@@ -118,16 +118,24 @@ class Problem(NamedTuple):
     X0s: Any
     dt: Any
     options: dict
+    keys: Any = None  # noise realizations of a digital loop (simulate_batch's keys)
+    make: Callable[[Controller], Any] | None = None  # parameters -> controller (None: the ideal loop)
+
+    def controller(self, p: Tunable) -> Any:
+        """The controller simulated with physical parameters ``p``."""
+        params = self.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
+        return params if self.make is None else self.make(params)
+
+    def simulate(self, p: Tunable, **options):
+        return simulate_batch(self.plants, self.controller(p), self.reference, self.X0s, self.dt, keys=self.keys,
+                              **dict(self.options, **options))  # fmt: skip
 
 
 def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
 
     def loss(u: Tunable):
-        p = to_physical(u, problem.base, floor)
-        ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
-        r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, fast=False,
-                           **problem.options)  # fmt: skip
+        r = problem.simulate(to_physical(u, problem.base, floor), fast=False)
         J, e, c = rollout_costs(r.metrics, r.diverged, obj)
         return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
 
@@ -137,9 +145,7 @@ def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
 def evaluate(problem: Problem, p: Tunable) -> dict[str, Any]:
     """Plain-simulator metrics of physical parameters ``p``, averaged over the non-diverged
     rollouts of the batch; plus the number of diverged rollouts."""
-    ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
-    opts = {k: v for k, v in problem.options.items() if k != "checkpoint_every"}
-    r = simulate_batch(problem.plants, ctrl, problem.reference, problem.X0s, problem.dt, **opts)
+    r = problem.simulate(p, checkpoint_every=0)
     ok = ~np.asarray(r.diverged)
     out = {name: np.asarray(v)[ok].mean(axis=0).tolist() for name, v in r.metrics._asdict().items()}
     return {"metrics": out, "diverged": int((~ok).sum()), "rollouts": int(ok.size)}

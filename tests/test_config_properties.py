@@ -58,7 +58,13 @@ values = st.recursive(
 )
 
 
+#: Valid values for the keys that have no default (absent means "off": no voltage limit).
+NO_DEFAULT = {"actuator.u_max": [10.0, 10.0, 10.0]}
+
+
 def _default(path):
+    if path in NO_DEFAULT:
+        return NO_DEFAULT[path]
     node = _config.defaults()
     for part in path.split("."):
         node = node[part]

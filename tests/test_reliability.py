@@ -57,7 +57,7 @@ def test_step_beyond_stability_warns():
 
 
 def test_batch_summary_excludes_diverged():
-    m = Metrics(*(jnp.array([[1.0, 2.0, 3.0], [100.0, 100.0, 100.0], [3.0, 4.0, 5.0]]) for _ in range(6)))
+    m = Metrics(*(jnp.array([[1.0, 2.0, 3.0], [100.0, 100.0, 100.0], [3.0, 4.0, 5.0]]) for _ in Metrics._fields))
     s = batch_summary(m, jnp.array([False, True, False]))
     assert s["rollouts"] == 3 and s["diverged_excluded"] == 1
     assert s["mean"]["rms_error"] == [2.0, 3.0, 4.0] and s["max"]["chattering"] == [3.0, 4.0, 5.0]

@@ -103,7 +103,9 @@ def np_simulate(plant_a, plant_b, ctrl, ref, X0, dt, n, integrator, switching, l
     return X, X_d, U, s, bad, np_metrics(X, X_d, U, n * dt)
 
 
-def np_metrics(X, X_d, U, t_final):
+def np_metrics(X, X_d, U, t_final, dt=None):
+    """The metrics of samples k = 0..n (fewer for a rollout frozen early: pass its ``dt``)."""
+    dt = t_final / (len(U) - 1) if dt is None else dt
     e = X[:, ::3] - X_d[:, ::3]
     return {
         "rms_error": np.sqrt(np.mean(e**2, axis=0)),
@@ -112,7 +114,18 @@ def np_metrics(X, X_d, U, t_final):
         "chattering": np.sum(np.abs(np.diff(U, axis=0)), axis=0) / t_final,
         "control_rms": np.sqrt(np.mean(U**2, axis=0)),
         "max_abs_control": np.max(np.abs(U), axis=0),
+        "chattering_hf": np.sqrt(np.mean((U - np_lowpass(U, dt)) ** 2, axis=0)),
+        "saturation_fraction": np.zeros(U.shape[1]),
     }
+
+
+def np_lowpass(U, dt, cutoff=10.0):
+    """First-order low-pass of the rows of U, exact for piecewise-constant input, ubar_0 = u_0."""
+    a = 1 - np.exp(-2 * np.pi * cutoff * dt)
+    out = [U[0]]
+    for u in U[1:]:
+        out.append(out[-1] + a * (u - out[-1]))
+    return np.array(out)
 
 
 # ------------------------------------------------------------------ helpers
@@ -480,7 +493,7 @@ def test_divergence_is_flagged_frozen_and_isolated():
     )
     assert k_bad is not None and 0 < k_bad < n
     assert float(bad.diverged_at) == pytest.approx(k_bad * dt, rel=1e-12)
-    assert_metrics_close(bad.metrics, np_metrics(X, X_d, U, n * dt), rtol=1e-9)
+    assert_metrics_close(bad.metrics, np_metrics(X, X_d, U, n * dt, dt), rtol=1e-9)
 
 
 def test_huge_step_diverges_to_nonfinite_and_is_flagged():
