@@ -480,7 +480,8 @@ def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
         return lambda params: params
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
     T = cast(ctl["sample_period"])
-    sensors = Sensors(cast(sens["encoder_counts"]), cast(sens["noise_std"]), sens["derivatives"])
+    noise_std = cast(sens["noise_std"]) if any(sens["noise_std"]) else None  # all zero: nothing to draw
+    sensors = Sensors(cast(sens["encoder_counts"]), noise_std, sens["derivatives"])
     u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))
     m, d = sample_steps(cfg), ctl["delay_samples"]
     return lambda params: DigitalLoop(DiscreteFOSMC(params, T, ctl["switching"], ctl["law"]), sensors, u_max, T, m, d)

@@ -131,7 +131,6 @@ class FOSMCState(NamedTuple):
 
     w: Array  # (3,) integral state of (14)
     s: Array  # (3,) the sliding variable at the last sample (kept for traces)
-    derived: Derived  # constants from the parameters, computed once in init
 
 
 def _fosmc_sample(ctrl: Controller, state: FOSMCState, Y: Array, r: Array, switching: str, law: str):
@@ -139,12 +138,11 @@ def _fosmc_sample(ctrl: Controller, state: FOSMCState, Y: Array, r: Array, switc
     Omega = feedforward(ctrl.a_rows, ctrl.b_rows, r)
     Z = Y - X_d
     s = sliding_surface(ctrl, Z, state.w)
-    return control_law(ctrl, state.derived, Z, X_d, Omega, s, switching, law), s, Z
+    return control_law(ctrl, derive(ctrl), Z, X_d, Omega, s, switching, law), s, Z
 
 
 def _fosmc_init(ctrl: Controller, X0: Array, r0: Array) -> FOSMCState:
-    derived = derive(ctrl)
-    return FOSMCState(jnp.zeros(3, X0.dtype), ctrl.C @ (X0 - desired_state(r0)), derived)
+    return FOSMCState(jnp.zeros(3, X0.dtype), ctrl.C @ (X0 - desired_state(r0)))
 
 
 @functools.partial(
@@ -170,8 +168,7 @@ class FOSMC:
         return U, state._replace(s=s)
 
     def derivative(self, state: FOSMCState, X: Array, r: Array, t: Array) -> FOSMCState:
-        zero = jax.tree.map(jnp.zeros_like, state)
-        return zero._replace(w=state.derived.S @ (X - desired_state(r)))
+        return FOSMCState(derive(self.params).S @ (X - desired_state(r)), jnp.zeros_like(state.s))
 
 
 @functools.partial(
@@ -199,4 +196,4 @@ class DiscreteFOSMC:
 
     def update(self, state: FOSMCState, Y: Array, r: Array, t: Array) -> tuple[Array, FOSMCState]:
         U, s, Z = _fosmc_sample(self.params, state, Y, r, self.switching, self.law)
-        return U, state._replace(w=state.w + self.period * (state.derived.S @ Z), s=s)
+        return U, state._replace(w=state.w + self.period * (derive(self.params).S @ Z), s=s)

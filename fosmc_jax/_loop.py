@@ -37,12 +37,17 @@ class Sensors:
 
     Fields: ``counts`` (3,) encoder counts per revolution (0: no quantization), ``noise_std``
     (9,) standard deviations of the Gaussian noise on [theta_1, theta_1', theta_1'', theta_2,
-    ...] (rad, rad/s, rad/s^2); ``derivatives`` (static): one of :data:`DERIVATIVES`.
+    ...] (rad, rad/s, rad/s^2), or None for no noise (nothing is drawn); ``derivatives``
+    (static): one of :data:`DERIVATIVES`. With ``difference`` only the angles' noise is used.
     """
 
     counts: Array
-    noise_std: Array
+    noise_std: Array | None = None
     derivatives: str = "measured"
+
+    def noise_size(self) -> int:
+        """How many standard normal draws :func:`measure` takes per sample (static)."""
+        return 0 if self.noise_std is None else 9 if self.derivatives == "measured" else 3
 
 
 class SensorMemory(NamedTuple):
@@ -64,15 +69,17 @@ def quantize(theta: Array, counts: Array) -> Array:
 def measure(sensors: Sensors, X: Array, memory: SensorMemory, noise: Array, period: Array):
     """The measurement Y (9,) of the true state X (9,) and the estimator's next memory.
 
-    ``noise`` (9,) is a standard normal draw (scaled here by ``noise_std``). With
-    ``measured`` derivatives, Y = [quantize(theta), theta', theta''] + noise. With
-    ``difference``, theta_m = quantize(theta + noise_theta), theta'_m = (theta_m - memory.theta)
-    / T and theta''_m = (theta'_m - memory.dtheta) / T.
+    ``noise``: ``sensors.noise_size()`` standard normal draws, scaled here by ``noise_std``.
+    With ``measured`` derivatives, Y = [quantize(theta), theta', theta''] + noise. With
+    ``difference``, theta_m = quantize(theta + noise_theta), theta'_m = (theta_m -
+    memory.theta) / T and theta''_m = (theta'_m - memory.dtheta) / T.
     """
-    noisy = X + sensors.noise_std * noise
-    theta = quantize(noisy[0::3], sensors.counts)
+    if sensors.noise_size() == 9:
+        X = X + sensors.noise_std * noise
+    theta = X[0::3] + (sensors.noise_std[0::3] * noise if sensors.noise_size() == 3 else 0)
+    theta = quantize(theta, sensors.counts)
     if sensors.derivatives == "measured":
-        dtheta, ddtheta = noisy[1::3], noisy[2::3]
+        dtheta, ddtheta = X[1::3], X[2::3]
     else:
         dtheta = (theta - memory.theta) / period
         ddtheta = (dtheta - memory.dtheta) / period
@@ -130,7 +137,8 @@ class DigitalLoop:
 
     def update(self, state: LoopState, X: Array, r: Array, t: Array) -> tuple[Array, LoopState]:
         """One sample: measure the true X (9,), run the law, delay, saturate."""
-        noise = jax.random.normal(jax.random.fold_in(state.key, state.j), (9,), X.dtype)
+        size = self.sensors.noise_size()
+        noise = jax.random.normal(jax.random.fold_in(state.key, state.j), (size,), X.dtype) if size else None
         Y, memory = measure(self.sensors, X, state.memory, noise, self.period)
         if self.sensors.derivatives == "difference":
             # j = 0 reads the true rates (the estimator starts from the exact initial state)

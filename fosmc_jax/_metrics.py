@@ -110,7 +110,7 @@ def add(acc: Accumulator, e: Array, u: Array, u_prev: Array, a: Array, u_max: Ar
         jnp.maximum(acc.max_u, jnp.abs(u)),
         u_low,
         acc.sum_hf2 + (u - u_low) ** 2,
-        acc.saturated + _at_limit(u, u_max),
+        acc.saturated if u_max is None else acc.saturated + _at_limit(u, u_max),
     )
 
 
