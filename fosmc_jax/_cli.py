@@ -224,11 +224,23 @@ def cmd_reproduce(args) -> int:
         write_text(out / name, text)
     _log("fosmc reproduce: drawing figures ...")
     figures = R.write_figures(cases, out, args.plant)
+    if args.plant == "arm":
+        _log(f"fosmc reproduce: the realistic loop ({R.REALISTIC_PRESET.name}) beside the ideal one ...")
+        realistic = R.run_realistic_cases(args.t_final, log=_log)
+        sweeps = R.tradeoff_sweeps(args.t_final, log=_log)
+        rows = R.metric_rows(realistic, R.METRIC_NAMES)
+        files.update({"realistic.md": R.to_markdown(rows, R.METRIC_NAMES), "tradeoff.md": R.sweep_markdown(sweeps)})
+        for name in ("realistic.md", "tradeoff.md"):
+            write_text(out / name, files[name])
+        figures += R.write_realistic_figures(realistic, sweeps, out)
     if args.report:
         report = Path(args.report)
         text = report.read_text()
         text = R.replace_block(text, "metrics", files["metrics.md"])
         text = R.replace_block(text, "design", files["design.md"])
+        for name in ("realistic", "tradeoff"):
+            if f"{name}.md" in files:
+                text = R.replace_block(text, name, files[f"{name}.md"])
         write_text(report, text)
         _log(f"fosmc reproduce: updated {report}")
     print(files["metrics.md"])

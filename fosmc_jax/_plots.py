@@ -116,3 +116,29 @@ def plot_tuning(history: dict, params: list[dict], path: str | Path) -> None:
         ax.grid(alpha=0.3)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def plot_tradeoff(sweeps, path: str | Path, title: str) -> None:
+    """Tracking error and chattering against each swept parameter, in both loops.
+
+    ``sweeps``: list of objects with ``name``, ``values`` (n,), and ``ideal``, ``realistic``
+    metrics whose fields are (n, 3) arrays; each panel shows the mean over the joints."""
+    rows = (("rms_error", "mean RMS tracking error (rad)"), ("chattering_hf", "mean chattering_hf (V)"),
+            ("chattering", "mean total variation rate (V/s)"))  # fmt: skip
+    fig, axes = plt.subplots(len(rows), len(sweeps), figsize=(5.5 * len(sweeps), 3.2 * len(rows)), squeeze=False)
+    for c, sw in enumerate(sweeps):
+        for r, (metric, label) in enumerate(rows):
+            ax = axes[r, c]
+            for loop, style in (("ideal", "o-"), ("realistic", "s-")):
+                y = np.mean(np.asarray(getattr(getattr(sw, loop), metric)), axis=-1)
+                ax.plot(sw.values, y, style, label=f"{loop} loop")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3, which="both")
+            if r == len(rows) - 1:
+                ax.set_xlabel(sw.name + (" (x Table 1 set 1)" if "delta" in sw.name else " (x poles (33))"))
+        axes[0, c].legend(fontsize=9)
+    fig.suptitle(title)
+    fig.tight_layout()
+    save_figure(fig, path)

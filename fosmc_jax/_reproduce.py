@@ -8,6 +8,7 @@ paper does not show. Figures are drawn by :mod:`fosmc_jax._reproduce_plots`.
 
 from __future__ import annotations
 
+import copy
 import csv
 import functools
 import io
@@ -19,8 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pathlib import Path
+
+from . import _config
 from . import _paper as paper
-from ._controller import Controller
+from ._controller import FOSMC, Controller
 from ._design import summarize
 from ._linear_plant import LinearPlant, uncertain_plants
 from ._metrics import METRIC_NAMES, UNITS
@@ -120,6 +124,114 @@ def run_cases(
     return sorted(cases, key=lambda c: (c.plant != kind, "vertices" in c.payload, c.payload, order[c.switching]))
 
 
+# ---------------------------------------------------------------------------- the realistic loop
+
+#: The realistic digital loop (sample rate, encoder, difference estimator, delay, voltage
+#: limit), with the sources of its numbers; ``tuning/configs/realistic_arm.toml`` is this file.
+REALISTIC_PRESET = Path(__file__).parent / "presets" / "realistic_arm.toml"
+#: The trade-off sweep: delta as multiples of Table 1 set 1, and the poles (33) sped up.
+DELTA_SCALES = (3.0, 1.0, 0.3, 0.1, 0.03, 0.01, 0.003, 0.001)
+POLE_SPEEDUPS = (1.0, 3.0, 10.0, 30.0, 100.0)
+
+
+def realistic_config(t_final: float | None = None) -> dict:
+    """The resolved realistic preset (optionally with a shorter horizon)."""
+    cfg = _config.load(REALISTIC_PRESET)
+    if t_final is not None:
+        cfg["sim"]["t_final"] = t_final
+    return cfg
+
+
+def _run(cfg: dict, params: list[Controller], switching: str, realistic: bool, save_every: int = 0):
+    """Every (params x payload) of ``cfg``'s arm, each run in the ideal loop or the config's
+    digital loop: one vmapped call, results with a leading axis (len(params) * P)."""
+    cfg = copy.deepcopy(cfg)
+    cfg["controller"]["switching"] = switching
+    problem = _config.build(cfg)
+    make = problem.make if realistic else functools.partial(FOSMC, switching=switching)
+    P = jax.tree.leaves(problem.plants)[0].shape[0]
+    ctrls = _stack([make(p) for p in params for _ in range(P)])
+    plants = jax.tree.map(lambda x: jnp.concatenate([x] * len(params)), problem.plants)
+    key = None if problem.keys is None else problem.keys[0]
+    one = functools.partial(simulate, n_steps=problem.options["n_steps"], integrator=problem.options["integrator"],
+                            save_every=save_every, key=key)  # fmt: skip
+    result = jax.vmap(one, in_axes=(0, 0, None, None, None))(plants, ctrls, problem.reference, problem.X0s[0],
+                                                              problem.dt)  # fmt: skip
+    return jax.block_until_ready(result)
+
+
+def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Case]:
+    """SGN and Table 1's sets with the paper's gains on the arm at 0 and 10 kg, in the
+    realistic loop and, beside it, in the ideal loop with the preset's step and integrator."""
+    cfg = realistic_config(t_final)
+    dtype = jnp.dtype(cfg["sim"]["precision"])
+    payloads = [f"{p:g} kg" for p in cfg["plant"]["payloads"]]
+    m = _config.sample_steps(cfg)
+    cases = []
+    for loop_name, realistic in (("realistic", True), ("ideal", False)):
+        for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
+            start = time.perf_counter()
+            params = [_controller(paper.DELTA_SETS[k], dtype) for k in sets]
+            result = _run(cfg, params, switching, realistic, save_every=m)
+            i = 0
+            for k in sets:
+                for load in payloads:
+                    part = jax.tree.map(lambda x, i=i: x[i : i + 1], result)
+                    cases.append(Case(f"arm, {loop_name} loop", load, "sign" if switching == "sign" else f"set {k + 1}",
+                                      part))  # fmt: skip
+                    i += 1
+            log(f"arm {loop_name:9} {switching:5} {i:2d} rollout(s) x {cfg['sim']['t_final']} s  "
+                f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
+    return cases
+
+
+class Sweep(NamedTuple):
+    """Mean (over payloads) metrics of the trade-off sweep, each (len(values), 3)."""
+
+    name: str  # "delta scale" or "pole speed-up"
+    values: tuple[float, ...]
+    ideal: Any  # Metrics
+    realistic: Any  # Metrics
+
+
+def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Sweep]:
+    """Table 1 set 1 with delta scaled by :data:`DELTA_SCALES`, and with the poles (33) sped up
+    by :data:`POLE_SPEEDUPS`, on the arm at 0 and 10 kg, in both loops."""
+    cfg = realistic_config(t_final)
+    dtype = jnp.dtype(cfg["sim"]["precision"])
+    base = _controller(paper.DELTA_SETS[0], dtype)
+    P = len(cfg["plant"]["payloads"])
+    sweeps = []
+    for name, values, vary in (
+        ("delta scale", DELTA_SCALES, lambda v: base._replace(delta=base.delta * v)),
+        ("pole speed-up", POLE_SPEEDUPS, lambda v: base._replace(poles=base.poles * v)),
+    ):
+        out = []
+        for realistic in (False, True):
+            start = time.perf_counter()
+            r = _run(cfg, [vary(v) for v in values], "ratio", realistic)
+            ok = ~np.asarray(r.diverged).reshape(len(values), P, 1)
+            mean = lambda x: np.nanmean(np.where(ok, np.asarray(x).reshape(len(values), P, 3), np.nan), axis=1)
+            out.append(jax.tree.map(mean, r.metrics))
+            log(f"trade-off {name:13} {'realistic' if realistic else 'ideal':9} {len(values) * P:3d} rollouts  "
+                f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
+        sweeps.append(Sweep(name, values, *out))
+    return sweeps
+
+
+def sweep_markdown(sweeps: list[Sweep]) -> str:
+    """The trade-off sweeps as a Markdown table (means over joints and payloads)."""
+    lines = ["| sweep | value | loop | rms_error (rad) | chattering_hf (V) | chattering (V/s) | saturation_fraction |",
+             "|---|---:|---|---:|---:|---:|---:|"]  # fmt: skip
+    for sw in sweeps:
+        for i, v in enumerate(sw.values):
+            for loop_name, m in (("ideal", sw.ideal), ("realistic", sw.realistic)):
+                cells = [f"{np.mean(getattr(m, k)[i]):.3g}" for k in
+                         ("rms_error", "chattering_hf", "chattering", "saturation_fraction")]  # fmt: skip
+                lines.append(f"| {sw.name} | {v:g} | {loop_name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 # ---------------------------------------------------------------------------- tables
 
 #: The metrics of the reproduction tables (the paper's loop has no actuator limit).
@@ -129,7 +241,7 @@ COLUMNS = ["plant", "payload", "switching", "delta", "rollouts", "diverged"] + [
 ]
 
 
-def metric_rows(cases: list[Case]) -> list[dict[str, Any]]:
+def metric_rows(cases: list[Case], metrics: tuple[str, ...] = TABLE_METRICS) -> list[dict[str, Any]]:
     """One row per case; batched cases (box vertices) report the worst rollout per metric
     (max over the batch), excluding diverged rollouts."""
     rows = []
@@ -143,7 +255,7 @@ def metric_rows(cases: list[Case]) -> list[dict[str, Any]]:
             "rollouts": int(ok.size),
             "diverged": int((~ok).sum()),
         }
-        for m in TABLE_METRICS:
+        for m in metrics:
             v = np.asarray(getattr(c.result.metrics, m))[ok]
             worst = v.max(axis=0) if v.size else np.full(3, np.nan)
             for j in range(3):
@@ -169,14 +281,14 @@ def read_csv(text: str) -> list[dict[str, Any]]:
     return rows
 
 
-def to_markdown(rows: list[dict[str, Any]]) -> str:
+def to_markdown(rows: list[dict[str, Any]], metrics: tuple[str, ...] = TABLE_METRICS) -> str:
     """Markdown table; each metric cell lists joints 1 / 2 / 3."""
-    head = ["plant", "payload", "switching", "delta", "rollouts"] + [f"{m} ({UNITS[m]})" for m in TABLE_METRICS]
+    head = ["plant", "payload", "switching", "delta", "rollouts"] + [f"{m} ({UNITS[m]})" for m in metrics]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         cells = [r["plant"], r["payload"], r["switching"], r["delta"],
                  str(r["rollouts"]) + (f" ({r['diverged']} diverged)" if r["diverged"] else "")]  # fmt: skip
-        cells += [" / ".join(f"{r[f'{m}_{j}']:.3g}" for j in (1, 2, 3)) for m in TABLE_METRICS]
+        cells += [" / ".join(f"{r[f'{m}_{j}']:.3g}" for j in (1, 2, 3)) for m in metrics]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -288,6 +400,27 @@ def write_figures(cases: list[Case], out_dir, kind: str) -> list[str]:
     save("fig_extra_box_vertices.png", series, "tracking error (rad)",
          f"Linear model (3) at {vert[0].payload}: worst |error| over the vertices", logy=True)  # fmt: skip
     return written
+
+
+def write_realistic_figures(cases: list[Case], sweeps: list[Sweep], out_dir) -> list[str]:
+    """The realistic loop's control beside the ideal loop's (set 1 and SGN, heaviest payload),
+    and the trade-off sweeps."""
+    from ._plots import plot_joint_series, plot_tradeoff
+
+    heavy = cases[-1].payload
+    by = {(c.plant, c.payload, c.switching): c for c in cases}
+    series = []
+    for loop in ("ideal", "realistic"):
+        for sw in ("sign", "set 1"):
+            trace = by[(f"arm, {loop} loop", heavy, sw)].result.trace
+            series.append((f"{sw}, {loop} loop", np.asarray(trace.t[0]), np.asarray(trace.U[0])))
+    name = "fig_realistic_control.png"
+    plot_joint_series(series, "control U (V)", out_dir / name,
+                      f"Applied voltage, ideal and realistic loop (REPRODUCTION.md), arm, {heavy}",
+                      styles={"sign, ideal loop": {"lw": 0.4}, "sign, realistic loop": {"lw": 0.4}})  # fmt: skip
+    plot_tradeoff(sweeps, out_dir / "fig_realistic_tradeoff.png",
+                  "Table 1 set 1 on the arm (mean of 0 and 10 kg): smaller delta or faster poles")  # fmt: skip
+    return [name, "fig_realistic_tradeoff.png"]
 
 
 # ---------------------------------------------------------------------------- report

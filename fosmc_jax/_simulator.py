@@ -216,19 +216,17 @@ def simulate(
         )  # fmt: skip
         return _Carry(k, *kept, diverged, diverged_at)
 
+    def held(c: _Carry, _) -> tuple[_Carry, None]:
+        return step(c, sample=False), None
+
     def period(c: _Carry, _) -> tuple[_Carry, None]:
         """m steps: m - 1 with the control held, then one ending with a controller sample."""
-        for i in range(m):
-            c = step(c, sample=i == m - 1)
-        return c, None
+        return step(_scan_steps(held, c, m - 1), sample=True), None
 
     def advance(c: _Carry, steps: int) -> _Carry:
         """``steps`` simulation steps from a controller sample."""
         periods, rest = divmod(steps, m)
-        c = _scan_steps(period, c, periods)
-        for _ in range(rest):
-            c = step(c, sample=False)
-        return c
+        return _scan_steps(held, _scan_steps(period, c, periods), rest)
 
     plant_state = plant.init(X0)
     X = plant.observe(plant_state)

@@ -316,3 +316,19 @@ def test_certify_refuses_a_digital_loop(capsys, tmp_path):
 def test_digital_loop_refuses_a_continuous_law():
     with pytest.raises(TypeError, match="sampled controller"):
         dataclasses.replace(loop(), law=fj.FOSMC(PARAMS))
+
+
+def test_readme_digital_loop_example_runs():
+    """The README's second Python block (the digital loop) runs after the first, as written."""
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text[text.index("## Python API") : text.index("## The arm")]
+    blocks = re.findall(r"```python\n(.*?)```", section, re.S)
+    assert len(blocks) == 2
+    scope: dict = {}
+    for code in blocks:
+        exec(compile(code, "README.md", "exec"), scope)
+    assert scope["res"].metrics.chattering_hf.shape == (256, 3)
+    assert np.all(np.asarray(scope["res"].metrics.max_abs_control) <= 24.0)
