@@ -293,11 +293,7 @@ def cmd_tune(args) -> int:
          f"training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     initial = T.evaluate(plain, p0)
-    obj = T.Objective(
-        tcfg["weight_error"], tcfg["weight_chattering"],
-        float(np.mean(m["rms_error"])), float(np.mean(m["chattering"])),
-        tcfg["worst_case"], tcfg["worst_weight"], tcfg["cvar_alpha"], tcfg["penalty"],
-    )  # fmt: skip
+    obj = T.objective_of(tcfg, m)
     try:
         u0 = T.to_internal(p0, built.params, floor)
     except ValueError as e:

@@ -28,7 +28,7 @@ from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
-from ._tuning import MODES, PARAM_NAMES, WORST_CASE
+from ._tuning import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, PARAM_NAMES, SCALES, WORST_CASE
 
 try:  # Python >= 3.11
     import tomllib
@@ -117,6 +117,13 @@ def defaults() -> dict[str, Any]:
             "train_t_final": 0.0,
             "keep_gamma_bound": False,
             "gamma_bound_convention": "paper",
+            "objective": "weighted",
+            "scale": "log",
+            "error_metric": "rms_error",
+            "chattering_metric": "chattering_hf",
+            "error_bound": 0.0,
+            "chattering_bound": 0.0,
+            "bound_weight": 100.0,
         },
     }
 
@@ -305,6 +312,13 @@ SCHEMA: dict[str, Any] = {
         "train_t_final": _number("a non-negative number (s; 0: sim.t_final)", lambda x: x >= 0),
         "keep_gamma_bound": _boolean,
         "gamma_bound_convention": _choice(CONVENTIONS),
+        "objective": _choice(FORMS),
+        "scale": _choice(SCALES),
+        "error_metric": _choice(ERROR_METRICS),
+        "chattering_metric": _choice(CHATTERING_METRICS),
+        "error_bound": _number("a non-negative number (rad; used by objective = 'error_bound')", lambda x: x >= 0),
+        "chattering_bound": _number("a non-negative number (used by objective = 'chattering_bound')", lambda x: x >= 0),
+        "bound_weight": _number("a positive number", lambda x: x > 0),
     },
 }
 
@@ -356,6 +370,10 @@ def _check_consistency(cfg: dict) -> None:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
     if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
         raise ConfigError("plant.uncertainty: applies to kind = 'linear' only (the arm's uncertainty is its payloads)")
+    tune = cfg["tune"]
+    for form, key in (("error_bound", "error_bound"), ("chattering_bound", "chattering_bound")):
+        if tune["objective"] == form and not tune[key] > 0:
+            raise ConfigError(f"tune.{key}: expected a positive bound with tune.objective = '{form}', got {tune[key]}")
     train_t = cfg["tune"]["train_t_final"] or sim["t_final"]
     if train_t > sim["t_final"]:
         raise ConfigError(f"tune.train_t_final: expected at most sim.t_final = {sim['t_final']}, got {train_t}")

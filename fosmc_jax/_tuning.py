@@ -5,15 +5,24 @@ Parameters live in unconstrained coordinates: delta = exp(u_delta), poles = -exp
 to keep gamma above the bounds (24)-(26), which move with K and hence with the poles.
 
 Objective (unit-free). Per rollout i, with the plain metrics of :mod:`fosmc_jax._metrics`,
+E_i = mean_j of the ``error_metric`` (``rms_error`` or ``max_abs_error``) and C_i = mean_j of
+the ``chattering_metric`` (``chattering_hf`` by default: the switching part of the control;
+``chattering``, the total variation, also counts the smooth motion the trajectory needs), and
+with g(x, ref) = log(x / ref) (``scale = "log"``: errors span decades) or x / ref
+(``"linear"``), the ``form``:
 
-    J_i = w_e * mean_j rms_error_ij / e_ref + w_c * mean_j chattering_ij / c_ref
+    weighted          J_i = w_e g(E_i, e_ref) + w_c g(C_i, c_ref)
+    error_bound       J_i = g(C_i, c_ref) + rho relu(log(E_i / error_bound))^2
+                      (the smoothest control whose error stays under the bound)
+    chattering_bound  J_i = g(E_i, e_ref) + rho relu(log(C_i / chattering_bound))^2
+                      (the best tracking whose chattering stays under the bound)
 
-where e_ref and c_ref are the batch means at the initial parameters, so J = w_e + w_c there.
-The loss is mean_i J_i, plus ``worst_weight`` times max_i J_i (``worst_case = "max"``) or the
-CVaR, the mean of the worst ``1 - cvar_alpha`` fraction (``"cvar"``). A diverged rollout
-contributes the finite ``penalty`` with no gradient. The training objective uses the metrics of
-the training simulation (its step and horizon); every reported result is re-evaluated with the
-plain simulator (:func:`evaluate`).
+where e_ref and c_ref are the batch means at the initial parameters and rho =
+``bound_weight``. The loss is mean_i J_i, plus ``worst_weight`` times max_i J_i
+(``worst_case = "max"``) or the CVaR, the mean of the worst ``1 - cvar_alpha`` fraction
+(``"cvar"``). A diverged rollout contributes the finite ``penalty`` with no gradient. The
+training objective uses the metrics of the training simulation (its step and horizon); every
+reported result is re-evaluated with the plain simulator (:func:`evaluate`).
 """
 
 from __future__ import annotations
@@ -77,8 +86,14 @@ def to_physical(u: Tunable, base: Controller, floor: GammaFloor | None = None) -
     return Tunable(jnp.exp(u.delta), gamma_floor(floor, base, poles) + jnp.exp(u.gamma), poles)
 
 
+FORMS = ("weighted", "error_bound", "chattering_bound")
+SCALES = ("log", "linear")
+ERROR_METRICS = ("rms_error", "max_abs_error")
+CHATTERING_METRICS = ("chattering_hf", "chattering")
+
+
 class Objective(NamedTuple):
-    """Weights and scales of the objective (see module docstring)."""
+    """Form, weights, metrics and scales of the objective (see module docstring)."""
 
     weight_error: float = 1.0
     weight_chattering: float = 1.0
@@ -88,12 +103,41 @@ class Objective(NamedTuple):
     worst_weight: float = 0.0
     cvar_alpha: float = 0.9
     penalty: float = 100.0
+    form: str = "weighted"
+    scale: str = "log"
+    error_metric: str = "rms_error"
+    chattering_metric: str = "chattering_hf"
+    error_bound: float = 0.0
+    chattering_bound: float = 0.0
+    bound_weight: float = 100.0
+
+
+def objective_of(tune: dict, metrics: dict) -> Objective:
+    """The :class:`Objective` of a config's ``[tune]`` table, its scales the batch means of
+    ``metrics`` (a dict of per-joint means, as :func:`evaluate` returns) at the start."""
+    return Objective(
+        tune["weight_error"], tune["weight_chattering"],
+        float(np.mean(metrics[tune["error_metric"]])), float(np.mean(metrics[tune["chattering_metric"]])),
+        tune["worst_case"], tune["worst_weight"], tune["cvar_alpha"], tune["penalty"], tune["objective"],
+        tune["scale"], tune["error_metric"], tune["chattering_metric"], tune["error_bound"],
+        tune["chattering_bound"], tune["bound_weight"],
+    )  # fmt: skip
 
 
 def rollout_costs(metrics, diverged, obj: Objective):
-    """Per-rollout J_i (B,), its error and chattering parts; diverged rollouts get ``penalty``."""
-    e = obj.weight_error * jnp.mean(metrics.rms_error, axis=-1) / obj.error_ref
-    c = obj.weight_chattering * jnp.mean(metrics.chattering, axis=-1) / obj.chattering_ref
+    """Per-rollout J_i (B,) and its error and chattering parts; diverged rollouts get ``penalty``."""
+    E = jnp.mean(getattr(metrics, obj.error_metric), axis=-1)
+    C = jnp.mean(getattr(metrics, obj.chattering_metric), axis=-1)
+    g = (lambda x, ref: jnp.log(x / ref)) if obj.scale == "log" else (lambda x, ref: x / ref)
+    over = lambda x, bound: obj.bound_weight * jax.nn.relu(jnp.log(x / bound)) ** 2
+    if obj.form == "weighted":
+        e, c = obj.weight_error * g(E, obj.error_ref), obj.weight_chattering * g(C, obj.chattering_ref)
+    elif obj.form == "error_bound":
+        e, c = over(E, obj.error_bound), g(C, obj.chattering_ref)
+    elif obj.form == "chattering_bound":
+        e, c = g(E, obj.error_ref), over(C, obj.chattering_bound)
+    else:
+        raise ValueError(f"form must be one of {FORMS}, got {obj.form!r}")
     J = jnp.where(diverged | ~jnp.isfinite(e + c), jax.lax.stop_gradient(obj.penalty), e + c)
     return J, e, c
 

@@ -92,7 +92,8 @@ def make_loss(train: T.Problem, e_ref: float, c_ref: float):
     def loss(u: T.Tunable, w_c):
         e, c, div = rollout_metrics(train, T.to_physical(u, train.base))
         metrics = type("M", (), {"rms_error": e, "chattering": c})
-        J, _, _ = T.rollout_costs(metrics, div, T.Objective(1.0, w_c, e_ref, c_ref))
+        obj = T.Objective(1.0, w_c, e_ref, c_ref, scale="linear", chattering_metric="chattering")  # as committed
+        J, _, _ = T.rollout_costs(metrics, div, obj)
         return jnp.mean(J)
 
     return loss
