@@ -16,24 +16,9 @@ import numpy as np
 
 from . import _config, _paper
 from ._design import CONVENTIONS, summarize
-from ._io import write_text
+from ._io import jsonable, write_text
 from ._metrics import METRIC_NAMES, UNITS, batch_summary
 from ._simulator import simulate_batch
-
-
-def _jsonable(x: Any) -> Any:
-    """Arrays to lists, non-finite floats to None (JSON has no NaN/inf)."""
-    if isinstance(x, dict):
-        return {k: _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.ndarray, jax.Array)):
-        return _jsonable(np.asarray(x).tolist())
-    if isinstance(x, (float, np.floating)):
-        return float(x) if math.isfinite(x) else None
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x
 
 
 def _log(msg: str) -> None:
@@ -46,7 +31,9 @@ def _log(msg: str) -> None:
 def cmd_simulate(args) -> int:
     cfg = _config.load(args.config)
     if args.params:
-        cfg = _config.with_params(cfg, args.params)
+        cfg = _config.with_params(cfg, args.params, args.point)
+    elif args.point is not None:
+        raise _config.ConfigError("--point: needs --params FRONT.json")
     n = _config.n_steps(cfg)
     if args.plot and not cfg["sim"]["save_every"]:
         m = _config.sample_steps(cfg)
@@ -90,7 +77,7 @@ def cmd_simulate(args) -> int:
         _log(f"fosmc: wrote {args.plot}")
     summary = batch_summary(result.metrics, result.diverged)
     if args.json:
-        print(json.dumps(_jsonable({"rollouts": rollouts, "summary": summary, "config": cfg}), indent=1))
+        print(json.dumps(jsonable({"rollouts": rollouts, "summary": summary, "config": cfg}), indent=1))
     else:
         _print_rollouts(rollouts)
         if n_rollouts > 1:
@@ -153,7 +140,7 @@ def cmd_bounds(args) -> int:
         out["box"] = dict(zip(_config.BOX_KEYS, box))
         out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
     if args.json:
-        print(json.dumps(_jsonable(out), indent=1))
+        print(json.dumps(jsonable(out), indent=1))
         return 0
     fmt = lambda v: "  ".join(f"{x:10.4f}" for x in np.ravel(v))
     if arm:
@@ -268,34 +255,21 @@ def cmd_tune(args) -> int:
     if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
         raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
     out.mkdir(parents=True, exist_ok=True)
-    built = _config.build(cfg)
-    plain = T.Problem(built.plants, built.params, built.reference, built.X0s, built.dt,
-                      dict(built.options, save_every=0), built.keys, built.make)  # fmt: skip
-    # the training simulation may use a coarser step (a surrogate); results use the plain one
-    train_cfg = copy.deepcopy(cfg)
-    if tcfg["train_dt"]:
-        train_cfg["sim"]["dt"] = tcfg["train_dt"]
-    if tcfg["train_t_final"]:
-        train_cfg["sim"]["t_final"] = tcfg["train_t_final"]
-    train = _config.build(train_cfg)
-    options = dict(train.options, save_every=0, checkpoint_every=tcfg["remat_steps"])
-    problem = T.Problem(train.plants, train.params, train.reference, train.X0s, train.dt, options, train.keys,
-                        train.make)  # fmt: skip
-    p0 = T.Tunable(built.params.delta, built.params.gamma, built.params.poles)
+    plain, problem, p0 = _config.tuning_problems(cfg)
     floor = None
     if tcfg["keep_gamma_bound"]:
         box = _config.box_of(cfg)
         d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
                       cfg["controller"]["poles"])  # fmt: skip
         floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
-    n_rollouts = built.X0s.shape[0] * jax.tree.leaves(built.plants)[0].shape[0]
-    _log(f"tune: {n_rollouts} rollouts x {options['n_steps']} steps (dt = {train_cfg['sim']['dt']} s) per "
+    n_rollouts = _rollouts(problem)
+    _log(f"tune: {n_rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) per "
          f"training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     initial = T.evaluate(plain, p0)
     obj = T.objective_of(tcfg, m)
     try:
-        u0 = T.to_internal(p0, built.params, floor)
+        u0 = T.to_internal(p0, plain.base, floor)
     except ValueError as e:
         raise _config.ConfigError(str(e)) from None
     settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
@@ -303,7 +277,7 @@ def cmd_tune(args) -> int:
     start = time.perf_counter()
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=out / "checkpoint.npz",
                        resume=args.resume, log=_log)  # fmt: skip
-    final_params = T.to_physical(u, built.params, floor)
+    final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = {
@@ -313,8 +287,8 @@ def cmd_tune(args) -> int:
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg,
     }
-    write_text(out / "result.json", json.dumps(_jsonable(result), indent=1))
-    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), built.params, floor))
+    write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
+    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), plain.base, floor))
                       for p in history["params"]]  # fmt: skip
     plot_tuning(history, params_history, out / "tuning.png")
     _log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
@@ -325,6 +299,47 @@ def cmd_tune(args) -> int:
 
 def _fmt3(v) -> str:
     return " ".join(f"{x:.4e}" for x in v)
+
+
+def _rollouts(problem) -> int:
+    """Rollouts in a problem's batch: plants x offsets x noise realizations."""
+    keys = 1 if problem.keys is None else problem.keys.shape[0]
+    return jax.tree.leaves(problem.plants)[0].shape[0] * problem.X0s.shape[0] * keys
+
+
+# ---------------------------------------------------------------------------- front
+
+
+def cmd_front(args) -> int:
+    from pathlib import Path
+
+    from . import _front as F
+
+    cfg = _config.load(args.config)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
+        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
+    for name, value in (("--points", args.points), ("--candidates", args.candidates), ("--steps", args.steps)):
+        if value is not None and value < (1 if name == "--points" else 0):
+            raise _config.ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
+                                      f"integer, got {value}")  # fmt: skip
+    if not args.budget > 0:
+        raise _config.ConfigError(f"--budget: expected a positive number of seconds, got {args.budget}")
+    for path in args.compare:
+        try:
+            json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise _config.ConfigError(f"--compare: cannot read {path}: {e}") from None
+    out.mkdir(parents=True, exist_ok=True)
+    settings = F.Settings(points=args.points or 8, budget=args.budget, candidates=args.candidates or 0,
+                          steps=args.steps or 0)  # fmt: skip
+    start = time.perf_counter()
+    result = F.study(cfg, settings, out=out, resume=args.resume, compare=tuple(args.compare), log=_log)
+    _log(f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time)")
+    for i, pt in enumerate(result["points"]):
+        e, c = (float(np.mean(pt["metrics"][k])) for k in F.AXES)
+        print(f"point {i:3d}  {F.AXES[0]} {e:.4e} rad  {F.AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
+    return 0
 
 
 # ---------------------------------------------------------------------------- certify
@@ -345,7 +360,7 @@ def cmd_certify(args) -> int:
     r = _certify.report(cfg, **opts)
     _log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")
     if args.json:
-        print(json.dumps(_jsonable(r), indent=1))
+        print(json.dumps(jsonable(r), indent=1))
         return 0
     w = r["where"]
     print(f"hitting condition (20): max s^T s'/||s|| = {r['max_hitting']:.4g} -> "
@@ -375,7 +390,9 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
-    s.add_argument("--params", metavar="JSON", help="use delta, gamma, poles from a `fosmc tune` result.json")
+    s.add_argument("--params", metavar="JSON",
+                   help="use delta, gamma, poles from a `fosmc tune` result.json or a `fosmc front` front.json")
+    s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
     s.add_argument("--devices", type=int, default=1, help="split the batch over N devices (on CPU: N host devices)")
     s.set_defaults(func=cmd_simulate)
     b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
@@ -391,6 +408,18 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--dt", type=float, default=1e-4, help="step (s), default 1e-4")
     r.add_argument("--integrator", choices=("euler", "rk4"), default="rk4")
     r.set_defaults(func=cmd_reproduce)
+    f = sub.add_parser("front", help="Pareto front of tracking error against chattering")
+    f.add_argument("--config", help="TOML config (default: the paper's setup)")
+    f.add_argument("--out", default="out/front", help="output folder (default: out/front)")
+    f.add_argument("--points", type=int, help="refinement starts (default 8)")
+    f.add_argument("--budget", type=float, default=300.0, help="wall time, s (default 300)")
+    f.add_argument("--candidates", type=int, help="global stage size (default: from the budget)")
+    f.add_argument("--steps", type=int, help="refinement steps (default: from the budget)")
+    f.add_argument("--compare", action="append", default=[], metavar="JSON",
+                   help="a front.json or tune result.json to draw on the same axes (repeatable)")
+    f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    f.set_defaults(func=cmd_front)
     t = sub.add_parser("tune", help="gradient-based tuning of delta, gamma and the poles (optax)")
     t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
     t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")

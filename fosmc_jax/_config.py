@@ -28,6 +28,7 @@ from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
+from . import _tuning
 from ._tuning import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, PARAM_NAMES, SCALES, WORST_CASE
 
 try:  # Python >= 3.11
@@ -560,15 +561,44 @@ def build(cfg: dict) -> Problem:
     return Problem(plants, make(params), reference, X0s, dt, options, keys_of(cfg), params, make)
 
 
-def with_params(cfg: dict, path: str | Path) -> dict:
-    """``cfg`` with the controller's delta, gamma and poles taken from a ``fosmc tune``
-    result file (its ``final.params``), validated like the config keys they replace."""
+def tuning_problems(cfg: dict):
+    """(plain, train, p0): the :class:`fosmc_jax._tuning.Problem` of ``[sim]`` (every result
+    is evaluated on it), the training problem (``tune.train_dt``, ``tune.train_t_final``, the
+    scan rematerialised every ``tune.remat_steps``), and the config's parameters."""
+    built = build(cfg)
+    train_cfg = copy.deepcopy(cfg)
+    for key, sim_key in (("train_dt", "dt"), ("train_t_final", "t_final")):
+        if cfg["tune"][key]:
+            train_cfg["sim"][sim_key] = cfg["tune"][key]
+    tb = build(train_cfg)
+    problem = lambda b, **o: _tuning.Problem(b.plants, b.params, b.reference, b.X0s, b.dt, dict(b.options, save_every=0, **o),
+                                       b.keys, b.make)  # fmt: skip
+    p0 = _tuning.Tunable(built.params.delta, built.params.gamma, built.params.poles)
+    return problem(built), problem(tb, checkpoint_every=cfg["tune"]["remat_steps"]), p0
+
+
+def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
+    """``cfg`` with the controller's delta, gamma and poles taken from a ``fosmc tune`` result
+    file (its ``final.params``) or from point ``point`` of a ``fosmc front`` file, validated
+    like the config keys they replace."""
     try:
-        params = json.loads(Path(path).read_text())["final"]["params"]
+        data = json.loads(Path(path).read_text())
     except OSError as e:
         raise ConfigError(f"--params: cannot read {str(path)!r}: {e.strerror or e}") from None
-    except (ValueError, KeyError, TypeError):
-        raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params)") from None
+    except ValueError:
+        raise ConfigError(f"--params: {path} is not JSON") from None
+    if isinstance(data, dict) and "points" in data:
+        if point is None or not 0 <= point < len(data["points"]):
+            raise ConfigError(f"--point: expected an index in [0, {len(data['points'])}) for the front {path}, "
+                              f"got {point}")  # fmt: skip
+        params = data["points"][point]["params"]
+    else:
+        if point is not None:
+            raise ConfigError(f"--point: {path} is a tune result, not a front")
+        try:
+            params = data["final"]["params"]
+        except (KeyError, TypeError):
+            raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params) or front") from None
     user = copy.deepcopy(cfg)
     user["controller"].update({k: params[k] for k in ("delta", "gamma", "poles") if k in params})
     return resolve(user)

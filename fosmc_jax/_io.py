@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
@@ -32,3 +36,18 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
 def write_text(path: str | Path, text: str) -> None:
     """Atomically write ``text`` to ``path``."""
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def jsonable(x: Any) -> Any:
+    """Arrays to lists, non-finite floats to None (JSON has no NaN/inf)."""
+    if isinstance(x, dict):
+        return {k: jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "__array__") and not isinstance(x, (float, int)):
+        return jsonable(np.asarray(x).tolist())
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, (np.bool_, np.integer)):
+        return x.item()
+    return x

@@ -142,3 +142,35 @@ def plot_tradeoff(sweeps, path: str | Path, title: str) -> None:
     fig.suptitle(title)
     fig.tight_layout()
     save_figure(fig, path)
+
+
+def plot_front(front: dict, compare: list, path: str | Path) -> None:
+    """A front (``fosmc front``'s result) on log-log axes of its two metrics (means over
+    rollouts and joints), with its held-out evaluation, its references (Table 1's sets, SGN)
+    and any ``compare`` = [(label, front or tune result dict)]."""
+    ex, ey = front["axes"]
+    xy = lambda m: (np.mean(m[ey]), np.mean(m[ex]))
+    fig, ax = plt.subplots(figsize=(8, 6))
+    pts = np.array([xy(p["metrics"]) for p in front["points"]])
+    ax.plot(pts[:, 0], pts[:, 1], "o-", color="C0", label="front (training batch)")
+    held = [xy(p["held_out"]) for p in front["points"] if "held_out" in p]
+    if held:
+        held = np.array(held)
+        ax.plot(held[:, 0], held[:, 1], "o--", mfc="none", color="C0", label="front, held-out batch")
+    for i, (label, ref) in enumerate(front.get("references", {}).items()):
+        ax.plot(*xy(ref["metrics"]), "s" if label != "SGN" else "X", ms=9, color=f"C{i + 1}", label=label)
+    for j, (label, other) in enumerate(compare):
+        if "points" in other:
+            o = np.array([xy(p["metrics"]) for p in other["points"]])
+            ax.plot(o[:, 0], o[:, 1], "^:", color=f"C{j + 6}", label=label)
+        else:
+            ax.plot(*xy(other["final"]["metrics"]), "^", ms=9, color=f"C{j + 6}", label=label)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel(f"mean {ey} (V)" if ey == "chattering_hf" else f"mean {ey} (V/s)")
+    ax.set_ylabel(f"mean {ex} (rad)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title("Pareto front: tracking error against chattering")
+    fig.tight_layout()
+    save_figure(fig, path)

@@ -1,0 +1,97 @@
+"""``fosmc front``: the front is non-dominated and sorted, its points re-simulate to their stored
+metrics, a resumed run ends where an uninterrupted one does, and bad arguments are refused."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fosmc_jax import _config
+from fosmc_jax import _front as F
+from fosmc_jax._cli import main
+
+TINY = {
+    "plant": {"uncertainty": "sample", "samples": 3},
+    "sim": {"t_final": 0.3, "dt": 2e-3, "integrator": "euler"},
+}
+SETTINGS = F.Settings(points=3, candidates=16, steps=3, chunk=8, checkpoint_every=1)
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("front")
+    cfg = _config.resolve(TINY)
+    return out, F.study(cfg, SETTINGS, out=out, log=lambda _: None)
+
+
+def test_nondominated_by_hand():
+    x = np.array([1.0, 2.0, 3.0, 2.0, np.nan, 0.5])
+    y = np.array([3.0, 2.0, 1.0, 3.0, 0.1, 5.0])
+    np.testing.assert_array_equal(F.nondominated(x, y), [True, True, True, False, False, True])
+
+
+def test_front_is_nondominated_sorted_and_written(study):
+    out, res = study
+    pts = res["points"]
+    assert res["axes"] == ["rms_error", "chattering_hf"] and len(pts) >= 2
+    e = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
+    c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in pts])
+    assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0)  # sorted by chattering, hence error falls
+    assert F.nondominated(e, c).all()
+    for p in pts:
+        assert set(p["params"]) == {"delta", "gamma", "poles"} and len(p["metrics"]["rms_error"]) == 3
+        assert len(p["held_out"]["rms_error"]) == 3
+    assert {"Table 1 set 1", "Table 1 set 2", "Table 1 set 3", "SGN"} <= set(res["references"])
+    on_disk = json.loads((out / "front.json").read_text())
+    assert len(on_disk["points"]) == len(pts) and (out / "front.png").stat().st_size > 10_000
+
+
+def test_point_resimulates_to_the_stored_metrics(study, tmp_path, capsys):
+    out, res = study
+    config = tmp_path / "c.toml"
+    config.write_text(
+        '[plant]\nuncertainty = "sample"\nsamples = 3\n[sim]\nt_final = 0.3\ndt = 2e-3\nintegrator = "euler"\n'
+    )
+    i = len(res["points"]) - 1
+    assert main(["simulate", "--config", str(config), "--params", str(out / "front.json"), "--point", str(i),
+                 "--json"]) == 0  # fmt: skip
+    summary = json.loads(capsys.readouterr()[0])["summary"]
+    for name, value in res["points"][i]["metrics"].items():
+        np.testing.assert_allclose(summary["mean"][name], value, rtol=1e-9, atol=1e-15, err_msg=name)
+    assert main(["simulate", "--config", str(config), "--params", str(out / "front.json"), "--point", "99"]) == 2
+    assert "--point" in capsys.readouterr()[1]
+
+
+def test_resume_ends_where_an_uninterrupted_run_does(tmp_path):
+    cfg = _config.resolve(TINY)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    whole = F.run(train, plain, p0, SETTINGS, log=lambda _: None)
+
+    class Crash(Exception):
+        pass
+
+    def crash_at_step_2(msg):
+        if msg.startswith("front: refinement step 2/"):
+            raise Crash
+
+    checkpoint = tmp_path / "checkpoint.npz"
+    with pytest.raises(Crash):
+        F.run(train, plain, p0, SETTINGS, checkpoint=checkpoint, log=crash_at_step_2)
+    resumed = F.run(train, plain, p0, SETTINGS, checkpoint=checkpoint, resume=True, log=lambda _: None)
+    assert len(resumed["points"]) == len(whole["points"])
+    for a, b in zip(resumed["points"], whole["points"]):
+        for k in a["params"]:
+            np.testing.assert_allclose(a["params"][k], b["params"][k], rtol=1e-12)
+        np.testing.assert_allclose(a["metrics"]["rms_error"], b["metrics"]["rms_error"], rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "args, key",
+    [(["--budget", "0"], "--budget"), (["--points", "0"], "--points"), (["--steps", "-1"], "--steps"),
+     (["--compare", "/nonexistent.json"], "--compare")],
+)  # fmt: skip
+def test_bad_front_arguments_are_refused(tmp_path, capsys, args, key):
+    out = tmp_path / "out"
+    assert main(["front", "--out", str(out), *args]) == 2
+    assert capsys.readouterr()[1].startswith(f"fosmc: error: {key}")
+    assert not out.exists()
