@@ -95,3 +95,29 @@ def test_bad_front_arguments_are_refused(tmp_path, capsys, args, key):
     assert main(["front", "--out", str(out), *args]) == 2
     assert capsys.readouterr()[1].startswith(f"fosmc: error: {key}")
     assert not out.exists()
+
+
+def test_cma_es_wrapper_reaches_the_minimum_of_a_quadratic():
+    from fosmc_jax._search import cma_es
+
+    a = np.array([0.3, -1.2, 2.0, 0.5])
+    f = lambda X: np.sum((X - a) ** 2, axis=1)
+    best, value, X, F_ = cma_es(f, np.zeros(4), 1.0, budget=30.0, popsize=12, log=lambda _: None)
+    np.testing.assert_allclose(best, a, atol=1e-4)
+    assert value < 1e-8 and len(X) == len(F_) and F_.min() == value
+
+
+def test_factors_map_and_random_search_cover_the_box():
+    from fosmc_jax import _search as S
+
+    cfg = _config.resolve(TINY)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    z = np.array([[1.0, 0, 0, -1, 0, 0, 0, 0, 2.0]])
+    p = S.from_factors(p0, z)
+    np.testing.assert_allclose(p.delta[0], np.asarray(p0.delta) * [10, 1, 1])
+    np.testing.assert_allclose(p.gamma[0], np.asarray(p0.gamma) * [0.1, 1, 1])
+    np.testing.assert_allclose(p.poles[0], np.asarray(p0.poles) * np.array([1, 1, 100])[:, None])
+    r = S.random_search(train, p0, budget=1e-9, chunk=8, log=lambda _: None)  # one chunk at least
+    lo, hi = S.bounds()
+    assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
+    assert r["metrics"]["rms_error"].shape == (8, 3)
