@@ -214,6 +214,72 @@ def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Ar
     return jnp.linalg.solve(M, tau - n)
 
 
+# ---------------------------------------------------------------------------- closed form
+#
+# The same dynamics written out, for the time loop (the autodiff functions above are the
+# oracle, tests/test_arm_dynamics.py). Both pitch joints turn about y1, so link 3's orientation
+# is R1 Ry(q2 + q3), and in the frame of joint 1 every point mass sits at
+#
+#     r = (x, y, z),  x = -(a sin q2 + b sin(q2 + q3)),  y const,  z = d1 - a cos q2 - b cos(q2 + q3)
+#
+# with (a, b, y) = (c2, 0, d2) for link 2, (l2, c3, d2 + d3) for link 3 and (l2, l3, d2 + d3)
+# for the payload. Its velocity in that rotating frame is (x' - q1' y, q1' x, z'), so its
+# kinetic energy gives M11 = m (x^2 + y^2), M12 = m y (a cos q2 + b cos q23), M13 = m y b cos q23,
+# M22 = m (a^2 + b^2 + 2 a b cos q3), M23 = m (b^2 + a b cos q3), M33 = m b^2. A link's body
+# angular velocity is (-sin q q1', q', cos q q1') (q = q2, or q23 for link 3), adding
+# Ixx sin^2 q + Izz cos^2 q to M11 and Iyy to its pitch block; the rotors add Jm (and link 1,
+# I1) on the diagonal. G = dV/dq with V = g sum m z.
+
+
+def _point_masses(p: ArmParams, payload: Array) -> tuple:
+    """(mass, a, b, y) of link 2, link 3 and the payload (see the comment above)."""
+    y3 = p.d2 + p.d3
+    return (p.m2, p.c2, jnp.zeros_like(p.c2), p.d2), (p.m3, p.l2, p.c3, y3), (payload, p.l2, p.l3, y3)
+
+
+def mass_matrix_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
+    """:func:`mass_matrix` in closed form (equal to rounding), kg m^2."""
+    p = cast_params(params, theta.dtype)
+    payload = jnp.asarray(payload, theta.dtype)
+    s2, c2 = jnp.sin(theta[1]), jnp.cos(theta[1])
+    s23, c23 = jnp.sin(theta[1] + theta[2]), jnp.cos(theta[1] + theta[2])
+    c3 = jnp.cos(theta[2])
+    m11 = p.I1 + p.Jm[0] + p.I2[0] * s2**2 + p.I2[2] * c2**2 + p.I3[0] * s23**2 + p.I3[2] * c23**2
+    m12 = m13 = m23 = 0.0
+    m22 = p.Jm[1] + p.I2[1] + p.I3[1]
+    m33 = p.Jm[2] + p.I3[1]
+    m23 = p.I3[1]
+    for m, a, b, y in _point_masses(p, payload):
+        x = a * s2 + b * s23
+        m11 = m11 + m * (x**2 + y**2)
+        m12 = m12 + m * y * (a * c2 + b * c23)
+        m13 = m13 + m * y * b * c23
+        m22 = m22 + m * (a**2 + b**2 + 2 * a * b * c3)
+        m23 = m23 + m * (b**2 + a * b * c3)
+        m33 = m33 + m * b**2
+    return jnp.stack([jnp.stack([m11, m12, m13]), jnp.stack([m12, m22, m23]), jnp.stack([m13, m23, m33])])
+
+
+def gravity_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
+    """:func:`gravity` in closed form, N m."""
+    p = cast_params(params, theta.dtype)
+    s2, s23 = jnp.sin(theta[1]), jnp.sin(theta[1] + theta[2])
+    g2 = g3 = 0.0
+    for m, a, b, _ in _point_masses(p, jnp.asarray(payload, theta.dtype)):
+        g2 = g2 + m * (a * s2 + b * s23)
+        g3 = g3 + m * b * s23
+    return p.g * jnp.stack([jnp.zeros_like(g2), g2, g3])
+
+
+def coriolis_closed(params: ArmParams, payload: Array, theta: Array, dtheta: Array) -> Array:
+    """C(theta, theta') theta' (3,), N m: M' theta' - 1/2 d/dq (theta'^T M theta'), from the
+    closed-form M (one forward-mode derivative of a few trigonometric terms)."""
+    M = lambda q: mass_matrix_closed(params, payload, q)
+    _, Mdot = jax.jvp(M, (theta,), (dtheta,))
+    dT = jax.jacfwd(lambda q: dtheta @ M(q) @ dtheta)(theta)
+    return Mdot @ dtheta - dT / 2
+
+
 # ---------------------------------------------------------------------------- the plant
 
 
@@ -236,20 +302,20 @@ class Arm(NamedTuple):
     payload: Array
 
     def _torque_balance(self, p: ArmParams, theta: Array, dtheta: Array) -> Array:
-        return coriolis_matrix(p, self.payload, theta, dtheta) @ dtheta + gravity(p, self.payload, theta) + p.F * dtheta
+        return coriolis_closed(p, self.payload, theta, dtheta) + gravity_closed(p, self.payload, theta) + p.F * dtheta
 
     def init(self, X0: Array) -> ArmState:
         """State with [theta, theta', theta''] = ``X0`` (9,): the currents are solved from
         Kt i = M theta'' + C theta' + G + F theta'."""
         theta, dtheta, ddtheta = X0[0::3], X0[1::3], X0[2::3]
         p = cast_params(self.params, X0.dtype)
-        tau = mass_matrix(p, self.payload, theta) @ ddtheta + self._torque_balance(p, theta, dtheta)
+        tau = mass_matrix_closed(p, self.payload, theta) @ ddtheta + self._torque_balance(p, theta, dtheta)
         return ArmState(theta, dtheta, tau / p.Kt)
 
     def accelerations(self, state: ArmState) -> Array:
-        """theta'' (3,) from the state: M^-1 (Kt i - C theta' - G - F theta')."""
+        """theta'' (3,) from the state: M^-1 (Kt i - C theta' - G - F theta'), in closed form."""
         p = cast_params(self.params, state.theta.dtype)
-        M = mass_matrix(p, self.payload, state.theta)
+        M = mass_matrix_closed(p, self.payload, state.theta)
         return solve3(M, p.Kt * state.current - self._torque_balance(p, state.theta, state.dtheta))
 
     def observe(self, state: ArmState) -> Array:
