@@ -228,7 +228,8 @@ def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Ar
 # M22 = m (a^2 + b^2 + 2 a b cos q3), M23 = m (b^2 + a b cos q3), M33 = m b^2. A link's body
 # angular velocity is (-sin q q1', q', cos q q1') (q = q2, or q23 for link 3), adding
 # Ixx sin^2 q + Izz cos^2 q to M11 and Iyy to its pitch block; the rotors add Jm (and link 1,
-# I1) on the diagonal. G = dV/dq with V = g sum m z.
+# I1) on the diagonal. G = dV/dq with V = g sum m z. The derivatives of M by q2 and q3 are
+# written out too, for C theta' = M' theta' - 1/2 d/dq (theta'^T M theta').
 
 
 def _point_masses(p: ArmParams, payload: Array) -> tuple:
@@ -237,47 +238,58 @@ def _point_masses(p: ArmParams, payload: Array) -> tuple:
     return (p.m2, p.c2, jnp.zeros_like(p.c2), p.d2), (p.m3, p.l2, p.c3, y3), (payload, p.l2, p.l3, y3)
 
 
-def mass_matrix_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
-    """:func:`mass_matrix` in closed form (equal to rounding), kg m^2."""
-    p = cast_params(params, theta.dtype)
-    payload = jnp.asarray(payload, theta.dtype)
+def _sym(m11, m12, m13, m22, m23, m33) -> Array:
+    return jnp.stack([jnp.stack([m11, m12, m13]), jnp.stack([m12, m22, m23]), jnp.stack([m13, m23, m33])])
+
+
+def _inertia(p: ArmParams, payload: Array, theta: Array) -> tuple[Array, Array, Array, Array]:
+    """M, dM/dq2, dM/dq3 (M does not depend on q1) and G, in closed form; ``p`` already cast."""
     s2, c2 = jnp.sin(theta[1]), jnp.cos(theta[1])
     s23, c23 = jnp.sin(theta[1] + theta[2]), jnp.cos(theta[1] + theta[2])
-    c3 = jnp.cos(theta[2])
+    s3, c3 = jnp.sin(theta[2]), jnp.cos(theta[2])
+    d2, d3 = 2 * (p.I2[0] - p.I2[2]) * s2 * c2, 2 * (p.I3[0] - p.I3[2]) * s23 * c23
     m11 = p.I1 + p.Jm[0] + p.I2[0] * s2**2 + p.I2[2] * c2**2 + p.I3[0] * s23**2 + p.I3[2] * c23**2
-    m12 = m13 = m23 = 0.0
-    m22 = p.Jm[1] + p.I2[1] + p.I3[1]
-    m33 = p.Jm[2] + p.I3[1]
-    m23 = p.I3[1]
+    m12 = m13 = g2 = g3 = jnp.zeros_like(m11)
+    m22, m23, m33 = p.Jm[1] + p.I2[1] + p.I3[1], p.I3[1], p.Jm[2] + p.I3[1]
+    a11, a12, a13 = d2 + d3, m12, m12  # d/dq2 of M11, M12, M13 (M22, M23, M33 do not depend on q2)
+    b11, b12, b13, b22, b23 = d3, m12, m12, m12, m12  # d/dq3 of M11, M12, M13, M22, M23
     for m, a, b, y in _point_masses(p, payload):
-        x = a * s2 + b * s23
-        m11 = m11 + m * (x**2 + y**2)
-        m12 = m12 + m * y * (a * c2 + b * c23)
-        m13 = m13 + m * y * b * c23
-        m22 = m22 + m * (a**2 + b**2 + 2 * a * b * c3)
-        m23 = m23 + m * (b**2 + a * b * c3)
+        x, dx2, dx3 = a * s2 + b * s23, a * c2 + b * c23, b * c23
+        m11, a11, b11 = m11 + m * (x**2 + y**2), a11 + 2 * m * x * dx2, b11 + 2 * m * x * dx3
+        m12, a12, b12 = m12 + m * y * dx2, a12 - m * y * x, b12 - m * y * b * s23
+        m13, a13, b13 = m13 + m * y * dx3, a13 - m * y * b * s23, b13 - m * y * b * s23
+        m22, b22 = m22 + m * (a**2 + b**2 + 2 * a * b * c3), b22 - 2 * m * a * b * s3
+        m23, b23 = m23 + m * (b**2 + a * b * c3), b23 - m * a * b * s3
         m33 = m33 + m * b**2
-    return jnp.stack([jnp.stack([m11, m12, m13]), jnp.stack([m12, m22, m23]), jnp.stack([m13, m23, m33])])
+        g2, g3 = g2 + m * x, g3 + m * b * s23
+    zero = jnp.zeros_like(m11)
+    M = _sym(m11, m12, m13, m22, m23, m33)
+    M2 = _sym(a11, a12, a13, zero, zero, zero)
+    M3 = _sym(b11, b12, b13, b22, b23, zero)
+    return M, M2, M3, p.g * jnp.stack([zero, g2, g3])
+
+
+def mass_matrix_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
+    """:func:`mass_matrix` in closed form (equal to rounding), kg m^2."""
+    return _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)[0]
 
 
 def gravity_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
     """:func:`gravity` in closed form, N m."""
-    p = cast_params(params, theta.dtype)
-    s2, s23 = jnp.sin(theta[1]), jnp.sin(theta[1] + theta[2])
-    g2 = g3 = 0.0
-    for m, a, b, _ in _point_masses(p, jnp.asarray(payload, theta.dtype)):
-        g2 = g2 + m * (a * s2 + b * s23)
-        g3 = g3 + m * b * s23
-    return p.g * jnp.stack([jnp.zeros_like(g2), g2, g3])
+    return _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)[3]
+
+
+def _coriolis(M2: Array, M3: Array, dtheta: Array) -> Array:
+    """C theta' = M' theta' - 1/2 d/dq (theta'^T M theta'), with M' = dM/dq2 q2' + dM/dq3 q3'."""
+    Mdot = M2 * dtheta[1] + M3 * dtheta[2]
+    half = jnp.stack([jnp.zeros_like(dtheta[0]), dtheta @ M2 @ dtheta, dtheta @ M3 @ dtheta]) / 2
+    return Mdot @ dtheta - half
 
 
 def coriolis_closed(params: ArmParams, payload: Array, theta: Array, dtheta: Array) -> Array:
-    """C(theta, theta') theta' (3,), N m: M' theta' - 1/2 d/dq (theta'^T M theta'), from the
-    closed-form M (one forward-mode derivative of a few trigonometric terms)."""
-    M = lambda q: mass_matrix_closed(params, payload, q)
-    _, Mdot = jax.jvp(M, (theta,), (dtheta,))
-    dT = jax.jacfwd(lambda q: dtheta @ M(q) @ dtheta)(theta)
-    return Mdot @ dtheta - dT / 2
+    """C(theta, theta') theta' (3,), N m, in closed form."""
+    _, M2, M3, _ = _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)
+    return _coriolis(M2, M3, dtheta)
 
 
 # ---------------------------------------------------------------------------- the plant
@@ -301,22 +313,23 @@ class Arm(NamedTuple):
     params: ArmParams
     payload: Array
 
-    def _torque_balance(self, p: ArmParams, theta: Array, dtheta: Array) -> Array:
-        return coriolis_closed(p, self.payload, theta, dtheta) + gravity_closed(p, self.payload, theta) + p.F * dtheta
+    def _terms(self, theta: Array, dtheta: Array) -> tuple[ArmParams, Array, Array]:
+        """Cast parameters, M, and the torques C theta' + G + F theta' (closed form)."""
+        p = cast_params(self.params, theta.dtype)
+        M, M2, M3, G = _inertia(p, jnp.asarray(self.payload, theta.dtype), theta)
+        return p, M, _coriolis(M2, M3, dtheta) + G + p.F * dtheta
 
     def init(self, X0: Array) -> ArmState:
         """State with [theta, theta', theta''] = ``X0`` (9,): the currents are solved from
         Kt i = M theta'' + C theta' + G + F theta'."""
         theta, dtheta, ddtheta = X0[0::3], X0[1::3], X0[2::3]
-        p = cast_params(self.params, X0.dtype)
-        tau = mass_matrix_closed(p, self.payload, theta) @ ddtheta + self._torque_balance(p, theta, dtheta)
-        return ArmState(theta, dtheta, tau / p.Kt)
+        p, M, n = self._terms(theta, dtheta)
+        return ArmState(theta, dtheta, (M @ ddtheta + n) / p.Kt)
 
     def accelerations(self, state: ArmState) -> Array:
         """theta'' (3,) from the state: M^-1 (Kt i - C theta' - G - F theta'), in closed form."""
-        p = cast_params(self.params, state.theta.dtype)
-        M = mass_matrix_closed(p, self.payload, state.theta)
-        return solve3(M, p.Kt * state.current - self._torque_balance(p, state.theta, state.dtheta))
+        p, M, n = self._terms(state.theta, state.dtheta)
+        return solve3(M, p.Kt * state.current - n)
 
     def observe(self, state: ArmState) -> Array:
         """X (9,) = [theta_1, theta_1', theta_1'', theta_2, ...]."""
