@@ -219,7 +219,7 @@ def cmd_reproduce(args) -> int:
         files.update({"realistic.md": R.to_markdown(rows, R.METRIC_NAMES), "tradeoff.md": R.sweep_markdown(sweeps)})
         for name in ("realistic.md", "tradeoff.md"):
             write_text(out / name, files[name])
-        figures += R.write_realistic_figures(realistic, sweeps, out)
+        figures += R.write_realistic_figures(cases + realistic, sweeps, out)
     if args.report:
         report = Path(args.report)
         text = report.read_text()

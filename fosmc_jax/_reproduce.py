@@ -162,26 +162,23 @@ def _run(cfg: dict, params: list[Controller], switching: str, realistic: bool, s
 
 def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Case]:
     """SGN and Table 1's sets with the paper's gains on the arm at 0 and 10 kg, in the
-    realistic loop and, beside it, in the ideal loop with the preset's step and integrator."""
+    realistic loop (the ideal loop's cases are :func:`run_cases`')."""
     cfg = realistic_config(t_final)
     dtype = jnp.dtype(cfg["sim"]["precision"])
     payloads = [f"{p:g} kg" for p in cfg["plant"]["payloads"]]
-    m = _config.sample_steps(cfg)
     cases = []
-    for loop_name, realistic in (("realistic", True), ("ideal", False)):
-        for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
-            start = time.perf_counter()
-            params = [_controller(paper.DELTA_SETS[k], dtype) for k in sets]
-            result = _run(cfg, params, switching, realistic, save_every=m)
-            i = 0
-            for k in sets:
-                for load in payloads:
-                    part = jax.tree.map(lambda x, i=i: x[i : i + 1], result)
-                    cases.append(Case(f"arm, {loop_name} loop", load, "sign" if switching == "sign" else f"set {k + 1}",
-                                      part))  # fmt: skip
-                    i += 1
-            log(f"arm {loop_name:9} {switching:5} {i:2d} rollout(s) x {cfg['sim']['t_final']} s  "
-                f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
+    for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
+        start = time.perf_counter()
+        params = [_controller(paper.DELTA_SETS[k], dtype) for k in sets]
+        result = _run(cfg, params, switching, True, save_every=_config.sample_steps(cfg))
+        i = 0
+        for k in sets:
+            for load in payloads:
+                part = jax.tree.map(lambda x, i=i: x[i : i + 1], result)
+                cases.append(Case("arm, realistic loop", load, "sign" if switching == "sign" else f"set {k + 1}", part))
+                i += 1
+        log(f"arm realistic {switching:5} {i:2d} rollout(s) x {cfg['sim']['t_final']} s  "
+            f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
     return cases
 
 
@@ -196,26 +193,28 @@ class Sweep(NamedTuple):
 
 def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Sweep]:
     """Table 1 set 1 with delta scaled by :data:`DELTA_SCALES`, and with the poles (33) sped up
-    by :data:`POLE_SPEEDUPS`, on the arm at 0 and 10 kg, in both loops."""
+    by :data:`POLE_SPEEDUPS`, on the arm at 0 and 10 kg, in both loops (one call per loop)."""
     cfg = realistic_config(t_final)
     dtype = jnp.dtype(cfg["sim"]["precision"])
     base = _controller(paper.DELTA_SETS[0], dtype)
     P = len(cfg["plant"]["payloads"])
-    sweeps = []
-    for name, values, vary in (
-        ("delta scale", DELTA_SCALES, lambda v: base._replace(delta=base.delta * v)),
-        ("pole speed-up", POLE_SPEEDUPS, lambda v: base._replace(poles=base.poles * v)),
-    ):
-        out = []
-        for realistic in (False, True):
-            start = time.perf_counter()
-            r = _run(cfg, [vary(v) for v in values], "ratio", realistic)
-            ok = ~np.asarray(r.diverged).reshape(len(values), P, 1)
-            mean = lambda x: np.nanmean(np.where(ok, np.asarray(x).reshape(len(values), P, 3), np.nan), axis=1)
-            out.append(jax.tree.map(mean, r.metrics))
-            log(f"trade-off {name:13} {'realistic' if realistic else 'ideal':9} {len(values) * P:3d} rollouts  "
-                f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
-        sweeps.append(Sweep(name, values, *out))
+    axes = (("delta scale", DELTA_SCALES, lambda v: base._replace(delta=base.delta * v)),
+            ("pole speed-up", POLE_SPEEDUPS, lambda v: base._replace(poles=base.poles * v)))  # fmt: skip
+    params = [vary(v) for _, values, vary in axes for v in values]
+    loops = []
+    for realistic in (False, True):
+        start = time.perf_counter()
+        r = _run(cfg, params, "ratio", realistic)
+        ok = ~np.asarray(r.diverged).reshape(len(params), P, 1)
+        mean = lambda x: np.nanmean(np.where(ok, np.asarray(x).reshape(len(params), P, 3), np.nan), axis=1)
+        loops.append(jax.tree.map(mean, r.metrics))
+        log(f"trade-off {'realistic' if realistic else 'ideal':9} {len(params) * P:3d} rollouts  "
+            f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
+    sweeps, i = [], 0
+    for name, values, _ in axes:
+        part = lambda m, i=i, n=len(values): jax.tree.map(lambda x: x[i : i + n], m)
+        sweeps.append(Sweep(name, values, part(loops[0]), part(loops[1])))
+        i += len(values)
     return sweeps
 
 
@@ -234,8 +233,8 @@ def sweep_markdown(sweeps: list[Sweep]) -> str:
 
 # ---------------------------------------------------------------------------- tables
 
-#: The metrics of the reproduction tables (the paper's loop has no actuator limit).
-TABLE_METRICS = METRIC_NAMES[:6]
+#: The metrics of the main tables (the paper's loop has no actuator limit to saturate).
+TABLE_METRICS = tuple(m for m in METRIC_NAMES if m != "saturation_fraction")
 COLUMNS = ["plant", "payload", "switching", "delta", "rollouts", "diverged"] + [
     f"{m}_{j}" for m in TABLE_METRICS for j in (1, 2, 3)
 ]
@@ -403,21 +402,22 @@ def write_figures(cases: list[Case], out_dir, kind: str) -> list[str]:
 
 
 def write_realistic_figures(cases: list[Case], sweeps: list[Sweep], out_dir) -> list[str]:
-    """The realistic loop's control beside the ideal loop's (set 1 and SGN, heaviest payload),
-    and the trade-off sweeps."""
+    """The realistic loop's control beside the ideal loop's (Table 1 set 1, heaviest payload;
+    ``cases`` holds both: the realistic ones and :func:`run_cases`' arm cases), and the
+    trade-off sweeps."""
     from ._plots import plot_joint_series, plot_tradeoff
 
     heavy = cases[-1].payload
-    by = {(c.plant, c.payload, c.switching): c for c in cases}
+    by = {(c.plant.replace("arm", "arm, ideal loop") if c.plant == "arm" else c.plant, c.payload, c.switching): c
+          for c in cases}  # fmt: skip
     series = []
     for loop in ("ideal", "realistic"):
-        for sw in ("sign", "set 1"):
-            trace = by[(f"arm, {loop} loop", heavy, sw)].result.trace
-            series.append((f"{sw}, {loop} loop", np.asarray(trace.t[0]), np.asarray(trace.U[0])))
+        trace = by[(f"arm, {loop} loop", heavy, "set 1")].result.trace
+        series.append((f"Table 1 set 1, {loop} loop", np.asarray(trace.t[0]), np.asarray(trace.U[0])))
     name = "fig_realistic_control.png"
-    plot_joint_series(series, "control U (V)", out_dir / name,
-                      f"Applied voltage, ideal and realistic loop (REPRODUCTION.md), arm, {heavy}",
-                      styles={"sign, ideal loop": {"lw": 0.4}, "sign, realistic loop": {"lw": 0.4}})  # fmt: skip
+    plot_joint_series(series, "applied voltage U (V)", out_dir / name,
+                      f"Table 1 set 1 in the ideal and the realistic loop (REPRODUCTION.md), arm, {heavy}",
+                      styles={"Table 1 set 1, realistic loop": {"lw": 0.5}})  # fmt: skip
     plot_tradeoff(sweeps, out_dir / "fig_realistic_tradeoff.png",
                   "Table 1 set 1 on the arm (mean of 0 and 10 kg): smaller delta or faster poles")  # fmt: skip
     return [name, "fig_realistic_tradeoff.png"]
