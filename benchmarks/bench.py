@@ -88,9 +88,26 @@ def problem(batch: int, dtype, arm: bool = False):
     return plants, ctrl, ref, c(X0 + offsets), c(DT)
 
 
-def time_jax(batch, dtype, integrator, steps, arm=False, devices=0):
+def digital(ctrl, m, dtype):
+    """The realistic preset's loop around ``ctrl`` at m simulation steps per sample (2,621,440
+    counts, differences, one sample of delay, 24 V), or only the sampling when m = 1."""
+    T = jnp.asarray(m * DT, dtype)
+    if m == 1:
+        sensors = fj.Sensors(jnp.zeros(3, dtype), None, "measured")
+        return fj.DigitalLoop(fj.DiscreteFOSMC(ctrl, T), sensors, jnp.full(3, jnp.inf, dtype), T, 1, 0)
+    sensors = fj.Sensors(jnp.full(3, 2621440.0, dtype), None, "difference")
+    return fj.DigitalLoop(fj.DiscreteFOSMC(ctrl, T), sensors, jnp.full(3, 24.0, dtype), T, m, 1)
+
+
+def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast=True):
+    """``loop`` = m > 0: the digital loop of :func:`digital` (vmap path); ``fast`` = False: the
+    ideal loop through the vmap path (the tuner's)."""
     args = problem(batch, dtype, arm)
+    if loop:
+        args = (args[0], digital(args[1], loop, dtype), *args[2:])
     opts = dict(n_steps=steps, integrator=integrator)
+    if not fast:
+        opts["fast"] = False
     if devices:
         fn = lambda: simulate_sharded(*args, devices=devices, **opts)
         t0 = time.perf_counter()
@@ -106,7 +123,9 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0):
     reps = 3 if batch * steps <= 4e8 else 1
     wall, r = best(fn, reps)
     rs = batch * steps / wall
-    return {"kind": "fosmc_jax" + (f" ({devices} devices)" if devices else ""), "plant": "arm" if arm else "linear",
+    kind = "fosmc_jax" + (f" ({devices} devices)" if devices else "") + (f" digital m={loop}" if loop else "")
+    kind += " vmap path" if not fast and not loop and not arm else ""
+    return {"kind": kind, "plant": "arm" if arm else "linear",
             "integrator": integrator, "dtype": np.dtype(dtype).name, "batch": batch, "steps": steps,
             "wall_s": wall, "compile_s": compile_s, "first_call_s": first, "rollout_steps_per_s": rs,
             "flop_per_s": None if arm else rs * FLOPS[integrator], "reps": reps, "load": load(),
@@ -153,6 +172,31 @@ def roof(n):
         jax.block_until_ready(f(x))
         wall, _ = best(lambda: f(x), 3)
         out[np.dtype(dtype).name] = 2 * n**3 / wall
+    out["load"] = load()
+    return out
+
+
+def arm_gradient(batch, steps, big_batch, big_steps):
+    """One arm tuning step (value and grad of the tuner's loss) and its ratio to the forward
+    evaluation, at (batch, steps) and at (big_batch, big_steps)."""
+
+    def one(b, n):
+        plants, ctrl, ref, X0s, dt = problem(b, np.float32, arm=True)
+        opts = dict(n_steps=n, integrator="euler", checkpoint_every=100)
+        prob = _tuning.Problem(plants, ctrl, ref, X0s, dt, opts)
+        u = _tuning.to_internal(_tuning.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
+        loss = _tuning.make_loss(prob, _tuning.Objective(), None)
+        t0 = time.perf_counter()
+        vg = jax.jit(jax.value_and_grad(loss, has_aux=True)).lower(u).compile()
+        compile_s = time.perf_counter() - t0
+        fwd = jax.jit(loss).lower(u).compile()
+        t_vg, _ = best(lambda: vg(u))
+        t_f, _ = best(lambda: fwd(u))
+        return {"batch": b, "steps": n, "value_and_grad_s": t_vg, "forward_s": t_f, "ratio": t_vg / t_f,
+                "compile_s": compile_s}  # fmt: skip
+
+    out = one(batch, steps)
+    out["big"] = one(big_batch, big_steps)
     out["load"] = load()
     return out
 
@@ -243,13 +287,17 @@ def main(argv=None):
                 rows.append(time_jax(batch, dtype, integrator, steps)), say(rows[-1])
     if long_steps:
         rows.append(time_jax(head, np.float32, "euler", long_steps)), say(rows[-1])
+    loop_batch = 1024
+    rows.append(time_jax(loop_batch, np.float32, "euler", steps, fast=False)), say(rows[-1])
+    for m in (1, 10):
+        rows.append(time_jax(loop_batch, np.float32, "euler", steps, loop=m)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 
-        arm_steps = 200 if q else steps
-        for batch in (1, 64):
+        arm_steps = 1000 if q else steps
+        for batch in (1, 64) if q else (1, 64, 1024):
             rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
         rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
     except ImportError:
@@ -274,6 +322,8 @@ def main(argv=None):
     info["gradient"] = (gradient(64, 1000, 100, (500, 1000, 2000)) if q else
                         gradient(256, 4000, 100, (1000, 2000, 4000, 8000), (1000, 2000, 4000)))  # fmt: skip
     print("gradient", info["gradient"], flush=True)
+    info["arm_gradient"] = arm_gradient(2, 2000, 16 if q else 64, 1000 if q else 4000)
+    print("arm gradient", info["arm_gradient"], flush=True)
     info["rows"] = rows
     info["total_s"] = time.perf_counter() - t_start
     info["load_end"] = load()
@@ -322,6 +372,24 @@ def markdown(info, head):
         lines.append(f"Arm, batch 64, Euler, float32: {arm[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
                      f"{arm[0]['rollout_steps_per_s'] / narm[0]['rollout_steps_per_s']:.1f}x the NumPy arm "
                      f"({narm[0]['rollout_steps_per_s']:.3g}).")  # fmt: skip
+    arm_big, lin_big = pick(rows, kind="fosmc_jax", plant="arm", batch=1024), pick(
+        rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=1024, steps=info["steps"])
+    if arm_big and lin_big:
+        lines.append(f"Arm, batch 1,024: {arm_big[0]['rollout_steps_per_s']:.3g} rollout-steps/s = 1/"
+                     f"{lin_big[0]['rollout_steps_per_s'] / arm_big[0]['rollout_steps_per_s']:.1f} of the linear plant "
+                     f"({lin_big[0]['rollout_steps_per_s']:.3g}, fast path) in the same run.")  # fmt: skip
+    ideal = pick(rows, kind="fosmc_jax vmap path", batch=1024)
+    for m in (1, 10):
+        d = pick(rows, kind=f"fosmc_jax digital m={m}", batch=1024)
+        if d and ideal:
+            lines.append(f"Digital loop, m = {m}, batch 1,024, linear, Euler, float32: "
+                         f"{ideal[0]['rollout_steps_per_s'] / d[0]['rollout_steps_per_s']:.2f}x the ideal loop's "
+                         f"time per simulation step (vmap path, {ideal[0]['rollout_steps_per_s']:.3g} rollout-steps/s).")  # fmt: skip
+    if info.get("arm_gradient"):
+        a = info["arm_gradient"]
+        lines.append(f"Arm tuning step: value-and-grad, {a['batch']} payloads x {a['steps']} steps, Euler, float32: "
+                     f"{a['value_and_grad_s']:.3f} s ({a['ratio']:.2f}x its forward, compile {a['compile_s']:.1f} s); "
+                     f"batch {a['big']['batch']} x {a['big']['steps']} steps: {a['big']['ratio']:.2f}x the forward.")  # fmt: skip
     g = info["gradient"]
     lines.append(f"Gradient: value-and-grad of the tuning objective, {g['batch']} rollouts x {g['steps']} steps "
                  f"(checkpoint every {g['checkpoint_every']}): {g['value_and_grad_s']:.3f} s = {g['ratio']:.2f}x the "
