@@ -209,15 +209,16 @@ def run(
 
     if step0 == 0:
         save("global", 0)
-    t_ref = time.perf_counter()
-    step = step0
+    step, t_ref = step0, time.perf_counter()
     while steps == 0 or step < steps:
         u, opt_state, values = update(u, opt_state, w)
         values = np.asarray(values)
         step += 1
-        if steps == 0 and step == 2:  # from the budget: spend what is left but 20% on refinement
-            per = (time.perf_counter() - t_ref) / 2
-            steps = max(2, int((0.8 * settings.budget - (time.perf_counter() - t0)) / per))
+        if step == step0 + 1:
+            t_ref = time.perf_counter()  # after the compilation
+        if steps == 0 and step == step0 + 2:  # from the budget: spend what is left but 25% on refinement
+            per = time.perf_counter() - t_ref
+            steps = max(2, int((0.75 * settings.budget - (time.perf_counter() - t0)) / per))
             log(f"front: one refinement step costs {per:.2f} s: {steps} steps")
         log(f"front: refinement step {step}/{steps or '?'}  loss {np.round(values, 3).tolist()}  "
             f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip

@@ -1,0 +1,183 @@
+"""The front of ``fosmc front`` against derivative-free baselines at equal wall time.
+
+For one config, each method gets the same wall time on the same machine, one after the other
+(the baselines get what the front actually took, compilation included): the gradient front (:func:`fosmc_jax._front.study`), CMA-ES (pycma) on the weighted log
+objective at the front's weights, uniform random search and a log grid over the same search
+space (:mod:`fosmc_jax._search`). Every method's non-dominated set is compared in (mean
+``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
+reference point (beyond the worst of Table 1's sets and SGN), and how many of the gradient
+front's points some baseline point dominates. The front's held-out evaluation (fresh payloads
+or box samples, fresh noise seeds) is reported beside its training metrics.
+
+    .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic
+
+Writes tuning/results/frontier_<name>.{json,md,png} (and the front in tuning/results/front_<name>/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from fosmc_jax import _config  # noqa: E402
+from fosmc_jax import _front as F  # noqa: E402
+from fosmc_jax import _search as S  # noqa: E402
+from fosmc_jax._io import jsonable, write_text  # noqa: E402
+
+HERE = pathlib.Path(__file__).parent
+OUT = HERE / "results"
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def axes_of(metrics: dict) -> tuple[np.ndarray, np.ndarray]:
+    return np.mean(metrics["rms_error"], axis=-1), np.mean(metrics["chattering_hf"], axis=-1)
+
+
+def hypervolume(e: np.ndarray, c: np.ndarray, ref: tuple[float, float]) -> float:
+    """Area dominated by the points in (log10 c, log10 e) and bounded by ``ref`` (log10 too)."""
+    keep = F.nondominated(e, c)
+    x, y = np.log10(c[keep]), np.log10(e[keep])
+    order = np.argsort(x)
+    x, y = x[order], y[order]
+    area, y_prev = 0.0, ref[1]
+    for xi, yi in zip(x, y):
+        if xi < ref[0] and yi < y_prev:
+            area += (ref[0] - xi) * (y_prev - yi)
+            y_prev = yi
+    return float(area)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", required=True)
+    ap.add_argument("--budget", type=float, default=300.0, help="wall time per method, s")
+    ap.add_argument("--name", required=True)
+    ap.add_argument("--points", type=int, default=8)
+    ap.add_argument("--methods", default="front,cma,random,grid")
+    args = ap.parse_args(argv)
+    cfg = _config.load(args.config)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    methods = args.methods.split(",")
+    out: dict = {"config": args.config, "budget_s": args.budget, "methods": {}}
+    front_dir = OUT / f"front_{args.name}"
+
+    start = time.perf_counter()
+    front = F.study(cfg, F.Settings(points=args.points, budget=args.budget), out=front_dir, log=log)
+    out["methods"]["gradient front"] = {"wall_s": time.perf_counter() - start, "points": front["points"]}
+    weights = front["stages"]["weights"]
+    budget = out["methods"]["gradient front"]["wall_s"]  # the baselines get the front's actual wall time
+    out["baseline_budget_s"] = budget
+    log(f"gradient front: {len(front['points'])} points in {budget:.0f} s")
+
+    runs = {
+        "cma": ("CMA-ES (pycma)", lambda: S.cma_front(plain, p0, weights, budget, log=log)),
+        "random": ("random search", lambda: S.random_search(plain, p0, budget, log=log)),
+        "grid": ("log grid", lambda: S.log_grid(plain, p0, grid_size(plain, p0, budget), log=log)),
+    }
+    for key in methods:
+        if key not in runs:
+            continue
+        label, fn = runs[key]
+        t0 = time.perf_counter()
+        r = fn()
+        e, c = axes_of(r["metrics"])
+        keep = np.flatnonzero(F.nondominated(e, c))
+        params = S.from_factors(p0, r["z"][keep])
+        out["methods"][label] = {
+            "wall_s": time.perf_counter() - t0, "evaluations": len(e),
+            "points": [F.point_of(jax.tree.map(lambda x, i=i: x[i], params), r["metrics"], j)
+                       for i, j in enumerate(keep)],
+        }  # fmt: skip
+        log(f"{label}: {len(e)} evaluations, {len(keep)} non-dominated, {out['methods'][label]['wall_s']:.0f} s")
+
+    refs = front["references"]
+    ref_pts = np.array([[np.mean(v["metrics"]["rms_error"]), np.mean(v["metrics"]["chattering_hf"])]
+                        for v in refs.values()])  # fmt: skip
+    ref_point = (float(np.log10(ref_pts[:, 1].max()) + 0.5), float(np.log10(ref_pts[:, 0].max()) + 0.5))
+    fe = np.array([np.mean(p["metrics"]["rms_error"]) for p in front["points"]])
+    fc = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in front["points"]])
+    summary = []
+    for label, m in out["methods"].items():
+        e = np.array([np.mean(p["metrics"]["rms_error"]) for p in m["points"]])
+        c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in m["points"]])
+        dominating = sum(bool(np.any((e <= fe[i]) & (c <= fc[i]) & ((e < fe[i]) | (c < fc[i]))))
+                         for i in range(len(fe)))  # fmt: skip
+        m["hypervolume"] = hypervolume(e, c, ref_point)
+        m["front_points_dominated"] = dominating if label != "gradient front" else 0
+        summary.append((label, m["wall_s"], m.get("evaluations", front["stages"]["candidates"]), len(m["points"]),
+                        m["hypervolume"], m["front_points_dominated"], e.min(), c.min()))  # fmt: skip
+    dominated_refs = {k: bool(np.any((fe <= np.mean(v["metrics"]["rms_error"])) & (fc <= np.mean(v["metrics"]["chattering_hf"]))
+                                     & ((fe < np.mean(v["metrics"]["rms_error"])) | (fc < np.mean(v["metrics"]["chattering_hf"])))))
+                      for k, v in refs.items()}  # fmt: skip
+    held = [(np.mean(p["held_out"]["rms_error"]) / np.mean(p["metrics"]["rms_error"]),
+             np.mean(p["held_out"]["chattering_hf"]) / np.mean(p["metrics"]["chattering_hf"])) for p in front["points"]]  # fmt: skip
+    out.update(reference_point_log10=ref_point, references=refs, references_dominated_by_front=dominated_refs,
+               held_out_ratios=held, held_out_batch=front["held_out_batch"])  # fmt: skip
+
+    lines = [f"Config `{args.config}`, `fosmc front` budget {args.budget:.0f} s; each baseline then gets the front's "
+             f"actual wall time ({budget:.0f} s), one after the other on the same "
+             f"machine (`.venv/bin/python tuning/frontier.py --config {args.config} --budget {args.budget:.0f} "
+             f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
+             f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
+             "", "| method | wall s | evaluations | front points | hypervolume | gradient-front points it dominates | "
+             "best rms_error (rad) | lowest chattering_hf (V) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for label, wall, n, k, hv, dom, emin, cmin in summary:
+        lines.append(f"| {label} | {wall:.0f} | {n} | {k} | {hv:.3f} | {dom} | {emin:.3g} | {cmin:.3g} |")
+    lines += ["", "The gradient front dominates: " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in dominated_refs.items()) + ".",
+              "", "Held-out batch " + json.dumps(front["held_out_batch"]) + ": ratio held-out / training, per front "
+              "point (rms_error, chattering_hf): " + ", ".join(f"({a:.2f}, {b:.2f})" for a, b in held) + "."]  # fmt: skip
+    OUT.mkdir(exist_ok=True)
+    write_text(OUT / f"frontier_{args.name}.json", json.dumps(jsonable(out), indent=1))
+    write_text(OUT / f"frontier_{args.name}.md", "\n".join(lines) + "\n")
+    plot(out, OUT / f"frontier_{args.name}.png", args.config)
+    print("\n".join(lines))
+
+
+def grid_size(problem, p0, budget: float) -> int:
+    """Values per axis of a log grid that fits the budget (from one timed chunk)."""
+    z = np.zeros((16, S.DIM))
+    F.evaluate_many(problem, S.from_factors(p0, z), 16, log=lambda _: None)
+    t0 = time.perf_counter()
+    F.evaluate_many(problem, S.from_factors(p0, z), 16, log=lambda _: None)
+    per = (time.perf_counter() - t0) / 16
+    return max(2, int((0.9 * budget / per) ** (1 / 3)))
+
+
+def plot(out: dict, path: pathlib.Path, config: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fosmc_jax._plots import save_figure
+
+    fig, ax = plt.subplots(figsize=(8, 6))
+    for i, (label, m) in enumerate(out["methods"].items()):
+        pts = sorted((np.mean(p["metrics"]["chattering_hf"]), np.mean(p["metrics"]["rms_error"])) for p in m["points"])
+        x, y = zip(*pts)
+        ax.plot(x, y, "o-" if i == 0 else "x:", color=f"C{i}", label=f"{label} ({m['wall_s']:.0f} s)")
+    for j, (label, v) in enumerate(out["references"].items()):
+        ax.plot(np.mean(v["metrics"]["chattering_hf"]), np.mean(v["metrics"]["rms_error"]), "s" if label != "SGN" else "X",
+                ms=9, color=f"C{j + 5}", label=label)  # fmt: skip
+    ax.set_xscale("log"), ax.set_yscale("log")
+    ax.set_xlabel("mean chattering_hf (V)"), ax.set_ylabel("mean rms_error (rad)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax.set_title(f"{config}: fronts at equal wall time ({out['budget_s']:.0f} s each)")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+if __name__ == "__main__":
+    main()
