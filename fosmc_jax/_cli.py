@@ -268,8 +268,17 @@ def cmd_tune(args) -> int:
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     initial = T.evaluate(plain, p0)
     obj = T.objective_of(tcfg, m)
+    start_params = p0
+    resuming = args.resume and (out / "checkpoint.npz").exists()
+    if tcfg["global_candidates"] and floor is None and not resuming:
+        from ._front import global_stage
+
+        start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
+                                           log=_log)  # fmt: skip
+        _log(f"tune: global stage: the best of {tcfg['global_candidates']} candidates scores {score:.4f} "
+             "(the config's parameters score about 0 with the log scale)")  # fmt: skip
     try:
-        u0 = T.to_internal(p0, plain.base, floor)
+        u0 = T.to_internal(start_params, plain.base, floor)
     except ValueError as e:
         raise _config.ConfigError(str(e)) from None
     settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
@@ -282,6 +291,7 @@ def cmd_tune(args) -> int:
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = {
         "initial": {"params": as_dict(p0), **initial},
+        "start": {"params": as_dict(start_params), "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"]},
         "final": {"params": as_dict(final_params), **final},
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},

@@ -95,6 +95,21 @@ def evaluate_many(problem: T.Problem, params: T.Tunable, chunk: int, log: Callab
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Tunable, n: int, *, free=T.PARAM_NAMES, seed: int = 0,
+                 chunk: int = 16, log: Callable[[str], None] = print) -> tuple[T.Tunable, float]:  # fmt: skip
+    """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
+    (frozen parameters kept at p0; p0 itself among them) scored by ``obj`` on their batch-mean
+    metrics; returns the best and its score."""
+    cands = sample_candidates(p0, n, seed)
+    cands = T.Tunable(*(getattr(cands, k) if k in free else jnp.broadcast_to(getattr(p0, k), getattr(cands, k).shape)
+                        for k in T.PARAM_NAMES))  # fmt: skip
+    m = evaluate_many(problem, cands, chunk, log=log, what="global stage")
+    means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
+    J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
+    best = int(np.nanargmin(J))
+    return jax.tree.map(lambda x: x[best], cands), float(J[best])
+
+
 def _chunk_evaluator(problem: T.Problem):
     @jax.jit
     def run(params):

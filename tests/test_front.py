@@ -121,3 +121,19 @@ def test_factors_map_and_random_search_cover_the_box():
     lo, hi = S.bounds()
     assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
     assert r["metrics"]["rms_error"].shape == (8, 3)
+
+
+def test_global_stage_keeps_frozen_parameters_and_never_scores_worse_than_the_start():
+    from fosmc_jax import _tuning as T
+
+    cfg = _config.resolve(TINY)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    m = T.evaluate(train, p0)["metrics"]
+    obj = T.objective_of(cfg["tune"], m)
+    best, score = F.global_stage(train, obj, p0, 16, free=("delta",), chunk=8, log=lambda _: None)
+    np.testing.assert_array_equal(best.gamma, p0.gamma)
+    np.testing.assert_array_equal(best.poles, p0.poles)
+    start = float(T.rollout_costs(type("M", (), {k: np.asarray(v)[None] for k, v in m.items()}),
+                                  np.array([False]), obj)[0][0])  # fmt: skip
+    assert abs(start) < 1e-9  # log scale, scales from the start itself
+    assert score <= start
