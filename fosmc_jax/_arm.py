@@ -31,6 +31,7 @@ M^-1 diag(Kt/L), its ddtheta coefficients as -R/L), pasted here as literals.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -40,7 +41,6 @@ from jax import Array
 
 from . import _paper
 from ._design import BoxBound, box_norm_bound
-from ._linalg import solve3
 from ._reference import Cycloid, desired_state
 
 #: Payload range of the paper's simulations (kg): "no load (0 kg) and maximum load (10 kg)".
@@ -230,77 +230,129 @@ def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Ar
 # Ixx sin^2 q + Izz cos^2 q to M11 and Iyy to its pitch block; the rotors add Jm (and link 1,
 # I1) on the diagonal. G = dV/dq with V = g sum m z. The derivatives of M by q2 and q3 are
 # written out too, for C theta' = M' theta' - 1/2 d/dq (theta'^T M theta').
+#
+# Everything is written on scalar entries (tuples), not on stacked (3, 3) arrays: under
+# ``vmap`` a matrix product becomes one small batched dot per call, while scalar expressions
+# fuse into a few elementwise loops over the batch (the structure-of-arrays layout that
+# ``_simulator._linear_batch`` writes by hand). Symmetric matrices are the tuples
+# (m11, m12, m13, m22, m23, m33).
 
 
 def _point_masses(p: ArmParams, payload: Array) -> tuple:
-    """(mass, a, b, y) of link 2, link 3 and the payload (see the comment above)."""
+    """(mass, a, b, y) of link 2, link 3 and the payload (see the comment above); b = 0 for
+    link 2 is left out of the expressions (``None``)."""
     y3 = p.d2 + p.d3
-    return (p.m2, p.c2, jnp.zeros_like(p.c2), p.d2), (p.m3, p.l2, p.c3, y3), (payload, p.l2, p.l3, y3)
+    return (p.m2, p.c2, None, p.d2), (p.m3, p.l2, p.c3, y3), (payload, p.l2, p.l3, y3)
 
 
-def _sym(m11, m12, m13, m22, m23, m33) -> Array:
+def _inertia(p: ArmParams, payload: Array, theta: tuple) -> tuple[tuple, tuple, tuple, tuple]:
+    """Entries of M, dM/dq2, dM/dq3 (M does not depend on q1) and G, in closed form.
+
+    ``p`` already cast, ``theta`` three scalars. Returns M (6 entries, upper triangle by rows),
+    dM/dq2 (a11, a12, a13: its other entries vanish), dM/dq3 (b11, b12, b13, b22, b23: b33
+    vanishes) and G (G2, G3: G1 vanishes); units kg m^2 (per rad) and N m."""
+    s2, c2 = jnp.sin(theta[1]), jnp.cos(theta[1])
+    s3, c3 = jnp.sin(theta[2]), jnp.cos(theta[2])
+    s23, c23 = s2 * c3 + c2 * s3, c2 * c3 - s2 * s3
+    I2, I3, Jm = p.I2, p.I3, p.Jm
+    m11 = p.I1 + Jm[0] + I2[0] * s2 * s2 + I2[2] * c2 * c2 + I3[0] * s23 * s23 + I3[2] * c23 * c23
+    m22, m23, m33 = Jm[1] + I2[1] + I3[1], I3[1], Jm[2] + I3[1]
+    b11 = 2 * (I3[0] - I3[2]) * s23 * c23
+    a11 = 2 * (I2[0] - I2[2]) * s2 * c2 + b11
+    m12 = m13 = a12 = a13 = b12 = b22 = b23 = g2 = g3 = 0.0
+    for m, a, b, y in _point_masses(p, payload):
+        if b is None:  # link 2: its mass on the shoulder's axis only
+            x, dx2 = a * s2, a * c2
+            m11, a11 = m11 + m * (x * x + y * y), a11 + 2 * m * x * dx2
+            m12, a12 = m12 + m * y * dx2, a12 - m * y * x
+            m22 = m22 + m * a * a
+            g2 = g2 + m * x
+            continue
+        bs, bc = b * s23, b * c23
+        x, dx2, dx3 = a * s2 + bs, a * c2 + bc, bc
+        mx, my, mab = m * x, m * y, m * a * b
+        m11, a11, b11 = m11 + m * (x * x + y * y), a11 + 2 * mx * dx2, b11 + 2 * mx * dx3
+        m12, a12, b12 = m12 + my * dx2, a12 - my * x, b12 - my * bs
+        m13, a13 = m13 + my * dx3, a13 - my * bs
+        m22, b22 = m22 + m * (a * a + b * b) + 2 * mab * c3, b22 - 2 * mab * s3
+        m23, b23 = m23 + m * b * b + mab * c3, b23 - mab * s3
+        m33 = m33 + m * b * b
+        g2, g3 = g2 + mx, g3 + m * bs
+    # d/dq3 of M13 equals d/dq2 of M13 and d/dq3 of M12 (all -m y b sin q23): b13 = a13 = b12.
+    return (m11, m12, m13, m22, m23, m33), (a11, a12, a13), (b11, b12, a13, b22, b23), (p.g * g2, p.g * g3)
+
+
+def _coriolis(M2: tuple, M3: tuple, w: tuple) -> tuple:
+    """C theta' = M' theta' - 1/2 d/dq (theta'^T M theta'), M' = dM/dq2 q2' + dM/dq3 q3', for
+    the entries of :func:`_inertia` and the rates ``w`` (three scalars); three scalars, N m."""
+    a11, a12, a13 = M2
+    b11, b12, b13, b22, b23 = M3
+    w1, w2, w3 = w
+    e11, e12, e13 = a11 * w2 + b11 * w3, a12 * w2 + b12 * w3, a13 * w2 + b13 * w3
+    e22, e23 = b22 * w3, b23 * w3
+    h2 = w1 * (a11 * w1 / 2 + a12 * w2 + a13 * w3)
+    h3 = w1 * (b11 * w1 / 2 + b12 * w2 + b13 * w3) + w2 * (b22 * w2 / 2 + b23 * w3)
+    return (
+        e11 * w1 + e12 * w2 + e13 * w3,
+        e12 * w1 + e22 * w2 + e23 * w3 - h2,
+        e13 * w1 + e23 * w2 - h3,
+    )
+
+
+def _solve_sym(M: tuple, r: tuple) -> tuple:
+    """x with M x = r for a symmetric 3x3 M given by its entries (adjugate over determinant)."""
+    m11, m12, m13, m22, m23, m33 = M
+    A, B, C = m22 * m33 - m23 * m23, m13 * m23 - m12 * m33, m12 * m23 - m13 * m22
+    E, F, I = m11 * m33 - m13 * m13, m12 * m13 - m11 * m23, m11 * m22 - m12 * m12
+    inv_det = 1 / (m11 * A + m12 * B + m13 * C)
+    r1, r2, r3 = r
+    return (
+        (A * r1 + B * r2 + C * r3) * inv_det,
+        (B * r1 + E * r2 + F * r3) * inv_det,
+        (C * r1 + F * r2 + I * r3) * inv_det,
+    )
+
+
+def _sym(M: tuple) -> Array:
+    m11, m12, m13, m22, m23, m33 = (jnp.asarray(m) for m in M)
+    m11, m12, m13, m22, m23, m33 = jnp.broadcast_arrays(m11, m12, m13, m22, m23, m33)
     return jnp.stack([jnp.stack([m11, m12, m13]), jnp.stack([m12, m22, m23]), jnp.stack([m13, m23, m33])])
 
 
-def _inertia(p: ArmParams, payload: Array, theta: Array) -> tuple[Array, Array, Array, Array]:
-    """M, dM/dq2, dM/dq3 (M does not depend on q1) and G, in closed form; ``p`` already cast."""
-    s2, c2 = jnp.sin(theta[1]), jnp.cos(theta[1])
-    s23, c23 = jnp.sin(theta[1] + theta[2]), jnp.cos(theta[1] + theta[2])
-    s3, c3 = jnp.sin(theta[2]), jnp.cos(theta[2])
-    d2, d3 = 2 * (p.I2[0] - p.I2[2]) * s2 * c2, 2 * (p.I3[0] - p.I3[2]) * s23 * c23
-    m11 = p.I1 + p.Jm[0] + p.I2[0] * s2**2 + p.I2[2] * c2**2 + p.I3[0] * s23**2 + p.I3[2] * c23**2
-    m12 = m13 = g2 = g3 = jnp.zeros_like(m11)
-    m22, m23, m33 = p.Jm[1] + p.I2[1] + p.I3[1], p.I3[1], p.Jm[2] + p.I3[1]
-    a11, a12, a13 = d2 + d3, m12, m12  # d/dq2 of M11, M12, M13 (M22, M23, M33 do not depend on q2)
-    b11, b12, b13, b22, b23 = d3, m12, m12, m12, m12  # d/dq3 of M11, M12, M13, M22, M23
-    for m, a, b, y in _point_masses(p, payload):
-        x, dx2, dx3 = a * s2 + b * s23, a * c2 + b * c23, b * c23
-        m11, a11, b11 = m11 + m * (x**2 + y**2), a11 + 2 * m * x * dx2, b11 + 2 * m * x * dx3
-        m12, a12, b12 = m12 + m * y * dx2, a12 - m * y * x, b12 - m * y * b * s23
-        m13, a13, b13 = m13 + m * y * dx3, a13 - m * y * b * s23, b13 - m * y * b * s23
-        m22, b22 = m22 + m * (a**2 + b**2 + 2 * a * b * c3), b22 - 2 * m * a * b * s3
-        m23, b23 = m23 + m * (b**2 + a * b * c3), b23 - m * a * b * s3
-        m33 = m33 + m * b**2
-        g2, g3 = g2 + m * x, g3 + m * b * s23
-    zero = jnp.zeros_like(m11)
-    M = _sym(m11, m12, m13, m22, m23, m33)
-    M2 = _sym(a11, a12, a13, zero, zero, zero)
-    M3 = _sym(b11, b12, b13, b22, b23, zero)
-    return M, M2, M3, p.g * jnp.stack([zero, g2, g3])
+def _closed(params: ArmParams, payload: Array, theta: Array) -> tuple:
+    p = cast_params(params, theta.dtype)
+    return _inertia(p, jnp.asarray(payload, theta.dtype), tuple(theta))
 
 
 def mass_matrix_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
-    """:func:`mass_matrix` in closed form (equal to rounding), kg m^2."""
-    return _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)[0]
+    """:func:`mass_matrix` (3, 3) in closed form (equal to rounding), kg m^2."""
+    return _sym(_closed(params, payload, theta)[0])
 
 
 def gravity_closed(params: ArmParams, payload: Array, theta: Array) -> Array:
-    """:func:`gravity` in closed form, N m."""
-    return _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)[3]
-
-
-def _coriolis(M2: Array, M3: Array, dtheta: Array) -> Array:
-    """C theta' = M' theta' - 1/2 d/dq (theta'^T M theta'), with M' = dM/dq2 q2' + dM/dq3 q3'."""
-    Mdot = M2 * dtheta[1] + M3 * dtheta[2]
-    half = jnp.stack([jnp.zeros_like(dtheta[0]), dtheta @ M2 @ dtheta, dtheta @ M3 @ dtheta]) / 2
-    return Mdot @ dtheta - half
+    """:func:`gravity` (3,) in closed form, N m."""
+    g2, g3 = _closed(params, payload, theta)[3]
+    return jnp.stack([jnp.zeros_like(g2), g2, g3])
 
 
 def coriolis_closed(params: ArmParams, payload: Array, theta: Array, dtheta: Array) -> Array:
-    """C(theta, theta') theta' (3,), N m, in closed form."""
-    _, M2, M3, _ = _inertia(cast_params(params, theta.dtype), jnp.asarray(payload, theta.dtype), theta)
-    return _coriolis(M2, M3, dtheta)
+    """C(theta, theta') theta' (3,), N m, in closed form (:func:`coriolis_matrix` @ theta')."""
+    _, M2, M3, _ = _closed(params, payload, theta)
+    return jnp.stack(_coriolis(M2, M3, tuple(dtheta)))
 
 
 # ---------------------------------------------------------------------------- the plant
 
 
 class ArmState(NamedTuple):
-    """Internal state of :class:`Arm`: joint angles (rad), rates (rad/s), motor currents (A)."""
+    """Internal state of :class:`Arm`: joint angles (rad), rates (rad/s), motor currents (A),
+    each a tuple of three scalars (joints 1, 2, 3) rather than a (3,) array, so that under
+    ``vmap`` every entry is one array over the batch and the closed form runs as elementwise
+    loops over it (no strided slices of (batch, 3) arrays in the time loop)."""
 
-    theta: Array
-    dtheta: Array
-    current: Array
+    theta: tuple[Array, Array, Array]
+    dtheta: tuple[Array, Array, Array]
+    current: tuple[Array, Array, Array]
 
 
 class Arm(NamedTuple):
@@ -308,38 +360,59 @@ class Arm(NamedTuple):
 
     Fields: ``params`` (:class:`ArmParams`), ``payload`` (kg, scalar; traced, so ``vmap`` and
     ``grad`` reach it). Batched arms carry a leading axis on every leaf (see :func:`arm_sweep`).
+    The time loop uses the closed form (:func:`_inertia`); :func:`mass_matrix`,
+    :func:`coriolis_matrix` and :func:`gravity` are the same dynamics by autodiff.
     """
 
     params: ArmParams
     payload: Array
 
-    def _terms(self, theta: Array, dtheta: Array) -> tuple[ArmParams, Array, Array]:
-        """Cast parameters, M, and the torques C theta' + G + F theta' (closed form)."""
-        p = cast_params(self.params, theta.dtype)
-        M, M2, M3, G = _inertia(p, jnp.asarray(self.payload, theta.dtype), theta)
-        return p, M, _coriolis(M2, M3, dtheta) + G + p.F * dtheta
-
     def init(self, X0: Array) -> ArmState:
         """State with [theta, theta', theta''] = ``X0`` (9,): the currents are solved from
         Kt i = M theta'' + C theta' + G + F theta'."""
-        theta, dtheta, ddtheta = X0[0::3], X0[1::3], X0[2::3]
-        p, M, n = self._terms(theta, dtheta)
-        return ArmState(theta, dtheta, (M @ ddtheta + n) / p.Kt)
+        theta, dtheta, (a1, a2, a3) = tuple(X0[0::3]), tuple(X0[1::3]), tuple(X0[2::3])
+        p = cast_params(self.params, X0.dtype)
+        (m11, m12, m13, m22, m23, m33), n = _terms(p, self.payload, theta, dtheta)
+        torque = (
+            m11 * a1 + m12 * a2 + m13 * a3 + n[0],
+            m12 * a1 + m22 * a2 + m23 * a3 + n[1],
+            m13 * a1 + m23 * a2 + m33 * a3 + n[2],
+        )
+        return ArmState(theta, dtheta, tuple(t / p.Kt[j] for j, t in enumerate(torque)))
 
     def accelerations(self, state: ArmState) -> Array:
         """theta'' (3,) from the state: M^-1 (Kt i - C theta' - G - F theta'), in closed form."""
-        p, M, n = self._terms(state.theta, state.dtheta)
-        return solve3(M, p.Kt * state.current - n)
+        return jnp.stack(_accelerations(self.params, self.payload, state))
 
     def observe(self, state: ArmState) -> Array:
         """X (9,) = [theta_1, theta_1', theta_1'', theta_2, ...]."""
-        return jnp.stack([state.theta, state.dtheta, self.accelerations(state)], axis=1).reshape(9)
+        acc = _accelerations(self.params, self.payload, state)
+        return jnp.stack([x for j in range(3) for x in (state.theta[j], state.dtheta[j], acc[j])])
 
     def derivative(self, state: ArmState, U: Array) -> ArmState:
         """Time derivative of the state under motor voltages ``U`` (3,), V."""
-        p = cast_params(self.params, state.theta.dtype)
-        di = (U - p.R * state.current - p.Kb * state.dtheta) / p.L
-        return ArmState(state.dtheta, self.accelerations(state), di)
+        p = cast_params(self.params, state.theta[0].dtype)
+        di = tuple((U[j] - p.R[j] * state.current[j] - p.Kb[j] * state.dtheta[j]) / p.L[j] for j in range(3))
+        return ArmState(state.dtheta, _accelerations(self.params, self.payload, state), di)
+
+
+def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[tuple, tuple]:
+    """Entries of M and the torques C theta' + G + F theta' (three scalars); ``p`` cast."""
+    M, M2, M3, (g2, g3) = _inertia(p, jnp.asarray(payload, theta[0].dtype), theta)
+    c1, c2, c3 = _coriolis(M2, M3, dtheta)
+    return M, (c1 + p.F[0] * dtheta[0], c2 + g2 + p.F[1] * dtheta[1], c3 + g3 + p.F[2] * dtheta[2])
+
+
+# Rematerialised under reverse mode: the closed form is a few hundred cheap elementwise
+# operations, and saving each of their results for the backward pass (at every step of a
+# checkpointed block) costs more than recomputing them from the nine state entries (value
+# and grad of the tuner's loss, batch 64 x 4,000 steps: about 12x -> 7x the forward, CPU).
+# prevent_cse=False: it runs inside scan, where there is no CSE across steps to prevent.
+@functools.partial(jax.checkpoint, prevent_cse=False)
+def _accelerations(params: ArmParams, payload: Array, state: ArmState) -> tuple[Array, Array, Array]:
+    p = cast_params(params, state.theta[0].dtype)
+    M, n = _terms(p, payload, state.theta, state.dtheta)
+    return _solve_sym(M, tuple(p.Kt[j] * state.current[j] - n[j] for j in range(3)))
 
 
 def arm_sweep(payloads: Array, params: ArmParams = ARM_PARAMS) -> Arm:
