@@ -264,6 +264,8 @@ def main(argv=None):
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
     ap.add_argument("--steps", type=int, help="steps per rollout (default 2,000 quick, 4,000 full)")
     ap.add_argument("--batches", type=lambda s: tuple(int(x) for x in s.split(",")), help="e.g. 1,64,1024")
+    ap.add_argument("--arm-only", action="store_true", help="only the arm at batches 64 and 1,024, the linear "
+                    "plant at the same batches, the NumPy arm and the arm's gradient (benchmarks/results/bench-arm.*)")  # fmt: skip
     ap.add_argument("--long-steps", type=int, help="one extra Euler float32 point at the head batch "
                     "with this many steps, to confirm the per-step throughput (default 40,000 full, none quick)")  # fmt: skip
     args = ap.parse_args(argv)
@@ -281,6 +283,15 @@ def main(argv=None):
             "command": "python benchmarks/bench.py " + " ".join(sys.argv[1:] if argv is None else argv)}  # fmt: skip
     info["roof_flop_per_s"] = roof(1024 if q else 2048)
     print("roof", info["roof_flop_per_s"], flush=True)
+    if args.arm_only:
+        for batch in (64, 1024):
+            for arm in (True, False):
+                rows.append(time_jax(batch, np.float32, "euler", steps, arm=arm)), say(rows[-1])
+        rows.append(arm_baseline(64, np.float32, 1000)), say(rows[-1])
+        info["arm_gradient"] = arm_gradient(2, 2000, 64, steps)
+        print("arm gradient", info["arm_gradient"], flush=True)
+        info["rows"], info["gradient"], info["diffrax"] = rows, None, "not benchmarked (--arm-only)"
+        return finish(info, Path(args.out) / "bench-arm", 1024, t_start, uptime)
     for dtype in (np.float32, np.float64):
         for integrator in ("euler", "rk4"):
             for batch in batches:
@@ -325,12 +336,14 @@ def main(argv=None):
     info["arm_gradient"] = arm_gradient(2, 2000, 16 if q else 64, 1000 if q else 4000)
     print("arm gradient", info["arm_gradient"], flush=True)
     info["rows"] = rows
+    finish(info, Path(args.out) / ("bench-quick" if q else "bench"), head, t_start, uptime)
+
+
+def finish(info, stem, head, t_start, uptime):
     info["total_s"] = time.perf_counter() - t_start
     info["load_end"] = load()
     info["uptime_end"] = uptime()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = out / ("bench-quick" if q else "bench")
+    stem.parent.mkdir(parents=True, exist_ok=True)
     write_text(stem.with_suffix(".json"), json.dumps(info, indent=1))
     write_text(stem.with_suffix(".md"), markdown(info, head))
     plot(info, stem.with_suffix(".png"))
@@ -372,8 +385,12 @@ def markdown(info, head):
         lines.append(f"Arm, batch 64, Euler, float32: {arm[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
                      f"{arm[0]['rollout_steps_per_s'] / narm[0]['rollout_steps_per_s']:.1f}x the NumPy arm "
                      f"({narm[0]['rollout_steps_per_s']:.3g}).")  # fmt: skip
-    arm_big, lin_big = pick(rows, kind="fosmc_jax", plant="arm", batch=1024), pick(
-        rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=1024, steps=info["steps"])
+    arm_big, lin_big = (
+        pick(rows, kind="fosmc_jax", plant="arm", batch=1024),
+        pick(
+            rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=1024, steps=info["steps"]
+        ),
+    )
     if arm_big and lin_big:
         lines.append(f"Arm, batch 1,024: {arm_big[0]['rollout_steps_per_s']:.3g} rollout-steps/s = 1/"
                      f"{lin_big[0]['rollout_steps_per_s'] / arm_big[0]['rollout_steps_per_s']:.1f} of the linear plant "
@@ -391,6 +408,8 @@ def markdown(info, head):
                      f"{a['value_and_grad_s']:.3f} s ({a['ratio']:.2f}x its forward, compile {a['compile_s']:.1f} s); "
                      f"batch {a['big']['batch']} x {a['big']['steps']} steps: {a['big']['ratio']:.2f}x the forward.")  # fmt: skip
     g = info["gradient"]
+    if g is None:
+        return "\n".join(lines) + "\n"
     lines.append(f"Gradient: value-and-grad of the tuning objective, {g['batch']} rollouts x {g['steps']} steps "
                  f"(checkpoint every {g['checkpoint_every']}): {g['value_and_grad_s']:.3f} s = {g['ratio']:.2f}x the "
                  f"forward {g['forward_s']:.3f} s; compile {g['compile_s']:.1f} s; XLA temp memory by horizon "
