@@ -36,6 +36,7 @@ from ._design import (
 )
 from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
+from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from ._metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._sharding import simulate_sharded, use_host_devices
@@ -58,6 +59,10 @@ __all__ = [
     "tuning",
     "use_host_devices",
     "CHATTERING_CUTOFF",
+    "SMC",
+    "ContinuousSuperTwisting",
+    "SuperTwisting",
+    "SurfaceParams",
     "CONVENTIONS",
     "DERIVATIVES",
     "DigitalLoop",

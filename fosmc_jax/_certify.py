@@ -263,6 +263,9 @@ def certify(
     the config's. ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
     Runs in float64.
     """
+    if cfg["controller"]["kind"] != "fosmc":
+        raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
+                          f"'{cfg['controller']['kind']}'")  # fmt: skip
     if cfg["controller"]["sample_period"]:
         raise ConfigError(
             "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "

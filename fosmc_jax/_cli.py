@@ -72,7 +72,7 @@ def cmd_simulate(args) -> int:
         tr = result.trace
         labels = [f"plant {x['plant_index']}, offset {x['offset_index']}" for x in rollouts[:shown]]
         plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
-                      title=f"FOSMC, {cfg['controller']['switching']} switching, "
+                      title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
                             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
         _log(f"fosmc: wrote {args.plot}")
     summary = batch_summary(result.metrics, result.diverged)
@@ -254,8 +254,8 @@ def cmd_tune(args) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
         raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
-    out.mkdir(parents=True, exist_ok=True)
     plain, problem, p0 = _config.tuning_problems(cfg)
+    out.mkdir(parents=True, exist_ok=True)
     floor = None
     if tcfg["keep_gamma_bound"]:
         box = _config.box_of(cfg)

@@ -26,6 +26,7 @@ from ._controller import LAWS, SWITCHING, Controller, DiscreteFOSMC
 from ._design import CONVENTIONS, DesignError, check_design, stable_step
 from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors
+from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
 from . import _tuning
@@ -42,6 +43,8 @@ class ConfigError(ValueError):
 
 
 PLANT_KINDS = ("linear", "arm")
+#: ``[controller] kind``: the paper's FOSMC, conventional SMC, super-twisting (fosmc_jax._smc).
+CONTROLLER_KINDS = ("fosmc", "smc", "super_twisting")
 BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
@@ -66,6 +69,11 @@ def defaults() -> dict[str, Any]:
             "law": "paper",
             "sample_period": 0.0,
             "delay_samples": 0,
+            "kind": "fosmc",
+            "smc_k": [1000.0, 1000.0, 1000.0],
+            "smc_phi": [10.0, 10.0, 10.0],
+            "st_k1": [50.0, 50.0, 50.0],
+            "st_k2": [1000.0, 1000.0, 1000.0],
         },
         "sensors": {
             "encoder_counts": [0, 0, 0],
@@ -260,6 +268,11 @@ SCHEMA: dict[str, Any] = {
         "law": _choice(LAWS),
         "sample_period": _number("a non-negative number (s; 0: the ideal loop)", lambda x: x >= 0),
         "delay_samples": _integer("a non-negative integer (controller samples)", lambda n: n >= 0),
+        "kind": _choice(CONTROLLER_KINDS),
+        "smc_k": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "smc_phi": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "st_k1": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "st_k2": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
     },
     "sensors": {
         "encoder_counts": _counts,
@@ -493,19 +506,37 @@ def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
 
 
 def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
-    """FOSMC parameters -> the controller of the config's loop: the parameters themselves (the
-    paper's ideal loop, ``controller.sample_period = 0``) or a :class:`DigitalLoop` around a
-    :class:`DiscreteFOSMC` with the config's sensors, delay and actuator."""
+    """FOSMC parameters -> the controller of the config's loop: for ``controller.kind =
+    "fosmc"``, the parameters themselves (the paper's ideal loop, ``sample_period = 0``) or a
+    :class:`DigitalLoop` around a :class:`DiscreteFOSMC` with the config's sensors, delay and
+    actuator; for ``smc`` and ``super_twisting`` the same around their laws (which take C and
+    the nominal rows from the parameters, and their gains from the config)."""
     ctl, sens = cfg["controller"], cfg["sensors"]
-    if not ctl["sample_period"]:
-        return lambda params: params
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
     T = cast(ctl["sample_period"])
+    law = _law_factory(cfg, cast, T)
+    if not ctl["sample_period"]:
+        return law
     noise_std = cast(sens["noise_std"]) if any(sens["noise_std"]) else None  # all zero: nothing to draw
     sensors = Sensors(cast(sens["encoder_counts"]), noise_std, sens["derivatives"])
     u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))
     m, d = sample_steps(cfg), ctl["delay_samples"]
-    return lambda params: DigitalLoop(DiscreteFOSMC(params, T, ctl["switching"], ctl["law"]), sensors, u_max, T, m, d)
+    return lambda params: DigitalLoop(law(params), sensors, u_max, T, m, d)
+
+
+def _law_factory(cfg: dict, cast, T) -> Callable[[Controller], Any]:
+    """FOSMC parameters -> the config's law, sampled with period T (T = 0: the ideal loop's)."""
+    ctl = cfg["controller"]
+    sampled = bool(ctl["sample_period"])
+    if ctl["kind"] == "fosmc":
+        if sampled:
+            return lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])
+        return lambda params: params
+    surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
+    if ctl["kind"] == "smc":
+        return lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
+    st = lambda params: SuperTwisting(surface(params), cast(ctl["st_k1"]), cast(ctl["st_k2"]), T)
+    return st if sampled else (lambda params: ContinuousSuperTwisting(st(params)))
 
 
 def keys_of(cfg: dict) -> Any:
@@ -567,6 +598,11 @@ def tuning_problems(cfg: dict):
     """(plain, train, p0): the :class:`fosmc_jax._tuning.Problem` of ``[sim]`` (every result
     is evaluated on it), the training problem (``tune.train_dt``, ``tune.train_t_final``, the
     scan rematerialised every ``tune.remat_steps``), and the config's parameters."""
+    if cfg["controller"]["kind"] != "fosmc":
+        raise ConfigError(
+            f"controller.kind: tuning and fronts search the FOSMC's delta, gamma and poles; kind = "
+            f"'{cfg['controller']['kind']}' has no tunable parameter set yet (simulate it, or tune kind = 'fosmc')"
+        )
     built = build(cfg)
     train_cfg = copy.deepcopy(cfg)
     for key, sim_key in (("train_dt", "dt"), ("train_t_final", "t_final")):
