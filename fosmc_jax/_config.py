@@ -608,7 +608,7 @@ def tuning_problems(cfg: dict):
     for key, sim_key in (("train_dt", "dt"), ("train_t_final", "t_final")):
         if cfg["tune"][key]:
             train_cfg["sim"][sim_key] = cfg["tune"][key]
-    tb = build(train_cfg)
+    tb = build(train_cfg) if train_cfg != cfg else built  # no surrogate: the same simulation
     problem = lambda b, **o: _tuning.Problem(b.plants, b.params, b.reference, b.X0s, b.dt, dict(b.options, save_every=0, **o),
                                        b.keys, b.make)  # fmt: skip
     p0 = _tuning.Tunable(built.params.delta, built.params.gamma, built.params.poles)
