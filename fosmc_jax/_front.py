@@ -2,9 +2,9 @@
 
 A front is found in three stages, within a wall-time budget:
 
-1. global: ``candidates`` log-uniform draws around the start, independently per joint (delta
-   x 10^[-3, 1.5], poles x 10^[0, 2], gamma x 10^[-0.5, 0.5]), simulated in vmapped chunks on
-   the training problem;
+1. global: ``candidates`` points around the start (delta x 10^[-3, 1.5], poles x 10^[0, 2],
+   gamma x 10^[-0.5, 0.5]): a log grid of factors common to the joints (about half), the rest
+   log-uniform per joint, simulated in vmapped chunks on the training problem;
 2. refinement: up to ``points`` non-dominated candidates, spread along the front, start
    Adam runs (vmapped over the starts) on the weighted log objective of
    :mod:`fosmc_jax._tuning`, log E + w_k log C, with w_k the slope of the front at start k
@@ -65,15 +65,20 @@ def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def sample_candidates(p0: T.Tunable, n: int, seed: int) -> T.Tunable:
-    """``n`` parameter sets: p0 scaled per joint by log-uniform factors in :data:`RANGES`
-    (the first one is p0 itself). Leading axis n."""
+    """``n`` parameter sets around p0: p0 itself, then a log grid of common factors (the same
+    for every joint) filling about half, then per-joint log-uniform factors, all over
+    :data:`RANGES`. Leading axis n."""
     rng = np.random.default_rng(seed)
+    g = int((n / 2) ** (1 / 3)) if n >= 16 else 0
+    lo, hi = np.array([RANGES[k][0] for k in T.PARAM_NAMES]), np.array([RANGES[k][1] for k in T.PARAM_NAMES])
+    grid = np.stack(np.meshgrid(*(np.linspace(a, b, g) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 3)
+    z = np.zeros((n, 3, 3))  # candidate, parameter, joint
+    z[1 : 1 + len(grid)] = grid[:, :, None]
+    z[1 + len(grid) :] = rng.uniform(lo[None, :, None], hi[None, :, None], size=(n - 1 - len(grid), 3, 3))
     out = {}
-    for name in T.PARAM_NAMES:
-        lo, hi = RANGES[name]
+    for i, name in enumerate(T.PARAM_NAMES):
         x = np.asarray(getattr(p0, name))
-        f = 10.0 ** rng.uniform(lo, hi, size=(n, 3) + (1,) * (x.ndim - 1))
-        f[0] = 1.0
+        f = 10.0 ** z[:, i].reshape((n, 3) + (1,) * (x.ndim - 1))
         out[name] = jnp.asarray(x[None] * f, x.dtype)
     return T.Tunable(**out)
 
