@@ -174,7 +174,8 @@ def plot(out: dict, path: pathlib.Path, config: str) -> None:
     ax.set_xlabel("mean chattering_hf (V)"), ax.set_ylabel("mean rms_error (rad)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    ax.set_title(f"{config}: fronts at equal wall time ({out['budget_s']:.0f} s each)")
+    ax.set_title(f"{config}: fronts at equal wall time\n(front budget {out['budget_s']:.0f} s; each baseline "
+                 f"gets the front's {out['baseline_budget_s']:.0f} s)")  # fmt: skip
     fig.tight_layout()
     save_figure(fig, path)
 
