@@ -36,11 +36,11 @@ from ._design import (
 )
 from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
-from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from ._metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._sharding import simulate_sharded, use_host_devices
 from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
+from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 
 __all__ = [
     "ARM_PARAMS",

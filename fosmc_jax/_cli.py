@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import copy
 import json
-import math
 import sys
 import time
 import warnings
-from typing import Any
 
 import jax
 import numpy as np
@@ -291,7 +288,10 @@ def cmd_tune(args) -> int:
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = {
         "initial": {"params": as_dict(p0), **initial},
-        "start": {"params": as_dict(start_params), "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"]},
+        "start": {
+            "params": as_dict(start_params),
+            "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
+        },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},
@@ -400,8 +400,11 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
-    s.add_argument("--params", metavar="JSON",
-                   help="use delta, gamma, poles from a `fosmc tune` result.json or a `fosmc front` front.json")
+    s.add_argument(
+        "--params",
+        metavar="JSON",
+        help="use delta, gamma, poles from a `fosmc tune` result.json or a `fosmc front` front.json",
+    )
     s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
     s.add_argument("--devices", type=int, default=1, help="split the batch over N devices (on CPU: N host devices)")
     s.set_defaults(func=cmd_simulate)
@@ -425,8 +428,13 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--budget", type=float, default=300.0, help="wall time, s (default 300)")
     f.add_argument("--candidates", type=int, help="global stage size (default: from the budget)")
     f.add_argument("--steps", type=int, help="refinement steps (default: from the budget)")
-    f.add_argument("--compare", action="append", default=[], metavar="JSON",
-                   help="a front.json or tune result.json to draw on the same axes (repeatable)")
+    f.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="JSON",
+        help="a front.json or tune result.json to draw on the same axes (repeatable)",
+    )
     f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     f.set_defaults(func=cmd_front)

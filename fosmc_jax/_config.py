@@ -21,15 +21,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _paper as paper
+from . import _tuning
 from ._arm import PAYLOAD_RANGE, arm_sweep
 from ._controller import LAWS, SWITCHING, Controller, DiscreteFOSMC
 from ._design import CONVENTIONS, DesignError, check_design, stable_step
 from ._linear_plant import UNCERTAINTY, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors
-from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
-from . import _tuning
+from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from ._tuning import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, PARAM_NAMES, SCALES, WORST_CASE
 
 try:  # Python >= 3.11
@@ -453,9 +453,7 @@ def _check_loop(cfg: dict) -> None:
         )
     train_dt = cfg["tune"]["train_dt"]
     if train_dt and (T / train_dt < 1 - 1e-9 or abs(T / train_dt - round(T / train_dt)) > 1e-9 * T / train_dt):
-        raise ConfigError(
-            f"tune.train_dt: expected a step that divides controller.sample_period = {T}, got {train_dt}"
-        )
+        raise ConfigError(f"tune.train_dt: expected a step that divides controller.sample_period = {T}, got {train_dt}")
     if sens["derivatives"] == "difference" and any(np.asarray(sens["noise_std"])[[1, 2, 4, 5, 7, 8]]):
         raise ConfigError(
             "sensors.noise_std: with sensors.derivatives = 'difference' only the theta entries (1, 4, 7) may be "
@@ -609,8 +607,11 @@ def tuning_problems(cfg: dict):
         if cfg["tune"][key]:
             train_cfg["sim"][sim_key] = cfg["tune"][key]
     tb = build(train_cfg) if train_cfg != cfg else built  # no surrogate: the same simulation
-    problem = lambda b, **o: _tuning.Problem(b.plants, b.params, b.reference, b.X0s, b.dt, dict(b.options, save_every=0, **o),
-                                       b.keys, b.make)  # fmt: skip
+
+    def problem(b: Problem, **options) -> _tuning.Problem:
+        opts = dict(b.options, save_every=0, **options)
+        return _tuning.Problem(b.plants, b.params, b.reference, b.X0s, b.dt, opts, b.keys, b.make)
+
     p0 = _tuning.Tunable(built.params.delta, built.params.gamma, built.params.poles)
     return problem(built), problem(tb, checkpoint_every=cfg["tune"]["remat_steps"]), p0
 

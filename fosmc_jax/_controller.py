@@ -145,9 +145,7 @@ def _fosmc_init(ctrl: Controller, X0: Array, r0: Array) -> FOSMCState:
     return FOSMCState(jnp.zeros(3, X0.dtype), ctrl.C @ (X0 - desired_state(r0)))
 
 
-@functools.partial(
-    jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["switching", "law"]
-)
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["params"], meta_fields=["switching", "law"])
 @dataclasses.dataclass(frozen=True)
 class FOSMC:
     """The FOSMC in the paper's ideal loop: U from the exact state at every simulation step,
@@ -171,9 +169,7 @@ class FOSMC:
         return FOSMCState(derive(self.params).S @ (X - desired_state(r)), jnp.zeros_like(state.s))
 
 
-@functools.partial(
-    jax.tree_util.register_dataclass, data_fields=["params", "period"], meta_fields=["switching", "law"]
-)
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["params", "period"], meta_fields=["switching", "law"])
 @dataclasses.dataclass(frozen=True)
 class DiscreteFOSMC:
     """The FOSMC as a sampled controller with period T: at sample j, from the measurement Y_j,

@@ -91,11 +91,11 @@ def evaluate_many(problem: T.Problem, params: T.Tunable, chunk: int, log: Callab
     run = _chunk_evaluator(problem)
     parts, start = [], time.perf_counter()
     for i in range(0, n, chunk):
-        part = jax.tree.map(lambda x: x[i : i + chunk], params)
+        part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
         size = jax.tree.leaves(part)[0].shape[0]
         if size < chunk:  # pad to the compiled size
-            part = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], chunk - size, 0)]), part)
-        parts.append(jax.tree.map(lambda x: np.asarray(x)[:size], run(part)))
+            part = jax.tree.map(lambda x, pad=chunk - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
+        parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
         log(f"front: {what} {min(i + chunk, n)}/{n}  {time.perf_counter() - start:7.1f} s")
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
@@ -222,10 +222,12 @@ def run(
 
     w = jnp.asarray(weights, jax.tree.leaves(u)[0].dtype)
     steps = state.get("steps") or settings.steps
+
     def save(stage: str, step: int, leaves=()) -> None:
         if checkpoint is not None:
-            T._save(checkpoint, {"stage": stage, "step": step, "candidates": n_cand, "steps": steps,
-                                 "global": {k: v.tolist() for k, v in glob.items()}, "leaves": list(leaves)})  # fmt: skip
+            header = {"stage": stage, "step": step, "candidates": n_cand, "steps": steps,
+                      "global": {k: v.tolist() for k, v in glob.items()}}  # fmt: skip
+            T._save(checkpoint, {**header, "leaves": list(leaves)})
 
     if step0 == 0:
         save("global", 0)

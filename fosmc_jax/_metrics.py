@@ -91,9 +91,7 @@ def start(e: Array, u: Array, u_max: Array | None = None) -> Accumulator:
     """The accumulator after sample k = 0, with error ``e`` (3,) and control ``u`` (3,);
     ``u_max`` (3,) is the actuator's limit (None: no limit)."""
     zero = jnp.zeros_like(u)
-    return Accumulator(
-        jnp.ones((), e.dtype), e**2, jnp.abs(e), e, zero, u**2, jnp.abs(u), u, zero, _at_limit(u, u_max)
-    )
+    return Accumulator(jnp.ones((), e.dtype), e**2, jnp.abs(e), e, zero, u**2, jnp.abs(u), u, zero, _at_limit(u, u_max))
 
 
 def add(acc: Accumulator, e: Array, u: Array, u_prev: Array, a: Array, u_max: Array | None = None) -> Accumulator:

@@ -14,13 +14,12 @@ import functools
 import io
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from pathlib import Path
 
 from . import _config
 from . import _paper as paper
@@ -206,13 +205,13 @@ def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = p
         start = time.perf_counter()
         r = _run(cfg, params, "ratio", realistic)
         ok = ~np.asarray(r.diverged).reshape(len(params), P, 1)
-        mean = lambda x: np.nanmean(np.where(ok, np.asarray(x).reshape(len(params), P, 3), np.nan), axis=1)
+        mean = lambda x, ok=ok: np.nanmean(np.where(ok, np.asarray(x).reshape(len(params), P, 3), np.nan), axis=1)
         loops.append(jax.tree.map(mean, r.metrics))
         log(f"trade-off {'realistic' if realistic else 'ideal':9} {len(params) * P:3d} rollouts  "
             f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
     sweeps, i = [], 0
     for name, values, _ in axes:
-        part = lambda m, i=i, n=len(values): jax.tree.map(lambda x: x[i : i + n], m)
+        part = lambda m, i=i, n=len(values): jax.tree.map(lambda x: x[i : i + n], m)  # noqa: B008
         sweeps.append(Sweep(name, values, part(loops[0]), part(loops[1])))
         i += len(values)
     return sweeps

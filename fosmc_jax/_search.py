@@ -89,7 +89,8 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
         es.tell(list(X), list(np.where(np.isfinite(f), f, 1e30)))
         xs.append(X)
         fs.append(f)
-        log(f"cma-es: generation {len(xs)}  best {np.nanmin(np.concatenate(fs)):.4g}  {time.perf_counter() - start:7.1f} s")
+        best = np.nanmin(np.concatenate(fs))
+        log(f"cma-es: generation {len(xs)}  best {best:.4g}  {time.perf_counter() - start:7.1f} s")
     X, F = np.concatenate(xs), np.concatenate(fs)
     i = int(np.nanargmin(F))
     return X[i], F[i], X, F

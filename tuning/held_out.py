@@ -36,7 +36,9 @@ def main(argv=None) -> None:
         plain, _, p = _config.tuning_problems(c)
         m = T.evaluate(plain, p)
         rows.append((label, c["plant"].get("payloads") if c["plant"]["kind"] == "arm" else c["plant"]["seed"], m))
-    print("| batch | payloads (kg) or seed | rms_error (rad) | max_abs_error (rad) | chattering (V/s) | chattering_hf (V) |")
+    print(
+        "| batch | payloads (kg) or seed | rms_error (rad) | max_abs_error (rad) | chattering (V/s) | chattering_hf (V) |"
+    )
     print("|---|---|---|---|---|---|")
     for label, what, m in rows:
         cells = [" / ".join(f"{v:.3g}" for v in m["metrics"][k]) for k in
