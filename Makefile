@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint bench-quick clean
+.PHONY: run test test-slow lint bench-quick clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -16,8 +16,13 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/fosmc reproduce --out out/reproduction --force
 
+# The default tier; the tests marked slow (long horizons, many compilations) run in
+# `make test-slow`, and CI runs both.
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -m "not slow"
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -m slow
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench.py --quick --out "$$(mktemp -d)"

@@ -91,10 +91,14 @@ def test_mass_matrix_symmetric_positive_definite(payload):
 
 
 def test_Mdot_minus_2C_is_skew():
-    for X in random_states(20, seed=1):
+    @jax.jit  # one compilation for the 20 states (op by op, each state took 0.4 s)
+    def N_of(X):
         q, dq = X[0::3], X[1::3]
         _, Mdot = jax.jvp(lambda q: mass_matrix(P, 3.0, q), (q,), (dq,))
-        N = Mdot - 2 * coriolis_matrix(P, 3.0, q, dq)
+        return Mdot - 2 * coriolis_matrix(P, 3.0, q, dq)
+
+    for X in random_states(20, seed=1):
+        N = N_of(X)
         np.testing.assert_allclose(N, -N.T, atol=1e-12)
 
 
@@ -118,18 +122,23 @@ def test_init_observe_roundtrip():
 def test_jerk_is_jvp_of_acceleration_and_matches_third_order_rows():
     rng = np.random.default_rng(3)
     arm = Arm(P, 6.0)
-    for X in random_states(3, seed=3):
-        U = jnp.asarray(rng.normal(scale=5.0, size=3))
+
+    @jax.jit  # one compilation for the three states instead of op-by-op dispatch
+    def jerk_and_rows(X, U):
         state = arm.init(X)
         _, jerk = jax.jvp(arm.accelerations, (state,), (arm.derivative(state, U),))
-        a, b = third_order_rows(arm, X)
+        return jerk, third_order_rows(arm, X)
+
+    for X in random_states(3, seed=3):
+        U = jnp.asarray(rng.normal(scale=5.0, size=3))
+        jerk, (a, b) = jerk_and_rows(X, U)
         np.testing.assert_allclose(a @ X + b @ U, jerk, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(a[:, 0], 0.0, atol=1e-12)  # no theta_1 dependence
 
 
 def test_b_rows_is_Minv_Kt_over_L():
     X = random_states(1, seed=4)[0]
-    a, b = third_order_rows(Arm(P, 2.0), X)
+    a, b = jax.jit(third_order_rows)(Arm(P, 2.0), X)  # one compilation, not op by op
     M = mass_matrix(P, 2.0, X[0::3])
     np.testing.assert_allclose(M @ b, np.diag(np.asarray(P.Kt) / np.asarray(P.L)), rtol=1e-10, atol=1e-10)
 
@@ -138,20 +147,27 @@ def test_float32_follows_inputs():
     arm = arm_sweep(jnp.array([0.0, 10.0], jnp.float32))
     one = jax.tree.map(lambda x: x[1], arm)
     X = random_states(1)[0].astype(jnp.float32)
-    state = one.init(X)
-    d = one.derivative(state, jnp.ones(3, jnp.float32))
-    for leaf in jax.tree.leaves((state, d, one.observe(state), third_order_rows(one, X))):
+
+    @jax.jit  # traced once: the same dtype promotion as op by op, one compilation
+    def pieces(one, X):
+        state = one.init(X)
+        d = one.derivative(state, jnp.ones(3, jnp.float32))
+        return state, d, one.observe(state), third_order_rows(one, X)
+
+    state, d, observed, rows = pieces(one, X)
+    for leaf in jax.tree.leaves((state, d, observed, rows)):
         assert leaf.dtype == jnp.float32
-    np.testing.assert_allclose(one.observe(state), X, atol=1e-3)
+    np.testing.assert_allclose(observed, X, atol=1e-3)
 
 
 # ---------------------------------------------------------------------------- payload
 
 
 def test_more_payload_more_inertia():
+    dM_of = jax.jit(lambda q: mass_matrix(P, 10.0, q) - mass_matrix(P, 0.0, q))  # one compilation
     for X in random_states(20, seed=5):
         q = X[0::3]
-        dM = mass_matrix(P, 10.0, q) - mass_matrix(P, 0.0, q)
+        dM = dM_of(q)
         assert np.linalg.eigvalsh(np.asarray(dM)).min() > -1e-12  # PSD: J^T J
         assert dM[1, 1] > 0 and dM[2, 2] > 0
 
@@ -172,7 +188,9 @@ def _X0():
 def test_batched_payload_sweep_equals_one_by_one():
     payloads = jnp.array([0.0, 4.0, 10.0])
     ctrl, ref, X0 = _controller(), _reference(), _X0()
-    opts = dict(n_steps=200, integrator="rk4", switching="ratio")
+    # Euler: batching does not depend on the integrator, and RK4's four inlined stages cost
+    # 14 s of compilation against Euler's 5 s
+    opts = dict(n_steps=200, integrator="euler", switching="ratio")
     batch = fj.simulate_batch(arm_sweep(payloads), ctrl, ref, X0[None], 1e-3, **opts)
     for i, m in enumerate(payloads):
         one = fj.simulate(Arm(P, m), ctrl, ref, X0, 1e-3, **opts)
@@ -180,6 +198,7 @@ def test_batched_payload_sweep_equals_one_by_one():
             np.testing.assert_allclose(a[i], b, rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow  # forward-mode compile of the arm rollout (~11 s)
 def test_gradient_wrt_payload_matches_finite_differences():
     ctrl, ref, X0 = _controller(), _reference(), _X0()
 
@@ -188,8 +207,9 @@ def test_gradient_wrt_payload_matches_finite_differences():
         return jnp.sum(r.metrics.rms_error) + 1e-3 * jnp.sum(r.metrics.control_rms)
 
     check_grads(f, (jnp.asarray(5.0),), order=1, modes=("fwd",), eps=1e-4, atol=1e-6, rtol=1e-4)
-    # the open-loop plant too, through the third-order rows
-    g = lambda m: jnp.sum(third_order_rows(Arm(P, m), _X0() + 0.1)[1])
+    # the open-loop plant too, through the third-order rows (jitted: check_grads evaluates it,
+    # its jvp and its vjp several times, each op by op otherwise)
+    g = jax.jit(lambda m: jnp.sum(third_order_rows(Arm(P, m), _X0() + 0.1)[1]))
     check_grads(g, (jnp.asarray(3.0),), order=1, modes=("fwd", "rev"), eps=1e-4, atol=1e-6, rtol=1e-4)
 
 
@@ -221,6 +241,7 @@ def test_closed_loop_on_arm_at_0_and_10_kg():
 # ---------------------------------------------------------------------------- the arm's box
 
 
+@pytest.mark.slow  # the arm's box over payloads x reference samples (~10 s)
 def test_arm_box_and_alpha_beta():
     box = arm_box(P, jnp.linspace(*PAYLOAD_RANGE, 3), envelope_samples(11))
     assert np.all(box.A_lower <= box.A_nominal) and np.all(box.A_nominal <= box.A_upper)

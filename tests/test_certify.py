@@ -156,6 +156,7 @@ def test_points_checked_counts():
     assert r.evaluations == 2 * 20 * 27 * 4  # four default s norms for ratio
 
 
+@pytest.mark.slow  # compiles the arm's certificate over the payload range (~7 s)
 def test_arm_counts_and_where():
     cfg = _config.resolve({})
     c = certify(cfg, plant="arm", n_times=2, n_z=0, n_s=26, n_payloads=2)

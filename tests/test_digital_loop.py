@@ -210,16 +210,27 @@ def _loss(params, ctrl_of, key, n=400):
     return jnp.sum(res.metrics.rms_error) + 1e-2 * jnp.sum(res.metrics.chattering_hf)
 
 
-@pytest.mark.parametrize("name", ["delta", "gamma", "poles"])
-def test_gradient_matches_central_differences_without_quantization(name):
-    """Sampled at 5 dt, delayed one sample, noisy (fixed key), saturating: the pathwise gradient
-    equals central finite differences."""
+@pytest.fixture(scope="module")
+def noisy_loss():
+    """The loss in (delta, gamma, poles), its point and its gradient in all three, each compiled
+    once for the three parameters' tests (a gradient in all three at once is, entry by entry,
+    the gradient in each alone)."""
     base = PARAMS._replace(delta=PARAMS.delta / 50)
     ctrl_of = lambda p: loop(period_steps=5, delay=1, noise=(1e-4, 1e-3, 1e-2) * 3, u_max=(3.0, 4.0, 1.0), params=p)
     key = jax.random.PRNGKey(5)
-    f = lambda x: _loss(base._replace(**{name: x}), ctrl_of, key)
-    x0 = getattr(base, name)
-    g = np.asarray(jax.grad(f)(x0))
+    f = jax.jit(lambda x: _loss(base._replace(**x), ctrl_of, key))
+    x0 = {name: getattr(base, name) for name in ("delta", "gamma", "poles")}
+    return f, x0, jax.jit(jax.grad(f))(x0)
+
+
+@pytest.mark.parametrize("name", ["delta", "gamma", "poles"])
+def test_gradient_matches_central_differences_without_quantization(name, noisy_loss):
+    """Sampled at 5 dt, delayed one sample, noisy (fixed key), saturating: the pathwise gradient
+    equals central finite differences."""
+    loss, point, grads = noisy_loss
+    f = lambda x: loss({**point, name: x})
+    x0 = point[name]
+    g = np.asarray(grads[name])
     direction = np.asarray(jax.random.normal(jax.random.PRNGKey(1), x0.shape)) * np.abs(np.asarray(x0))
     h = 1e-5  # relative: truncation ~h^2, rounding ~1e-16 / h of the loss
     fd = (float(f(x0 + h * direction)) - float(f(x0 - h * direction))) / (2 * h)
@@ -318,6 +329,7 @@ def test_digital_loop_refuses_a_continuous_law():
         dataclasses.replace(loop(), law=fj.FOSMC(PARAMS))
 
 
+@pytest.mark.slow  # 256 rollouts of the README's example (~9 s)
 def test_readme_digital_loop_example_runs():
     """The README's second Python block (the digital loop) runs after the first, as written."""
     import re

@@ -19,13 +19,14 @@ SINUSOID = fj.Sinusoid(
 )
 
 
+@jax.jit  # one compilation per reference type, instead of nested jacfwd op by op at every t
 def derivatives_by_autodiff(ref, t):
     """theta_d and its first three derivatives from the position row only, by nested jacfwd."""
     pos = lambda t: ref(t)[0]
     d1 = jax.jacfwd(pos)
     d2 = jax.jacfwd(d1)
     d3 = jax.jacfwd(d2)
-    return np.stack([pos(t), d1(t), d2(t), d3(t)])
+    return jnp.stack([pos(t), d1(t), d2(t), d3(t)])
 
 
 @pytest.mark.parametrize("ref", [PAPER_CYCLOID, OTHER_CYCLOID], ids=["paper", "other"])

@@ -65,6 +65,7 @@ def test_batch_summary_excludes_diverged():
     assert empty["diverged_excluded"] == 3 and np.all(np.isnan(empty["mean"]["rms_error"]))
 
 
+@pytest.mark.slow  # two tuning subprocesses (~20 s)
 def test_tune_killed_with_sigkill_resumes_to_the_uninterrupted_result(tmp_path, capsys):
     config = tmp_path / "c.toml"
     config.write_text(TINY)

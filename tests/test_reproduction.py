@@ -22,6 +22,7 @@ def short_cases():
     return R.run_cases("arm", R.SHORT, log=lambda _: None)
 
 
+@pytest.mark.slow  # every reproduction case group compiled (~20 s, shared with the figures test)
 def test_short_table_equals_committed(short_cases):
     now = R.metric_rows(short_cases)
     committed = R.read_csv((OUT / "metrics_short.csv").read_text())
@@ -51,6 +52,7 @@ def test_design_facts_are_recomputed():
     assert R.design_facts() == (OUT / "design.md").read_text()
 
 
+@pytest.mark.slow  # needs the short cases (see above)
 def test_figures_are_written(short_cases, tmp_path):
     names = R.write_figures(short_cases, tmp_path, "arm")
     assert len(names) == 7
