@@ -246,7 +246,7 @@ def test_straight_through_gradient_points_like_a_coarse_difference_with_quantiza
     key = jax.random.PRNGKey(0)
     for scale in (0.1, 1.0):
         base = PARAMS._replace(delta=PARAMS.delta * scale)
-        f = jax.jit(lambda log_d: _loss(base._replace(delta=jnp.exp(log_d)), ctrl_of, key, n=2000))
+        f = jax.jit(lambda log_d, base=base: _loss(base._replace(delta=jnp.exp(log_d)), ctrl_of, key, n=2000))
         x0 = jnp.log(base.delta)
         g = np.asarray(jax.grad(f)(x0))
         fd = np.array([(float(f(x0 + e)) - float(f(x0 - e))) / 0.6 for e in np.eye(3) * 0.3])
@@ -311,7 +311,8 @@ def test_loop_keys_resolve_and_json_has_saturation_and_realizations(capsys, tmp_
     d = json.loads(capsys.readouterr()[0])
     rollouts = d["rollouts"]
     assert len(rollouts) == 2 * 3
-    assert [(r["offset_index"], r["realization_index"]) for r in rollouts] == [(o, r) for o in (0, 1) for r in (0, 1, 2)]
+    order = [(r["offset_index"], r["realization_index"]) for r in rollouts]
+    assert order == [(o, r) for o in (0, 1) for r in (0, 1, 2)]
     sat = np.array([r["metrics"]["saturation_fraction"] for r in rollouts])
     assert np.all((sat >= 0) & (sat <= 1)) and sat.max() > 0
     assert np.all(np.array([r["metrics"]["max_abs_control"] for r in rollouts]) <= [1.0, 1.0, 0.2])
