@@ -71,3 +71,9 @@ def test_readme_arm_table_equals_calibration_output():
     cal = (ROOT / "tuning/results/arm_calibration.md").read_text()
     table = cal[cal.index("| entry") : cal.index("The last column")].rstrip() + "\n"
     assert block((ROOT / "README.md").read_text(), "arm") == table
+
+
+def test_controller_comparison_block_equals_its_committed_table():
+    """REPRODUCTION.md's comparison of the three laws is tuning/compare_controllers.py's output."""
+    report = (ROOT / "REPRODUCTION.md").read_text()
+    assert block(report, "compare_controllers") == (ROOT / "tuning/results/compare_controllers.md").read_text()
