@@ -1,20 +1,24 @@
 """Pareto fronts of tracking error against chattering (``fosmc front``).
 
-A front is found in three stages, within a wall-time budget:
+A front is found in two stages, within a wall-time budget, over log10 factors z (9,) that
+scale the start's delta, gamma and poles per joint (:func:`from_factors`) within the box
+:data:`RANGES` (delta x 10^[-3, 1.5], poles x 10^[0, 2], gamma x 10^[-0.5, 0.5]):
 
-1. global: ``candidates`` points around the start (delta x 10^[-3, 1.5], poles x 10^[0, 2],
-   gamma x 10^[-0.5, 0.5]): a log grid of factors common to the joints (about half), the rest
-   log-uniform per joint, simulated in vmapped chunks on the training problem;
-2. refinement: up to ``points`` non-dominated candidates, spread along the front, start
-   Adam runs (vmapped over the starts) on the weighted log objective of
-   :mod:`fosmc_jax._tuning`, log E + w_k log C, with w_k the slope of the front at start k
-   (so each run moves along the front's normal, not to one end of it);
-3. every candidate and every refined point is re-evaluated on the plain problem; the front is
-   the non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by
-   chattering.
+1. global: the start, a log grid of factors common to the joints (g per axis, g^3 points:
+   the good controllers lie near this 3-D family), and per-joint log-uniform draws for the
+   rest (:func:`global_factors`);
+2. local: rounds of one chunk each; a round draws ``points`` parents at random from the
+   non-dominated set of everything evaluated so far and perturbs a random subset of their
+   factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
+   sigma shrinking geometrically over the rounds (:func:`local_factors`).
 
-The stage sizes are fixed once (from the budget and the first timings, or given) and stored
-in the checkpoint, so a resumed run ends where an uninterrupted one does.
+Every evaluation is a vmapped chunk of the training problem. The front is the non-dominated
+set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of plain metrics:
+without a training surrogate the training metrics are the plain ones; with one (``[tune]
+train_t_final``, ``train_dt``), the points non-dominated on the training metrics are
+re-evaluated on the plain problem and only those plain metrics count. The stage sizes are
+set once from the budget and the measured cost of one chunk (or given), and stored in the
+checkpoint, so a resumed run ends where an uninterrupted one does.
 """
 
 from __future__ import annotations
@@ -29,7 +33,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from . import _config
 from . import _paper as paper
@@ -39,19 +42,23 @@ from ._metrics import METRIC_NAMES
 
 #: The two metrics a front is drawn in (means over rollouts and joints).
 AXES = ("rms_error", "chattering_hf")
-#: log10 ranges of the global stage's scale factors, per joint.
+#: log10 ranges of the scale factors, per joint.
 RANGES = {"delta": (-3.0, 1.5), "poles": (0.0, 2.0), "gamma": (-0.5, 0.5)}
+#: Number of log factors: delta, gamma, poles, one per joint each.
+DIM = 9
 
 
 class Settings(NamedTuple):
-    points: int = 8  # refined starts (the front may keep more or fewer points)
-    budget: float = 300.0  # s, wall time of the whole run
+    points: int = 8  # parents per local round, drawn from the current front
+    budget: float = 300.0  # s, wall time of the whole run (held-out evaluation and references included)
     candidates: int = 0  # global stage size; 0: from the budget
-    steps: int = 0  # refinement steps; 0: from the budget
-    learning_rate: float = 0.05
+    steps: int = 0  # local rounds (one chunk each); 0: from the budget
     chunk: int = 16  # candidates per vmapped evaluation
     seed: int = 0
-    checkpoint_every: int = 5  # refinement steps between checkpoints
+    global_share: float = 0.3  # share of the search time spent on the global stage (candidates = 0)
+    grid_share: float = 1.0  # share of the global stage on the grid of common factors
+    sigma: tuple[float, float] = (0.1, 0.01)  # local step, first and last round, in shares of each range
+    checkpoint_every: int = 5  # local rounds between checkpoints
 
 
 def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -64,23 +71,77 @@ def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return keep
 
 
-def sample_candidates(p0: T.Tunable, n: int, seed: int) -> T.Tunable:
-    """``n`` parameter sets around p0: p0 itself, then a log grid of common factors (the same
-    for every joint) filling about half, then per-joint log-uniform factors, all over
-    :data:`RANGES`. Leading axis n."""
+def bounds() -> tuple[np.ndarray, np.ndarray]:
+    """The search box of the log factors z (9,): delta, gamma, poles, three joints each."""
+    lo = np.repeat([RANGES[k][0] for k in T.PARAM_NAMES], 3)
+    hi = np.repeat([RANGES[k][1] for k in T.PARAM_NAMES], 3)
+    return lo, hi
+
+
+def from_factors(p0: T.Tunable, z: np.ndarray) -> T.Tunable:
+    """Parameter sets (n,) from log10 factors z (n, 9): delta, gamma, poles of joint j scaled
+    by 10^z[:, j], 10^z[:, 3 + j], 10^z[:, 6 + j]."""
+    z = np.atleast_2d(z)
+    scale = lambda x, f: jnp.asarray(np.asarray(x)[None] * (10.0 ** f).reshape(f.shape + (1,) * (np.ndim(x) - 1)),
+                                     jnp.asarray(x).dtype)  # fmt: skip
+    return T.Tunable(scale(p0.delta, z[:, 0:3]), scale(p0.gamma, z[:, 3:6]), scale(p0.poles, z[:, 6:9]))
+
+
+def grid_factors(g: int) -> np.ndarray:
+    """The g^3 log factors (g^3, 9) of a grid of common factors (the same for every joint):
+    g values per parameter, evenly spaced over its range, ends included."""
+    lo, hi = bounds()
+    axes = [np.linspace(lo[3 * k], hi[3 * k], g) for k in range(3)]
+    return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), 3, axis=1)
+
+
+def global_factors(n: int, seed: int, grid_share: float = 0.5) -> np.ndarray:
+    """``n`` log factors (n, 9): 0 (the start itself), then :func:`grid_factors` with g =
+    floor((grid_share n)^(1/3)) (no grid below n = 16), then per-joint log-uniform draws."""
+    g = grid_size(n, grid_share)
+    lo, hi = bounds()
+    grid = grid_factors(g) if g else np.zeros((0, DIM))
+    draws = np.random.default_rng(seed).uniform(lo, hi, size=(n - 1 - len(grid), DIM))
+    return np.concatenate([np.zeros((1, DIM)), grid, draws])
+
+
+def grid_size(n: int, grid_share: float) -> int:
+    """Values per axis of the grid in :func:`global_factors` of size n (0 below n = 16)."""
+    g = int((grid_share * n) ** (1 / 3) + 1e-9) if n >= 16 else 0
+    return g if 1 + g**3 <= n else g - 1
+
+
+def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int) -> np.ndarray:
+    """``n`` children (n, 9) of the front of the evaluated factors z with metrics m: up to
+    ``points`` parents drawn without replacement from its non-dominated set, children in turn
+    per parent, each its parent + a step sigma (hi - lo) N(0, 1), clipped to the box: for every
+    other child per joint on every coordinate; for the others common to the joints, on a random
+    subset of delta, gamma, poles (each with probability 1/2, one at least), the same step for
+    the three joints: these keep children in the 3-D family of common factors and on the faces
+    of the box, where the grid of the global stage finds the ends of the front."""
+    e, c = _axes(m)
+    idx = np.flatnonzero(nondominated(e, c))
     rng = np.random.default_rng(seed)
-    g = int((n / 2) ** (1 / 3)) if n >= 16 else 0
-    lo, hi = np.array([RANGES[k][0] for k in T.PARAM_NAMES]), np.array([RANGES[k][1] for k in T.PARAM_NAMES])
-    grid = np.stack(np.meshgrid(*(np.linspace(a, b, g) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 3)
-    z = np.zeros((n, 3, 3))  # candidate, parameter, joint
-    z[1 : 1 + len(grid)] = grid[:, :, None]
-    z[1 + len(grid) :] = rng.uniform(lo[None, :, None], hi[None, :, None], size=(n - 1 - len(grid), 3, 3))
-    out = {}
-    for i, name in enumerate(T.PARAM_NAMES):
-        x = np.asarray(getattr(p0, name))
-        f = 10.0 ** z[:, i].reshape((n, 3) + (1,) * (x.ndim - 1))
-        out[name] = jnp.asarray(x[None] * f, x.dtype)
-    return T.Tunable(**out)
+    parents = rng.choice(idx, size=min(points, len(idx)), replace=False)
+    lo, hi = bounds()
+    zp = z[parents[np.arange(n) % len(parents)]]
+    joint = rng.standard_normal((n, DIM))
+    common = np.repeat(rng.standard_normal((n, 3)) * _subset(rng, n, 3, 1 / 2), 3, axis=1)
+    step = np.where((np.arange(n) % 2 == 0)[:, None], joint, common)
+    return np.clip(zp + sigma * (hi - lo) * step, lo, hi)
+
+
+def _subset(rng: np.random.Generator, n: int, k: int, p: float) -> np.ndarray:
+    """n random masks over k items, each item in with probability p, and one at least."""
+    mask = rng.random((n, k)) < p
+    mask[np.arange(n), rng.integers(0, k, n)] = True
+    return mask
+
+
+def sample_candidates(p0: T.Tunable, n: int, seed: int) -> T.Tunable:
+    """``n`` parameter sets around p0 (:func:`global_factors` with a grid of about half).
+    Leading axis n."""
+    return from_factors(p0, global_factors(n, seed, 0.5))
 
 
 def evaluate_many(problem: T.Problem, params: T.Tunable, chunk: int, log: Callable[[str], None] = print,
@@ -115,7 +176,18 @@ def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Tunable, n: int, *,
     return jax.tree.map(lambda x: x[best], cands), float(J[best])
 
 
+#: Compiled chunk evaluators by problem (the problem kept alive beside its id): a second
+#: ``evaluate_many`` on the same problem reuses the compilation instead of paying it again.
+_EVALUATORS: dict[int, tuple[T.Problem, Callable]] = {}
+
+
 def _chunk_evaluator(problem: T.Problem):
+    """The jitted vmapped evaluation of ``problem`` (compiled once per problem and chunk size)."""
+    if id(problem) in _EVALUATORS and _EVALUATORS[id(problem)][0] is problem:
+        return _EVALUATORS[id(problem)][1]
+    if len(_EVALUATORS) >= 16:
+        _EVALUATORS.pop(next(iter(_EVALUATORS)))
+
     @jax.jit
     def run(params):
         def one(p):
@@ -127,6 +199,7 @@ def _chunk_evaluator(problem: T.Problem):
 
         return jax.vmap(one)(params)
 
+    _EVALUATORS[id(problem)] = (problem, run)
     return run
 
 
@@ -135,8 +208,8 @@ def _axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Up to ``k`` non-dominated candidates spread evenly (in log chattering) along the front,
-    and the front's slope -d log E / d log C at each (the refinement weights)."""
+    """Up to ``k`` non-dominated points spread evenly by rank along the front, and the
+    front's slope -d log E / d log C at each (weights of the log objective there)."""
     e, c = _axes(m)
     idx = np.flatnonzero(nondominated(e, c))
     idx = idx[np.argsort(c[idx])]
@@ -150,13 +223,14 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
 
 
-def _refine_loss(problem: T.Problem, obj: T.Objective):
-    def loss(u: T.Tunable, w):
-        r = problem.simulate(T.to_physical(u, problem.base), fast=False)
-        J, e, c = T.rollout_costs(r.metrics, r.diverged, obj._replace(weight_chattering=w))
-        return T.aggregate(J, obj)
-
-    return loss
+def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunks: int = 0) -> tuple[int, int]:
+    """(global candidates, local rounds) for ``search_s`` seconds of search at ``chunk_s`` per
+    chunk: the global stage gets ``global_share`` of the chunks, the local rounds the rest but
+    ``final_chunks`` (a plain re-evaluation); given sizes are kept."""
+    chunks = max(0, int(search_s / chunk_s)) - final_chunks
+    n = settings.candidates or max(1, round(settings.global_share * chunks)) * settings.chunk
+    rounds = settings.steps or max(1, chunks - n // settings.chunk)
+    return n, rounds
 
 
 def run(
@@ -167,101 +241,79 @@ def run(
     *,
     checkpoint: Path | None = None,
     resume: bool = False,
+    reserve: tuple[float, float] = (0.0, 0.0),
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Find the front (see module docstring). Returns {"points": [...], "stages": {...}} with
-    every point's parameters, plain mean metrics and diverged count; non-dominated only,
-    sorted by chattering."""
+    """Find the front (see module docstring). ``reserve`` = (compilations, chunks) of time
+    left out of the budget for what follows (the held-out evaluation). Returns {"points":
+    [...], "stages": {...}} with every point's parameters, plain mean metrics and diverged
+    count; non-dominated only, sorted by chattering."""
     t0 = time.perf_counter()
     state: dict[str, Any] = {}
     if resume and checkpoint is not None and checkpoint.exists():
-        header, leaves = T._load(checkpoint)
-        state = header
-        log(f"front: resumed from {checkpoint} ({header['stage']})")
-    n_cand = state.get("candidates") or settings.candidates
-    if not n_cand:  # from the budget: time one chunk, then spend 40% of the budget on the stage
-        probe = sample_candidates(p0, settings.chunk, settings.seed)
-        t = time.perf_counter()
-        evaluate_many(train, probe, settings.chunk, log=lambda _: None)  # compiles
+        state, leaves = T._load(checkpoint)
+        log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
+    surrogate = not _same_simulation(train, plain)
+    n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
+    if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
+        probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1))
         t = time.perf_counter()
         evaluate_many(train, probe, settings.chunk, log=lambda _: None)
-        per = (time.perf_counter() - t) / settings.chunk
-        n_cand = int(np.clip(0.4 * settings.budget / per, settings.points, 4096)) // settings.chunk * settings.chunk
-        n_cand = max(n_cand, settings.chunk)
-        log(f"front: one candidate costs {per * 1e3:.1f} ms on the training problem: {n_cand} candidates")
-    cands = sample_candidates(p0, n_cand, settings.seed)
-    if "global" in state:
-        glob = {k: np.asarray(v) for k, v in state["global"].items()}
+        compile_s = time.perf_counter() - t
+        t = time.perf_counter()
+        evaluate_many(train, probe, settings.chunk, log=lambda _: None)
+        chunk_s = time.perf_counter() - t
+        compile_s -= chunk_s
+        search_s = settings.budget - (time.perf_counter() - t0) - reserve[0] * compile_s - reserve[1] * chunk_s
+        ratio = plain.options["n_steps"] / train.options["n_steps"]  # plain / training cost of a chunk
+        final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
+        search_s -= ratio * compile_s if surrogate else 0.0
+        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final)
+        log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
+            f"{n_cand} global candidates, {rounds} local rounds")  # fmt: skip
+
+    if "round" in state:
+        keys = state["keys"]
+        z, m = leaves[0], {k: v for k, v in zip(keys, leaves[1:])}
+        r0 = state["round"]
     else:
-        glob = evaluate_many(train, cands, settings.chunk, log=log, what="global stage")
-    starts, weights = pick_starts(glob, settings.points)
-    log(f"front: global stage done, {len(starts)} refinement starts, weights {np.round(weights, 2).tolist()}")
+        z = global_factors(n_cand, settings.seed, settings.grid_share)
+        m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
+        r0 = 0
 
-    e_ref, c_ref = (float(np.nanmean(v[starts])) for v in _axes(glob))
-    obj = T.Objective(error_ref=e_ref, chattering_ref=c_ref)
-    loss = _refine_loss(train, obj)
-    opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(settings.learning_rate))
-    u = jax.vmap(lambda p: T.to_internal(p, train.base))(jax.tree.map(lambda x: x[starts], cands))
-    opt_state = jax.vmap(opt.init)(u)
-    step0 = 0
-    if state.get("stage") == "refine":
-        u, opt_state = jax.tree.unflatten(jax.tree.structure((u, opt_state)), [jnp.asarray(x) for x in leaves])
-        step0 = state["step"]
-
-    @jax.jit
-    def update(u, opt_state, w):
-        def one(u, s, w):
-            value, grad = jax.value_and_grad(loss)(u, w)
-            finite = jnp.isfinite(value) & jnp.all(jnp.stack([jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grad)]))
-            grad = jax.tree.map(lambda g: jnp.where(finite, g, 0.0), grad)
-            upd, s2 = opt.update(grad, s, u)
-            keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
-            return keep(optax.apply_updates(u, upd), u), keep(s2, s), value
-
-        return jax.vmap(one)(u, opt_state, w)
-
-    w = jnp.asarray(weights, jax.tree.leaves(u)[0].dtype)
-    steps = state.get("steps") or settings.steps
-
-    def save(stage: str, step: int, leaves=()) -> None:
+    def save(r: int) -> None:
         if checkpoint is not None:
-            header = {"stage": stage, "step": step, "candidates": n_cand, "steps": steps,
-                      "global": {k: v.tolist() for k, v in glob.items()}}  # fmt: skip
-            T._save(checkpoint, {**header, "leaves": list(leaves)})
+            header = {"stage": "global" if r == 0 else "local", "round": r, "candidates": n_cand, "steps": rounds,
+                      "keys": list(m)}  # fmt: skip
+            T._save(checkpoint, {**header, "leaves": [z, *m.values()]})
 
-    if step0 == 0:
-        save("global", 0)
-    step, t_ref = step0, time.perf_counter()
-    while steps == 0 or step < steps:
-        u, opt_state, values = update(u, opt_state, w)
-        values = np.asarray(values)
-        step += 1
-        if step == step0 + 1:
-            t_ref = time.perf_counter()  # after the compilation
-        if steps == 0 and step == step0 + 2:  # from the budget: spend what is left but 25% on refinement
-            per = time.perf_counter() - t_ref
-            steps = max(2, int((0.75 * settings.budget - (time.perf_counter() - t0)) / per))
-            log(f"front: one refinement step costs {per:.2f} s: {steps} steps")
-        log(f"front: refinement step {step}/{steps or '?'}  loss {np.round(values, 3).tolist()}  "
-            f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
-        if settings.checkpoint_every and (step % settings.checkpoint_every == 0 or step == steps):
-            save("refine", step, jax.tree.leaves((u, opt_state)))
+    if r0 == 0:
+        save(0)
+        log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
+    s0, s1 = settings.sigma
+    for r in range(r0, rounds):
+        sigma = s0 * (s1 / s0) ** (r / max(1, rounds - 1))
+        zr = local_factors(z, m, settings.chunk, settings.points, sigma, settings.seed * 1_000_003 + r)
+        mr = evaluate_many(train, from_factors(p0, zr), settings.chunk, log=lambda _: None)
+        z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
+        log(f"front: local round {r + 1}/{rounds}  sigma {sigma:.3f}  {int(nondominated(*_axes(m)).sum())} "
+            f"non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+        if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == rounds):
+            save(r + 1)
 
-    refined = jax.vmap(lambda v: T.to_physical(v, train.base))(u)
-    every = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), cands, refined)
-    if _same_simulation(train, plain):  # no surrogate: the global stage's metrics are the plain ones
-        fresh = evaluate_many(plain, refined, settings.chunk, log=log, what="plain evaluation")
-        final = {k: np.concatenate([glob[k], fresh[k]]) for k in glob}
-    else:
-        final = evaluate_many(plain, every, settings.chunk, log=log, what="plain evaluation")
-    e, c = _axes(final)
+    idx = np.arange(len(z))
+    if surrogate:  # plain metrics of the points non-dominated on the training metrics
+        idx = np.flatnonzero(nondominated(*_axes(m)))
+        m = evaluate_many(plain, from_factors(p0, z[idx]), settings.chunk, log=log, what="plain evaluation")
+    e, c = _axes(m)
     keep = np.flatnonzero(nondominated(e, c))
     keep = keep[np.argsort(c[keep])]
-    points = [point_of(jax.tree.map(lambda x, i=i: x[i], every), final, i) for i in keep]
-    return {"axes": list(AXES), "points": points,
-            "stages": {"candidates": n_cand, "refinement_starts": len(starts), "refinement_steps": steps,
-                       "weights": weights.tolist(), "wall_time_s": time.perf_counter() - t0,
-                       "from_refinement": int(np.sum(keep >= n_cand))}}  # fmt: skip
+    params = from_factors(p0, z[idx[keep]])
+    points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), m, j) for i, j in enumerate(keep)]
+    stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share), "local_rounds": rounds,
+              "evaluations": len(z), "plain_reevaluations": len(idx) if surrogate else 0,
+              "wall_time_s": time.perf_counter() - t0, "from_local": int(np.sum(idx[keep] >= n_cand))}  # fmt: skip
+    return {"axes": list(AXES), "points": points, "stages": stages}
 
 
 def _same_simulation(a: T.Problem, b: T.Problem) -> bool:
@@ -318,16 +370,19 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     ``fosmc tune`` builds them), each point also evaluated on :func:`held_out_config`'s batch,
     Table 1's sets and SGN beside it. Writes ``front.json`` and ``front.png`` (and a
     checkpoint) to ``out`` when given; returns what ``front.json`` holds."""
+    t0 = time.perf_counter()
     plain, train, p0 = _config.tuning_problems(cfg)
+    refs = references(cfg, settings.chunk)
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
-    result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume, log=log)
+    left = settings._replace(budget=settings.budget - (time.perf_counter() - t0))
+    result = run(train, plain, p0, left, checkpoint=checkpoint, resume=resume, reserve=(1, 16), log=log)
     params = T.Tunable(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), p0.delta.dtype)
                          for k in T.PARAM_NAMES))  # fmt: skip
     held_plain = _config.tuning_problems(held_out_config(cfg))[0]
     held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
     for i, pt in enumerate(result["points"]):
         pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), held, i)["metrics"]
-    result["references"] = references(cfg, settings.chunk)
+    result["references"] = refs
     result["held_out_batch"] = {k: held_out_config(cfg)["plant"][k] for k in ("kind", "payloads", "seed")}
     result["config"] = cfg
     if out is not None:

@@ -13,30 +13,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
 from . import _tuning as T
-from ._front import RANGES, evaluate_many
+from ._front import DIM, bounds, evaluate_many, from_factors, grid_factors
 
-#: Number of log factors: delta, gamma, poles, one per joint each.
-DIM = 9
-
-
-def from_factors(p0: T.Tunable, z: np.ndarray) -> T.Tunable:
-    """Parameter sets (n,) from log10 factors z (n, 9): delta, gamma, poles of joint j scaled
-    by 10^z[:, j], 10^z[:, 3 + j], 10^z[:, 6 + j]."""
-    z = np.atleast_2d(z)
-    scale = lambda x, f: jnp.asarray(np.asarray(x)[None] * (10.0 ** f).reshape(f.shape + (1,) * (np.ndim(x) - 1)),
-                                     jnp.asarray(x).dtype)  # fmt: skip
-    return T.Tunable(scale(p0.delta, z[:, 0:3]), scale(p0.gamma, z[:, 3:6]), scale(p0.poles, z[:, 6:9]))
-
-
-def bounds() -> tuple[np.ndarray, np.ndarray]:
-    """The search box of the log factors (the ranges of :data:`fosmc_jax._front.RANGES`)."""
-    lo = np.repeat([RANGES["delta"][0], RANGES["gamma"][0], RANGES["poles"][0]], 3)
-    hi = np.repeat([RANGES["delta"][1], RANGES["gamma"][1], RANGES["poles"][1]], 3)
-    return lo, hi
+__all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "random_search"]
 
 
 def _collect(problem, p0, zs: list[np.ndarray], chunk: int, log, what) -> dict[str, Any]:
@@ -48,10 +30,7 @@ def _collect(problem, p0, zs: list[np.ndarray], chunk: int, log, what) -> dict[s
 def log_grid(problem: T.Problem, p0: T.Tunable, per_axis: int, chunk: int = 16, log=print) -> dict[str, Any]:
     """A grid over three common factors (delta, gamma, poles; the same for every joint),
     ``per_axis`` log-spaced values each over the search box."""
-    lo, hi = bounds()
-    axes = [np.linspace(lo[3 * g], hi[3 * g], per_axis) for g in range(3)]
-    g = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    return _collect(problem, p0, [np.repeat(g, 3, axis=1)], chunk, log, "log grid")
+    return _collect(problem, p0, [grid_factors(per_axis)], chunk, log, "log grid")
 
 
 def random_search(problem: T.Problem, p0: T.Tunable, budget: float, chunk: int = 16, seed: int = 0,

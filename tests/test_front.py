@@ -71,7 +71,7 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path):
         pass
 
     def crash_at_step_2(msg):
-        if msg.startswith("front: refinement step 2/"):
+        if msg.startswith("front: local round 2/"):
             raise Crash
 
     checkpoint = tmp_path / "checkpoint.npz"
@@ -137,3 +137,66 @@ def test_global_stage_keeps_frozen_parameters_and_never_scores_worse_than_the_st
                                   np.array([False]), obj)[0][0])  # fmt: skip
     assert abs(start) < 1e-9  # log scale, scales from the start itself
     assert score <= start
+
+
+def test_global_stage_holds_the_start_and_the_whole_grid_of_common_factors():
+    z = F.global_factors(300, seed=0, grid_share=1.0)
+    g = F.grid_size(300, 1.0)
+    assert g == 6 and z.shape == (300, 9)
+    np.testing.assert_array_equal(z[0], 0.0)  # the start itself
+    grid = F.grid_factors(g)
+    np.testing.assert_array_equal(z[1 : 1 + g**3], grid)
+    assert np.all(grid[:, 0:3] == grid[:, [0]]) and np.all(grid[:, 6:9] == grid[:, [6]])  # common to the joints
+    lo, hi = F.bounds()
+    for k in range(3):  # ends of each range included
+        np.testing.assert_array_equal(np.unique(grid[:, 3 * k])[[0, -1]], [lo[3 * k], hi[3 * k]])
+    draws = z[1 + g**3 :]
+    assert np.all((draws >= lo) & (draws <= hi)) and np.ptp(draws[:, 0:3], axis=1).min() > 0  # per joint
+    assert F.grid_size(300, 0.5) == 5 and F.grid_size(8, 1.0) == 0 and F.grid_size(28, 1.0) == 3
+
+
+def test_stage_sizes_follow_the_budget_and_keep_given_sizes():
+    s = F.Settings(chunk=16, global_share=0.25)
+    n, rounds = F.stage_sizes(s, search_s=200.0, chunk_s=2.5)  # 80 chunks: 20 global, 60 local
+    assert (n, rounds) == (320, 60)
+    n2, rounds2 = F.stage_sizes(s, search_s=400.0, chunk_s=2.5)
+    assert (n2, rounds2) == (640, 120)
+    assert F.stage_sizes(s, 200.0, 2.5, final_chunks=4) == (304, 57)  # a plain re-evaluation is left room
+    assert F.stage_sizes(s._replace(candidates=64), 200.0, 2.5) == (64, 76)
+    assert F.stage_sizes(s._replace(candidates=64, steps=3), 200.0, 2.5) == (64, 3)
+    assert F.stage_sizes(s, 1.0, 2.5) == (16, 1)  # never empty
+
+
+def test_local_round_perturbs_only_non_dominated_points_within_the_box():
+    z = np.array([[0.0] * 9, [0.2] * 9, [-0.2] * 9, [0.4] * 9])
+    m = {"rms_error": np.array([[1.0] * 3, [2.0] * 3, [3.0] * 3, [0.5] * 3]),
+         "chattering_hf": np.array([[1.0] * 3, [0.5] * 3, [2.0] * 3, [4.0] * 3])}  # fmt: skip
+    front = {0, 1, 3}  # point 2 is dominated by point 0
+    children = F.local_factors(z, m, 12, points=2, sigma=0.0, seed=1)
+    parents = {int(np.flatnonzero((z == c).all(1))[0]) for c in children}
+    assert len(parents) == 2 and parents <= front
+    lo, hi = F.bounds()
+    moved = F.local_factors(z, m, 64, points=8, sigma=0.5, seed=2)
+    assert np.all((moved >= lo) & (moved <= hi)) and np.any(moved == hi) and not np.any((moved[:, None] == z).all(-1))
+    small = F.local_factors(z, m, 64, points=1, sigma=0.01, seed=3)  # one parent, no clipping
+    step = small - z[np.argmin(np.abs(z - small[0]).sum(1))]  # from the parent, the nearest row
+    moved_coords = np.abs(step) > 0
+    assert moved_coords[0::2].all() and moved_coords[1::2].any(1).all()  # per joint: all; common: a subset
+    assert not moved_coords[1::2].all(1).all()
+    common = step[1::2].reshape(-1, 3, 3)  # parameter, joint: the same step for the three joints
+    np.testing.assert_allclose(common, np.repeat(common[:, :, :1], 3, axis=2), atol=1e-15)
+    assert np.ptp(step[0::2].reshape(-1, 3, 3), axis=2).max() > 0  # per joint
+
+
+def test_with_a_training_surrogate_the_front_holds_plain_metrics_only():
+    cfg = _config.resolve(dict(TINY, tune={"train_t_final": 0.1}))
+    plain, train, p0 = _config.tuning_problems(cfg)
+    assert train.options["n_steps"] < plain.options["n_steps"]
+    res = F.run(train, plain, p0, SETTINGS, log=lambda _: None)
+    assert 0 < res["stages"]["plain_reevaluations"] < res["stages"]["evaluations"]
+    from fosmc_jax import _tuning as T
+
+    for pt in res["points"]:
+        p = T.Tunable(*(np.asarray(pt["params"][k]) for k in T.PARAM_NAMES))
+        np.testing.assert_allclose(T.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-9)
+        assert not np.allclose(T.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)

@@ -1,11 +1,12 @@
 """The front of ``fosmc front`` against derivative-free baselines at equal wall time.
 
 For one config, each method gets the same wall time on the same machine, one after the other
-(the baselines get what the front actually took, compilation included): the gradient front (:func:`fosmc_jax._front.study`), CMA-ES (pycma) on the weighted log
-objective at the front's weights, uniform random search and a log grid over the same search
-space (:mod:`fosmc_jax._search`). Every method's non-dominated set is compared in (mean
+(the baselines get what the front actually took, its references and held-out evaluation
+included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._front.study`),
+CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
+and a log grid over the same search space (:mod:`fosmc_jax._search`). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
-reference point (beyond the worst of Table 1's sets and SGN), and how many of the gradient
+reference point (beyond the worst of Table 1's sets and SGN), and how many of the
 front's points some baseline point dominates. The front's held-out evaluation (fresh payloads
 or box samples, fresh noise seeds) is reported beside its training metrics.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import time
 
@@ -65,6 +67,8 @@ def main(argv=None) -> None:
     ap.add_argument("--name", required=True)
     ap.add_argument("--points", type=int, default=8)
     ap.add_argument("--methods", default="front,cma,random,grid")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     args = ap.parse_args(argv)
     cfg = _config.load(args.config)
     plain, train, p0 = _config.tuning_problems(cfg)
@@ -72,13 +76,23 @@ def main(argv=None) -> None:
     out: dict = {"config": args.config, "budget_s": args.budget, "methods": {}}
     front_dir = OUT / f"front_{args.name}"
 
-    start = time.perf_counter()
-    front = F.study(cfg, F.Settings(points=args.points, budget=args.budget), out=front_dir, log=log)
-    out["methods"]["gradient front"] = {"wall_s": time.perf_counter() - start, "points": front["points"]}
-    weights = front["stages"]["weights"]
-    budget = out["methods"]["gradient front"]["wall_s"]  # the baselines get the front's actual wall time
-    out["baseline_budget_s"] = budget
-    log(f"gradient front: {len(front['points'])} points in {budget:.0f} s")
+    start, load = time.perf_counter(), os.getloadavg()[0]
+    settings = F.Settings(points=args.points, budget=args.budget)
+    for item in args.set:  # KEY=1.5 or KEY=0.1,0.01 (a tuple)
+        key, value = item.split("=", 1)
+        parsed = json.loads(f"[{value}]")
+        value = parsed[0] if len(parsed) == 1 else parsed
+        settings = settings._replace(**{key: type(getattr(settings, key))(value)})
+    out["settings"] = settings._asdict()
+    front = F.study(cfg, settings, out=front_dir, log=log)
+    out["methods"]["fosmc front"] = {"wall_s": time.perf_counter() - start, "points": front["points"],
+                                     "evaluations": front["stages"]["evaluations"],
+                                     "load": [load, os.getloadavg()[0]]}  # fmt: skip
+    front_m = {k: np.array([p["metrics"][k] for p in front["points"]]) for k in ("rms_error", "chattering_hf")}
+    weights = F.pick_starts(front_m, 4)[1].tolist()  # the front's slopes at four points along it
+    budget = out["methods"]["fosmc front"]["wall_s"]  # the baselines get the front's actual wall time
+    out["baseline_budget_s"], out["cma_weights"] = budget, weights
+    log(f"fosmc front: {len(front['points'])} points in {budget:.0f} s")
 
     runs = {
         "cma": ("CMA-ES (pycma)", lambda: S.cma_front(plain, p0, weights, budget, log=log)),
@@ -89,13 +103,14 @@ def main(argv=None) -> None:
         if key not in runs:
             continue
         label, fn = runs[key]
-        t0 = time.perf_counter()
+        F._EVALUATORS.clear()  # each method pays its own compilation, as the front did
+        t0, load = time.perf_counter(), os.getloadavg()[0]
         r = fn()
         e, c = axes_of(r["metrics"])
         keep = np.flatnonzero(F.nondominated(e, c))
         params = S.from_factors(p0, r["z"][keep])
         out["methods"][label] = {
-            "wall_s": time.perf_counter() - t0, "evaluations": len(e),
+            "wall_s": time.perf_counter() - t0, "evaluations": len(e), "load": [load, os.getloadavg()[0]],
             "points": [F.point_of(jax.tree.map(lambda x, i=i: x[i], params), r["metrics"], j)
                        for i, j in enumerate(keep)],
         }  # fmt: skip
@@ -114,9 +129,9 @@ def main(argv=None) -> None:
         dominating = sum(bool(np.any((e <= fe[i]) & (c <= fc[i]) & ((e < fe[i]) | (c < fc[i]))))
                          for i in range(len(fe)))  # fmt: skip
         m["hypervolume"] = hypervolume(e, c, ref_point)
-        m["front_points_dominated"] = dominating if label != "gradient front" else 0
-        summary.append((label, m["wall_s"], m.get("evaluations", front["stages"]["candidates"]), len(m["points"]),
-                        m["hypervolume"], m["front_points_dominated"], e.min(), c.min()))  # fmt: skip
+        m["front_points_dominated"] = dominating if label != "fosmc front" else 0
+        summary.append((label, m["wall_s"], m["evaluations"], len(m["points"]), m["hypervolume"],
+                        m["front_points_dominated"], e.min(), c.min(), m["load"]))  # fmt: skip
     dominated_refs = {k: bool(np.any((fe <= np.mean(v["metrics"]["rms_error"])) & (fc <= np.mean(v["metrics"]["chattering_hf"]))
                                      & ((fe < np.mean(v["metrics"]["rms_error"])) | (fc < np.mean(v["metrics"]["chattering_hf"])))))
                       for k, v in refs.items()}  # fmt: skip
@@ -130,11 +145,14 @@ def main(argv=None) -> None:
              f"machine (`.venv/bin/python tuning/frontier.py --config {args.config} --budget {args.budget:.0f} "
              f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
              f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
-             "", "| method | wall s | evaluations | front points | hypervolume | gradient-front points it dominates | "
-             "best rms_error (rad) | lowest chattering_hf (V) |", "|---|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
-    for label, wall, n, k, hv, dom, emin, cmin in summary:
-        lines.append(f"| {label} | {wall:.0f} | {n} | {k} | {hv:.3f} | {dom} | {emin:.3g} | {cmin:.3g} |")
-    lines += ["", "The gradient front dominates: " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in dominated_refs.items()) + ".",
+             "", "| method | wall s | load (1-min, start/end) | evaluations | front points | hypervolume | "
+             "`fosmc front` points it dominates | best rms_error (rad) | lowest chattering_hf (V) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for label, wall, n, k, hv, dom, emin, cmin, ld in summary:
+        lines.append(f"| {label} | {wall:.0f} | {ld[0]:.1f} / {ld[1]:.1f} | {n} | {k} | {hv:.3f} | {dom} | {emin:.3g} "
+                     f"| {cmin:.3g} |")  # fmt: skip
+    lines += ["", f"CMA-ES weights (the front's slopes): {np.round(weights, 2).tolist()}.",
+              "", "`fosmc front` dominates: " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in dominated_refs.items()) + ".",
               "", "Held-out batch " + json.dumps(front["held_out_batch"]) + ": ratio held-out / training, per front "
               "point (rms_error, chattering_hf): " + ", ".join(f"({a:.2f}, {b:.2f})" for a, b in held) + "."]  # fmt: skip
     OUT.mkdir(exist_ok=True)
