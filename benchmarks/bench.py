@@ -245,6 +245,35 @@ def arm_baseline(batch, dtype, steps):
             "flop_per_s": None, "reps": 1, "load": load(), "rms_error": rms}  # fmt: skip
 
 
+ANCHOR = Path(__file__).resolve().parents[2] / "shared" / "anchors" / "simd_kernel" / "run.sh"
+
+
+def anchor(batch: int, steps: int) -> list[dict]:
+    """The hand-written SIMD kernel of the same closed loop (../shared/anchors/simd_kernel,
+    linear plant, Euler, float32), best of its three repetitions per thread count; [] when
+    gcc or the anchor is missing."""
+    import re
+    import shutil
+
+    if not ANCHOR.exists() or shutil.which("gcc") is None:
+        print("anchor: ../shared/anchors/simd_kernel or gcc missing, skipped")
+        return []
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:  # run.sh writes data.h into its working directory
+        out = subprocess.run(["bash", str(ANCHOR), str(batch), str(steps)], capture_output=True, text=True, cwd=tmp)
+    if out.returncode:
+        print(f"anchor: run.sh failed ({out.returncode}): {out.stderr.strip()[-300:]}")
+        return []
+    best: dict[int, float] = {}
+    for m in re.finditer(r"threads=(\d+) .*?: ([0-9.e+]+) rollout-steps/s", out.stdout):
+        best[int(m.group(1))] = max(best.get(int(m.group(1)), 0.0), float(m.group(2)))
+    return [{"kind": f"simd anchor ({t} thread{'s' if t > 1 else ''})", "plant": "linear", "integrator": "euler",
+             "dtype": "float32", "batch": batch, "steps": steps, "wall_s": batch * steps / v, "compile_s": None,
+             "rollout_steps_per_s": v, "flop_per_s": v * FLOPS["euler"], "reps": 3, "load": load()}
+            for t, v in sorted(best.items())]  # fmt: skip
+
+
 def machine():
     cpu = next(
         (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
@@ -302,6 +331,8 @@ def main(argv=None):
     rows.append(time_jax(loop_batch, np.float32, "euler", steps, fast=False)), say(rows[-1])
     for m in (1, 10):
         rows.append(time_jax(loop_batch, np.float32, "euler", steps, loop=m)), say(rows[-1])
+    for r in anchor(head, steps):
+        rows.append(r), say(r)
     rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
     try:
@@ -385,6 +416,15 @@ def markdown(info, head):
         lines.append(f"Arm, batch 64, Euler, float32: {arm[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
                      f"{arm[0]['rollout_steps_per_s'] / narm[0]['rollout_steps_per_s']:.1f}x the NumPy arm "
                      f"({narm[0]['rollout_steps_per_s']:.3g}).")  # fmt: skip
+    anchors = [r for r in rows if r["kind"].startswith("simd anchor")]
+    if anchors:
+        top = max(anchors, key=lambda r: r["rollout_steps_per_s"])
+        ours_all = [r for r in rows if r["kind"].startswith("fosmc_jax") and r["plant"] == "linear"]
+        lines.append(f"SIMD anchor (same run, {top['kind']}, batch {top['batch']}): "
+                     f"{top['rollout_steps_per_s']:.3g} rollout-steps/s. Each linear fosmc_jax row as a fraction "
+                     "of it: " + ", ".join(f"{r['kind']} {r['integrator']} {r['dtype']} batch {r['batch']}: "
+                                           f"{r['rollout_steps_per_s'] / top['rollout_steps_per_s']:.1%}"
+                                           for r in ours_all) + ".")  # fmt: skip
     arm_big, lin_big = (
         pick(rows, kind="fosmc_jax", plant="arm", batch=1024),
         pick(
