@@ -57,7 +57,7 @@ class Settings(NamedTuple):
     seed: int = 0
     global_share: float = 0.3  # share of the search time spent on the global stage (candidates = 0)
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
-    sigma: tuple[float, float] = (0.1, 0.01)  # local step, first and last round, in shares of each range
+    sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
     checkpoint_every: int = 5  # local rounds between checkpoints
 
 

@@ -69,8 +69,12 @@ def main(argv=None) -> None:
     ap.add_argument("--methods", default="front,cma,random,grid")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
+    ap.add_argument("--check", action="store_true",
+                    help="only the cost and surrogate check (check_costs), then exit")  # fmt: skip
     args = ap.parse_args(argv)
     cfg = _config.load(args.config)
+    if args.check:
+        return check_costs(cfg)
     plain, train, p0 = _config.tuning_problems(cfg)
     methods = args.methods.split(",")
     out: dict = {"config": args.config, "budget_s": args.budget, "methods": {}}
@@ -160,6 +164,43 @@ def main(argv=None) -> None:
     write_text(OUT / f"frontier_{args.name}.md", "\n".join(lines) + "\n")
     plot(out, OUT / f"frontier_{args.name}.png", args.config)
     print("\n".join(lines))
+
+
+def check_costs(cfg: dict, n_random: int = 64) -> None:
+    """Print what one evaluation costs (a chunk of 16 compiled afresh, as ``evaluate_many`` did
+    on every call before it kept its compilation, and warm) on the plain and the training
+    problem, and how the training problem ranks a grid of 4^3 common factors and ``n_random``
+    per-joint draws against the plain one (Spearman's rho of each axis; non-dominated sets)."""
+    from scipy.stats import spearmanr
+
+    plain, train, p0 = _config.tuning_problems(cfg)
+    lo, hi = S.bounds()
+    z = np.concatenate([F.grid_factors(4), np.random.default_rng(1).uniform(lo, hi, size=(n_random, S.DIM))])
+    params = S.from_factors(p0, z)
+    first = jax.tree.map(lambda x: x[:16], params)
+    times = []
+    for _ in range(2):  # a fresh compilation each time, as before
+        F._EVALUATORS.clear()
+        t = time.perf_counter()
+        F.evaluate_many(plain, first, 16, log=lambda _: None)
+        times.append(time.perf_counter() - t)
+    print(f"load {os.getloadavg()[0]:.1f}: 16 plain evaluations compiled afresh {times[1]:.2f} s "
+          f"({times[1] / 16:.3f} s each)")  # fmt: skip
+    metrics = {}
+    for label, problem in (("plain", plain), ("training", train)):
+        F.evaluate_many(problem, first, 16, log=lambda _: None)
+        t = time.perf_counter()
+        metrics[label] = F.evaluate_many(problem, params, 16, log=lambda _: None)
+        dt = time.perf_counter() - t
+        print(
+            f"load {os.getloadavg()[0]:.1f}: {len(z)} {label} evaluations, warm: {dt:.1f} s ({dt / len(z):.3f} s each)"
+        )
+    (ep, cp), (et, ct) = axes_of(metrics["plain"]), axes_of(metrics["training"])
+    ok = np.isfinite(ep + cp + et + ct)
+    both = F.nondominated(ep, cp) & F.nondominated(et, ct)
+    print(f"Spearman rho, training against plain: rms_error {spearmanr(ep[ok], et[ok])[0]:.3f}, chattering_hf "
+          f"{spearmanr(cp[ok], ct[ok])[0]:.3f}; non-dominated: plain {F.nondominated(ep, cp).sum()}, training "
+          f"{F.nondominated(et, ct).sum()}, both {both.sum()}")  # fmt: skip
 
 
 def grid_size(problem, p0, budget: float) -> int:
