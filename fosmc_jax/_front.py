@@ -307,7 +307,7 @@ def run(
         m = evaluate_many(plain, from_factors(p0, z[idx]), settings.chunk, log=log, what="plain evaluation")
     e, c = _axes(m)
     keep = np.flatnonzero(nondominated(e, c))
-    keep = keep[np.argsort(c[keep])]
+    keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     params = from_factors(p0, z[idx[keep]])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), m, j) for i, j in enumerate(keep)]
     stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share), "local_rounds": rounds,
