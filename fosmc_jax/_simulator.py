@@ -97,9 +97,9 @@ def _guard(diverged, diverged_at, ok, t, old, fresh):
     return kept, keep, jnp.where(~diverged & ~ok, t, diverged_at)
 
 
-def _scan_steps(body, carry, steps: int):
-    """``steps`` iterations of the scan ``body`` (none when 0)."""
-    return carry if steps == 0 else jax.lax.scan(body, carry, None, length=steps)[0]
+def _scan_steps(body, carry, steps: int, unroll: int = 1):
+    """``steps`` iterations of the scan ``body`` (none when 0), ``unroll`` per loop trip."""
+    return carry if steps == 0 else jax.lax.scan(body, carry, None, length=steps, unroll=min(unroll, steps))[0]
 
 
 def _finite_and_bounded(tree, X, bound) -> Array:
@@ -397,7 +397,10 @@ def _linear_batch(
         )
         return _Batch(k, *kept, diverged, diverged_at), None
 
-    advance = functools.partial(_scan_steps, body)
+    # Two steps per loop trip: 1.02-1.09x at batch 1,024-4,096 (benchmarks/loop_variants.py,
+    # BENCHMARKS.md, issue 13); a packed carry, more unrolling, no ``once`` or blocks of the
+    # batch were slower or no faster.
+    advance = functools.partial(_scan_steps, body, unroll=2)
 
     x = tuple(jnp.broadcast_to(X0s[:, i], (P, O)) for i in range(9))
     w = (jnp.zeros((P, O), dtype),) * 3
