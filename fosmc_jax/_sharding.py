@@ -11,8 +11,25 @@ Devices. On GPUs the devices are the GPUs; on several hosts, after
 ``jax.distributed.initialize()`` on each, ``jax.devices()`` lists every host's devices and the
 same call spans them all (each host supplies its own shards of the inputs, which every host
 holds in full). On CPU, XLA shows one device per process unless asked for more before JAX
-initialises: call :func:`use_host_devices` first, or set
-``XLA_FLAGS=--xla_force_host_platform_device_count=N`` in the environment.
+initialises: call :func:`use_all_cores` (one device per core unless the user set a count) or
+:func:`use_host_devices` first, or set ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
+or ``JAX_NUM_CPU_DEVICES=N`` in the environment.
+
+Several processes or hosts (tested on one machine with two processes on 127.0.0.1, CPU,
+gloo collectives: tests/test_distributed.py). On each of N processes, before any other JAX
+operation::
+
+    jax.distributed.initialize(coordinator_address="HOST0:PORT", num_processes=N, process_id=i)
+    res = simulate_sharded(plants, ctrl, ref, X0s, dt, devices=None, n_steps=..., ...)
+    res = jax.experimental.multihost_utils.process_allgather(res, tiled=True)  # full result everywhere
+
+Every process passes the same full inputs (each supplies its own shards). On CPU the
+cross-process collectives (only the final gather uses them) go through gloo
+(``jax_cpu_collectives_implementation``, the default in jax 0.10); each process may show
+several CPU devices (:func:`use_all_cores` before ``initialize``). On GPUs (``pip install
+"jax[cuda12]"``), one process per host sees its GPUs and ``devices=None`` spans every GPU of
+every process; on a GPU cluster under SLURM or Open MPI ``jax.distributed.initialize()``
+needs no arguments. The GPU commands are not tested here (no GPU on the development machine).
 """
 
 from __future__ import annotations
@@ -49,6 +66,54 @@ def use_host_devices(n: int) -> None:
         return
     flag = f"--xla_force_host_platform_device_count={n}"
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), flag]).strip()
+
+
+def _cores() -> int:
+    """The cores this process may run on (its CPU affinity; ``os.cpu_count()`` where that is
+    unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _user_device_count() -> int | None:
+    """A CPU device count the user set: ``jax_num_cpu_devices`` (``jax.config.update`` or the
+    ``JAX_NUM_CPU_DEVICES`` environment variable) or ``--xla_force_host_platform_device_count``
+    in ``XLA_FLAGS``; None when neither is set."""
+    n = jax.config.jax_num_cpu_devices
+    if n is not None and n > 0:
+        return int(n)
+    for flag in os.environ.get("XLA_FLAGS", "").split():
+        if flag.startswith("--xla_force_host_platform_device_count="):
+            return int(flag.split("=", 1)[1])
+    return None
+
+
+def use_all_cores() -> int:
+    """Show one CPU device per host core unless the user chose a count, and return the number
+    of devices a batch should be split over by default (``simulate_sharded(devices=...)``).
+
+    Call it before the first JAX operation (as :func:`use_host_devices`). The rules, in order:
+
+    - a count the user set wins and is left alone: ``jax.config.update("jax_num_cpu_devices",
+      N)``, ``JAX_NUM_CPU_DEVICES=N`` or ``XLA_FLAGS=--xla_force_host_platform_device_count=N``
+      (so ``N = 1`` turns sharding off);
+    - otherwise the CPU shows as many devices as this process has cores
+      (``os.sched_getaffinity``: a ``taskset`` or container CPU set is respected);
+    - if JAX is already initialised, nothing can change: the devices it has are used.
+
+    The count returned is that of the local devices of the default backend once JAX starts:
+    on a GPU host the GPUs (the CPU count only matters for the CPU backend); after
+    ``jax.distributed.initialize`` pass ``devices=None`` to :func:`simulate_sharded` to span
+    every process's devices. Sharding never changes results (tests/test_performance_paths.py).
+    """
+    if _user_device_count() is None:
+        try:
+            jax.config.update("jax_num_cpu_devices", _cores())
+        except RuntimeError:  # backends already initialised
+            pass
+    return jax.local_device_count()
 
 
 def batch_mesh(devices: int | Sequence[jax.Device] | None = None) -> Mesh:

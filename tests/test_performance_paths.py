@@ -111,3 +111,32 @@ def test_sharded_equals_single_device():
     env.pop("XLA_FLAGS", None)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+@pytest.mark.parametrize(
+    "env, expected",
+    # the host's cores by default; a count the user set wins (1 turns sharding off)
+    [({}, len(os.sched_getaffinity(0))), ({"JAX_NUM_CPU_DEVICES": "1"}, 1),
+     ({"XLA_FLAGS": "--xla_force_host_platform_device_count=3"}, 3)],
+)  # fmt: skip
+def test_use_all_cores_default_and_user_count(env, expected):
+    code = textwrap.dedent(
+        """
+        from fosmc_jax._sharding import simulate_sharded, use_all_cores
+        n = use_all_cores()
+        import jax, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        import fosmc_jax as fj
+        t = __import__("test_performance_paths")
+        assert n == jax.device_count(), (n, jax.devices())
+        args = t.setup(3, 4)
+        a = simulate_sharded(*args, 1e-3, devices=n, n_steps=200, integrator="euler")
+        t.assert_close(a, fj.simulate_batch(*args, 1e-3, n_steps=200, integrator="euler"), rtol=1e-12)
+        assert len(a.metrics.rms_error.sharding.device_set) == n
+        print("devices", n)
+        """
+    )
+    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
+    env = dict(base, **env, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith(f"devices {expected}"), out.stderr[-3000:]
