@@ -344,8 +344,13 @@ def _linear_batch(
     gain = _metrics.lowpass_gain(dt, jnp.asarray(chattering_cutoff, dtype))
     derived = derive(controller)
     C, S, CB_inv, K = (_rows(m, 2) for m in (controller.C, derived.S, derived.CB_inv, derived.K))
-    A = _rows(jnp.moveaxis(plants.a_rows, 0, -1)[..., None], 2)  # entries (P, 1)
-    B = _rows(jnp.moveaxis(plants.b_rows, 0, -1)[..., None], 2)
+    # Every batch vector has the shape ``lanes``, (P, O), or (P,) when O = 1: a trailing axis
+    # of length 1 leaves XLA:CPU a loop it does not vectorise (2.7x slower at P = 4,096,
+    # O = 1, the CLI's ``uncertainty = "sample"`` batch; issue 13).
+    lanes = (P, O) if O > 1 else (P,)
+    col = (lambda a: a[..., None]) if O > 1 else (lambda a: a)
+    A = _rows(col(jnp.moveaxis(plants.a_rows, 0, -1)), 2)  # entries (P, 1), or (P,)
+    B = _rows(col(jnp.moveaxis(plants.b_rows, 0, -1)), 2)
     gamma, delta = _rows(controller.gamma), _rows(controller.delta)
     # XLA:CPU fuses each output separately and would recompute shared terms in each; an
     # optimization_barrier does not survive its pipeline, but a conditional's outputs are
@@ -402,12 +407,12 @@ def _linear_batch(
     # batch were slower or no faster.
     advance = functools.partial(_scan_steps, body, unroll=2)
 
-    x = tuple(jnp.broadcast_to(X0s[:, i], (P, O)) for i in range(9))
-    w = (jnp.zeros((P, O), dtype),) * 3
+    x = tuple(jnp.broadcast_to(X0s[:, i], lanes) for i in range(9))
+    w = (jnp.zeros(lanes, dtype),) * 3
     U, s, e = sample(x, w, jnp.zeros((), dtype))
     bad = ~ok_of(x, w, U, s)
     acc = tuple(_metrics.start(ej, uj) for ej, uj in zip(e, U))
-    acc = tuple(a._replace(count=jnp.ones((P, O), dtype)) for a in acc)
+    acc = tuple(a._replace(count=jnp.ones(lanes, dtype)) for a in acc)
     carry = _Batch(
         jnp.zeros((), jnp.int32),
         x,
@@ -428,7 +433,7 @@ def _linear_batch(
     acc = jax.tree.map(lambda *joints: jnp.stack(joints, axis=-1), *carry.acc)
     acc = acc._replace(count=carry.acc[0].count[..., None])
     metrics = _metrics.finish(acc, n_steps * dt)
-    flat = lambda a: a.reshape((P * O,) + a.shape[2:])
+    flat = lambda a: a.reshape((P * O,) + a.shape[len(lanes) :])
     return Result(jax.tree.map(flat, metrics), flat(carry.diverged), flat(carry.diverged_at), None)
 
 

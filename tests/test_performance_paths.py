@@ -57,6 +57,16 @@ def test_fast_batch_equals_vmap_of_simulate(integrator, switching, law):
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
 
 
+@pytest.mark.parametrize("P, O", [(5, 1), (1, 3)])
+def test_fast_batch_one_offset_or_one_plant(P, O):
+    # O = 1 runs on (P,) vectors instead of (P, 1) (the CLI's sampled plants)
+    plants, ctrl, ref, X0s = setup(P, O)
+    opts = dict(n_steps=300, integrator="euler")
+    fast = fj.simulate_batch(plants, ctrl, ref, X0s, 1e-3, **opts)
+    assert fast.metrics.rms_error.shape == (P * O, 3)
+    assert_close(fast, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
+
+
 def test_fast_batch_freezes_diverged_rollouts_like_simulate():
     plants, ctrl, ref, X0s = setup(gamma=[5e4, 5e4, 5e4])  # far too stiff for dt: blows up
     opts = dict(n_steps=300, integrator="euler", divergence_bound=50.0)
