@@ -2,6 +2,12 @@
 
     python benchmarks/bench.py            # full: 4,000 steps, batches 1..16,384, one 40,000-step check
     python benchmarks/bench.py --quick    # CI: fewer steps and batches, under 2 minutes on 2 cores
+    python benchmarks/bench.py --quick --out /tmp/scratch   # a trial run that leaves results/ alone
+
+With gcc, the SIMD anchor (../shared/anchors/simd_kernel/run.sh, a hand-written C kernel of
+the same closed loop) runs in the same process and every linear row is given as a fraction
+of its best thread count; ``fosmc simulate --json`` runs as a user runs it (1 and 2
+devices; steady state from the difference of two batch sizes).
 
 Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
 second (rollouts x steps / wall seconds of a compiled call, best of 3; compile time apart).
@@ -274,6 +280,56 @@ def anchor(batch: int, steps: int) -> list[dict]:
             for t, v in sorted(best.items())]  # fmt: skip
 
 
+CLI_CONFIG = """[plant]
+uncertainty = "sample"
+samples = {samples}
+seed = 0
+
+[sim]
+t_final = {t_final}
+dt = {dt}
+integrator = "euler"
+precision = "float32"
+"""
+
+
+def cli(small: int, large: int, steps: int, devices: int) -> dict:
+    """``fosmc simulate --json`` as a user runs it (a fresh process: start-up, compilation,
+    the run, the JSON of every rollout) on the same work (linear, Euler, float32, set 1,
+    ratio switching; ``uncertainty = "sample"``, one offset), at ``small`` and ``large``
+    samples: the steady state is (large - small) x steps / (difference of the wall times)."""
+    import tempfile
+
+    fosmc = Path(sys.executable).with_name("fosmc")
+    exe = [str(fosmc)] if fosmc.exists() else [sys.executable, "-m", "fosmc_jax"]
+    walls, loads = {}, []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in (small, large):
+            cfg = Path(tmp) / f"cli{n}.toml"
+            cfg.write_text(CLI_CONFIG.format(samples=n, t_final=steps * DT, dt=DT))
+            cmd = (
+                exe
+                + ["simulate", "--config", str(cfg), "--json"]
+                + (["--devices", str(devices)] if devices > 1 else [])
+            )
+            env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
+            times = []
+            for _ in range(2):
+                t0 = time.perf_counter()
+                out = subprocess.run(cmd, capture_output=True, text=True, env=env)
+                times.append(time.perf_counter() - t0)
+                if out.returncode:
+                    raise RuntimeError(f"{' '.join(cmd)} failed: {out.stderr[-500:]}")
+            walls[n] = min(times)
+            loads.append(load())
+    rs = (large - small) * steps / (walls[large] - walls[small])
+    return {"kind": f"fosmc simulate CLI ({devices} device{'s' if devices > 1 else ''}, steady state)",
+            "plant": "linear", "integrator": "euler", "dtype": "float32", "batch": large, "steps": steps,
+            "wall_s": walls[large], "compile_s": None, "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS["euler"],
+            "reps": 2, "load": max(loads), "cli_wall_s": {str(k): v for k, v in walls.items()},
+            "command": " ".join(exe[-1:] + cmd[len(exe):])}  # fmt: skip
+
+
 def machine():
     cpu = next(
         (line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name")),
@@ -335,6 +391,8 @@ def main(argv=None):
         rows.append(r), say(r)
     rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
+    for d in (1, 2):
+        rows.append(cli(head // 4 if q else head, head if q else 4 * head, steps, d)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 
@@ -392,15 +450,21 @@ def markdown(info, head):
              f"NumPy {m['numpy']}. Steps per rollout: {info['steps']} (dt = {info['dt']}). "
              f"Load average at start/end: {info['load_start']}/{info['load_end']}. "
              f"Matmul roof: float32 {roof_['float32']:.3g} FLOP/s, float64 {roof_['float64']:.3g} FLOP/s.", "",
-             "| implementation | plant | integrator | dtype | batch | steps | rollout-steps/s | FLOP/s | of roof | compile s | load |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| implementation | plant | integrator | dtype | batch | steps | rollout-steps/s | FLOP/s | of roof | "
+             "of SIMD anchor | compile s | load |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    anchors = [r for r in rows if r["kind"].startswith("simd anchor")]
+    top = max(anchors, key=lambda r: r["rollout_steps_per_s"]) if anchors else None
     for r in rows:
         flop = r.get("flop_per_s")
         frac = f"{flop / roof_[r['dtype']]:.1%}" if flop else ""
         kind = r["kind"] + (" (extrapolated)" if r.get("extrapolated") else "")
         comp = f"{r['compile_s']:.1f}" if r.get("compile_s") is not None else ""
+        of_anchor = (
+            f"{r['rollout_steps_per_s'] / top['rollout_steps_per_s']:.1%}" if top and r["plant"] == "linear" else ""
+        )
         lines.append(f"| {kind} | {r['plant']} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['steps']} | "
-                     f"{r['rollout_steps_per_s']:.3g} | {flop or 0:.3g} | {frac} | {comp} | {r['load']} |")  # fmt: skip
+                     f"{r['rollout_steps_per_s']:.3g} | {flop or 0:.3g} | {frac} | {of_anchor} | {comp} | {r['load']} |")  # fmt: skip
     ours = pick(rows, kind="fosmc_jax", plant="linear", integrator="euler", dtype="float32", batch=head,
                 steps=info["steps"])  # fmt: skip
     npv = pick(rows, kind="numpy_vectorised", integrator="euler")
@@ -416,10 +480,8 @@ def markdown(info, head):
         lines.append(f"Arm, batch 64, Euler, float32: {arm[0]['rollout_steps_per_s']:.3g} rollout-steps/s = "
                      f"{arm[0]['rollout_steps_per_s'] / narm[0]['rollout_steps_per_s']:.1f}x the NumPy arm "
                      f"({narm[0]['rollout_steps_per_s']:.3g}).")  # fmt: skip
-    anchors = [r for r in rows if r["kind"].startswith("simd anchor")]
     if anchors:
-        top = max(anchors, key=lambda r: r["rollout_steps_per_s"])
-        ours_all = [r for r in rows if r["kind"].startswith("fosmc_jax") and r["plant"] == "linear"]
+        ours_all = [r for r in rows if r["kind"].startswith("fosmc") and r["plant"] == "linear"]
         lines.append(f"SIMD anchor (same run, {top['kind']}, batch {top['batch']}): "
                      f"{top['rollout_steps_per_s']:.3g} rollout-steps/s. Each linear fosmc_jax row as a fraction "
                      "of it: " + ", ".join(f"{r['kind']} {r['integrator']} {r['dtype']} batch {r['batch']}: "
