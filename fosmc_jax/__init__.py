@@ -6,6 +6,7 @@ from . import _paper as paper
 from . import _tuning as tuning
 from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
 from ._certify import Certificate, certify
+from ._commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
 from ._config import ConfigError
 from ._controller import (
     FOSMC,
@@ -43,6 +44,13 @@ from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
 from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 
 __all__ = [
+    # one function per `fosmc` command: a config in, the command's data out (fosmc_jax._commands)
+    "run_bounds",
+    "run_certify",
+    "run_front",
+    "run_reproduce",
+    "run_simulate",
+    "run_tune",
     "ARM_PARAMS",
     "PAYLOAD_RANGE",
     "Arm",

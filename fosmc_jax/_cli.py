@@ -1,4 +1,6 @@
-"""The ``fosmc`` command line. No numerics here: it reads configs, calls the library, prints."""
+"""The ``fosmc`` command line: parses arguments, calls the ``run_<command>`` functions of
+:mod:`fosmc_jax._commands` (which do the work and return the data), prints, and maps
+:class:`ConfigError` to ``fosmc: error: ...`` and exit status 2. No numerics here."""
 
 from __future__ import annotations
 
@@ -11,11 +13,11 @@ import warnings
 import jax
 import numpy as np
 
+from . import _commands as C
 from . import _config, _paper
-from ._design import CONVENTIONS, summarize
-from ._io import jsonable, write_text
-from ._metrics import METRIC_NAMES, UNITS, batch_summary
-from ._simulator import simulate_batch
+from ._design import CONVENTIONS
+from ._io import jsonable
+from ._metrics import METRIC_NAMES, UNITS
 
 
 def _log(msg: str) -> None:
@@ -26,59 +28,25 @@ def _log(msg: str) -> None:
 
 
 def cmd_simulate(args) -> int:
-    cfg = _config.load(args.config)
-    if args.params:
-        cfg = _config.with_params(cfg, args.params, args.point)
-    elif args.point is not None:
-        raise _config.ConfigError("--point: needs --params FRONT.json")
-    n = _config.n_steps(cfg)
-    if args.plot and not cfg["sim"]["save_every"]:
-        m = _config.sample_steps(cfg)
-        cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
-    problem = _config.build(cfg)
-    n_plants = jax.tree.leaves(problem.plants)[0].shape[0]
-    n_offsets, n_real = problem.X0s.shape[0], 1 if problem.keys is None else problem.keys.shape[0]
-    n_rollouts = n_plants * n_offsets * n_real
-    _log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
-         f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}): compiling and running ...")  # fmt: skip
-    start = time.perf_counter()
-    if args.devices > 1:
-        from ._sharding import simulate_sharded
-
-        result = simulate_sharded(*problem.args, devices=args.devices, keys=problem.keys, **problem.options)
-    else:
-        result = simulate_batch(*problem.args, keys=problem.keys, **problem.options)
-    result = jax.block_until_ready(result)
-    _log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
-
-    metrics = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
-    rollouts = []
-    for r in range(n_rollouts):
-        rollouts.append({
-            "plant_index": r // (n_offsets * n_real),
-            "offset_index": r // n_real % n_offsets,
-            "realization_index": r % n_real,
-            "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
-            "diverged": bool(result.diverged[r]),
-            "diverged_at": float(result.diverged_at[r]),
-        })  # fmt: skip
+    r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
+                       keep_trace=bool(args.plot), log=_log)  # fmt: skip
+    cfg, rollouts, summary = r["config"], r["rollouts"], r["summary"]
     if args.plot:
         from ._plots import plot_rollouts
 
-        shown = min(n_rollouts, 12)
-        tr = result.trace
+        shown = min(len(rollouts), 12)
+        tr = r.pop("trace")
         labels = [f"plant {x['plant_index']}, offset {x['offset_index']}" for x in rollouts[:shown]]
         plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
                       title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
                             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
         _log(f"fosmc: wrote {args.plot}")
-    summary = batch_summary(result.metrics, result.diverged)
     if args.json:
-        print(json.dumps(jsonable({"rollouts": rollouts, "summary": summary, "config": cfg}), indent=1))
+        print(json.dumps(jsonable(r), indent=1))
     else:
         _print_rollouts(rollouts)
-        if n_rollouts > 1:
-            print(f"batch of {n_rollouts}: {summary['diverged_excluded']} diverged (excluded below)")
+        if len(rollouts) > 1:
+            print(f"batch of {len(rollouts)}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
                 print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
     return 0
@@ -98,49 +66,24 @@ def _print_rollouts(rollouts: list[dict]) -> None:
             print(f"{lead}  {name + ' (' + UNITS[name] + ')':<26}{vals}")
 
 
+def _fmt3(v) -> str:
+    return " ".join(f"{x:.4e}" for x in v)
+
+
 # ---------------------------------------------------------------------------- bounds
 
 
 def cmd_bounds(args) -> int:
-    cfg = _config.load(args.config)
     start = time.perf_counter()
-    arm = cfg["plant"]["kind"] == "arm"
-    if arm:
-        from ._arm import ARM_PARAMS, arm_box, envelope_samples
-
-        lo, hi = min(cfg["plant"]["payloads"]), max(cfg["plant"]["payloads"])
-        _log(f"fosmc bounds: sampling the arm's rows along the reference, payloads {lo:g}..{hi:g} kg ...")
-        with jax.enable_x64(True):
-            abox = arm_box(ARM_PARAMS, np.linspace(lo, hi, 11), envelope_samples())
-        a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
-    else:
-        box = _config.box_of(cfg)
-        a_rows, b_rows = cfg["model"]["A_rows"], cfg["model"]["B_rows"]
-    d = summarize(a_rows, b_rows, box, cfg["controller"]["C"], cfg["controller"]["poles"])
+    d = C.run_bounds(args.config, log=_log)
     elapsed = time.perf_counter() - start
-    out = {
-        "alpha": d.alpha.value,
-        "beta": d.beta.value,
-        "vertices_checked": {"A": d.alpha.vertices_checked, "B": d.beta.vertices_checked},
-        "K": d.K,
-        "closed_loop_poles": [[z.real, z.imag] for z in d.closed_loop_poles],
-        "CB": d.CB,
-        "gamma_min": d.gamma_min,
-        "gamma": cfg["controller"]["gamma"],
-        "paper_printed": {
-            "alpha": _paper.ALPHA_PRINTED,
-            "beta": _paper.BETA_PRINTED,
-            "gamma_min": _paper.GAMMA_MIN_PRINTED,
-        },
-    }
-    if arm:
-        out["box"] = dict(zip(_config.BOX_KEYS, box))
-        out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
     if args.json:
-        print(json.dumps(jsonable(out), indent=1))
+        print(json.dumps(jsonable(d), indent=1))
         return 0
+    gamma = d["gamma"]
     fmt = lambda v: "  ".join(f"{x:10.4f}" for x in np.ravel(v))
-    if arm:
+    if "box" in d:
+        a_rows, b_rows, box = d["nominal_A_rows"], d["nominal_B_rows"], [d["box"][k] for k in _config.BOX_KEYS]
         print("The arm's box (sampled along the reference x payloads) beside the paper's Appendix box")
         print("and nominal (29); rows 3, 6, 9 of A (columns 1-9) and B (columns 1-3):")
         print(f"  {'entry':<8}{'arm lower':>11}{'arm upper':>11}{'arm nominal':>12}   "
@@ -155,29 +98,28 @@ def cmd_bounds(args) -> int:
                     arm_cols = f"{lo_[i, j]:11.3f}{hi_[i, j]:11.3f}{nom[i, j]:12.3f}"
                     paper_cols = f"{plo[i, j]:11.3f}{phi[i, j]:12.3f}{pnom[i, j]:11.3f}"
                     print(f"  {m}({3 * i + 3},{j + 1})".ljust(10) + arm_cols + "   " + paper_cols)
-    print(f"alpha = max ||B_bar^-1 dA_r||_2 over {d.alpha.vertices_checked} box vertices = {d.alpha.value:.4f}"
+    checked = d["vertices_checked"]
+    print(f"alpha = max ||B_bar^-1 dA_r||_2 over {checked['A']} box vertices = {d['alpha']:.4f}"
           f"   (paper (31): {_paper.ALPHA_PRINTED})")  # fmt: skip
-    print(f"beta  = max ||B_bar^-1 dB_r||_2 over {d.beta.vertices_checked} box vertices = {d.beta.value:.4f}"
+    print(f"beta  = max ||B_bar^-1 dB_r||_2 over {checked['B']} box vertices = {d['beta']:.4f}"
           f"   (paper (31): {_paper.BETA_PRINTED})")  # fmt: skip
     print(f"({elapsed:.1f} s)\nK (3x9), placing the poles exactly (A + BK, (16)):")
-    for row in d.K:
+    for row in d["K"]:
         print("  " + "  ".join(f"{x:9.4f}" for x in row))
-    print(
-        "eig(A + BK): "
-        + ", ".join(f"{z.real:.4g}" + (f"{z.imag:+.3g}j" if z.imag else "") for z in d.closed_loop_poles)
-    )
+    poles = [complex(re, im) for re, im in d["closed_loop_poles"]]
+    print("eig(A + BK): " + ", ".join(f"{z.real:.4g}" + (f"{z.imag:+.3g}j" if z.imag else "") for z in poles))
     print("CB:")
-    for row in d.CB:
+    for row in d["CB"]:
         print("  " + fmt(row))
-    s = np.linalg.svd(d.CB, compute_uv=False)
+    s = np.linalg.svd(d["CB"], compute_uv=False)
     print(f"singular values of CB: {fmt(s)}")
     print("gamma lower bounds (24)-(26):")
-    print(f"  {'spectral (all 2-norms)':<34}{fmt(d.gamma_min['spectral'])}")
-    print(f"  {'paper (||CB|| = sigma_min(CB))':<34}{fmt(d.gamma_min['paper'])}")
+    print(f"  {'spectral (all 2-norms)':<34}{fmt(d['gamma_min']['spectral'])}")
+    print(f"  {'paper (||CB|| = sigma_min(CB))':<34}{fmt(d['gamma_min']['paper'])}")
     print(f"  {'printed in the paper, (35)':<34}{fmt(_paper.GAMMA_MIN_PRINTED)}")
-    print(f"  {'gamma in use':<34}{fmt(cfg['controller']['gamma'])}")
+    print(f"  {'gamma in use':<34}{fmt(gamma)}")
     for c in CONVENTIONS:
-        ok = np.all(np.asarray(cfg["controller"]["gamma"]) > d.gamma_min[c])
+        ok = np.all(np.asarray(gamma) > d["gamma_min"][c])
         print(f"  gamma {'meets' if ok else 'does NOT meet'} the {c} bounds")
     return 0
 
@@ -186,49 +128,11 @@ def cmd_bounds(args) -> int:
 
 
 def cmd_reproduce(args) -> int:
-    from pathlib import Path
-
-    from . import _reproduce as R
-
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --force to overwrite)")
-    out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    settings = R.Settings(t_final=args.t_final, dt=args.dt, integrator=args.integrator)
-    _log(f"fosmc reproduce: {args.plant} plant, {settings.integrator}, dt = {settings.dt} s, "
-         f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
-    cases = R.run_cases(args.plant, settings, log=_log)
-    rows = R.metric_rows(cases)
-    _log(f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s) ...")
-    short = R.metric_rows(R.run_cases(args.plant, R.SHORT, log=_log))
-    files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts(),
-             "metrics_short.csv": R.to_csv(short)}  # fmt: skip
-    for name, text in files.items():
-        write_text(out / name, text)
-    _log("fosmc reproduce: drawing figures ...")
-    figures = R.write_figures(cases, out, args.plant)
-    if args.plant == "arm":
-        _log(f"fosmc reproduce: the realistic loop ({R.REALISTIC_PRESET.name}) beside the ideal one ...")
-        realistic = R.run_realistic_cases(args.t_final, log=_log)
-        sweeps = R.tradeoff_sweeps(args.t_final, log=_log)
-        rows = R.metric_rows(realistic, R.METRIC_NAMES)
-        files.update({"realistic.md": R.to_markdown(rows, R.METRIC_NAMES), "tradeoff.md": R.sweep_markdown(sweeps)})
-        for name in ("realistic.md", "tradeoff.md"):
-            write_text(out / name, files[name])
-        figures += R.write_realistic_figures(cases + realistic, sweeps, out)
-    if args.report:
-        report = Path(args.report)
-        text = report.read_text()
-        text = R.replace_block(text, "metrics", files["metrics.md"])
-        text = R.replace_block(text, "design", files["design.md"])
-        for name in ("realistic", "tradeoff"):
-            if f"{name}.md" in files:
-                text = R.replace_block(text, name, files[f"{name}.md"])
-        write_text(report, text)
-        _log(f"fosmc reproduce: updated {report}")
-    print(files["metrics.md"])
-    _log(f"fosmc reproduce: wrote {', '.join(list(files) + figures)} to {out}/ "
+    r = C.run_reproduce(args.out, plant=args.plant, t_final=args.t_final, dt=args.dt, integrator=args.integrator,
+                        force=args.force, report=args.report, log=_log)  # fmt: skip
+    print(r["files"]["metrics.md"])
+    _log(f"fosmc reproduce: wrote {', '.join(list(r['files']) + r['figures'])} to {args.out}/ "
          f"in {time.perf_counter() - start:.1f} s (total wall time)")  # fmt: skip
     return 0
 
@@ -237,118 +141,26 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_tune(args) -> int:
-    from pathlib import Path
-
-    from . import _tuning as T
-    from ._plots import plot_tuning
-
-    cfg = _config.load(args.config)
-    tcfg = cfg["tune"]
-    if args.steps is not None:
-        if args.steps < 1:
-            raise _config.ConfigError(f"--steps: expected a positive integer, got {args.steps}")
-        tcfg["steps"] = args.steps
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
-        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
-    plain, problem, p0 = _config.tuning_problems(cfg)
-    out.mkdir(parents=True, exist_ok=True)
-    floor = None
-    if tcfg["keep_gamma_bound"]:
-        box = _config.box_of(cfg)
-        d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
-                      cfg["controller"]["poles"])  # fmt: skip
-        floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
-    n_rollouts = _rollouts(problem)
-    _log(f"tune: {n_rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) per "
-         f"training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
-    m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
-    initial = T.evaluate(plain, p0)
-    obj = T.objective_of(tcfg, m)
-    start_params = p0
-    resuming = args.resume and (out / "checkpoint.npz").exists()
-    if tcfg["global_candidates"] and floor is None and not resuming:
-        from ._front import global_stage
-
-        start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
-                                           log=_log)  # fmt: skip
-        _log(f"tune: global stage: the best of {tcfg['global_candidates']} candidates scores {score:.4f} "
-             "(the config's parameters score about 0 with the log scale)")  # fmt: skip
-    try:
-        u0 = T.to_internal(start_params, plain.base, floor)
-    except ValueError as e:
-        raise _config.ConfigError(str(e)) from None
-    settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
-                          tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
-    start = time.perf_counter()
-    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=out / "checkpoint.npz",
-                       resume=args.resume, log=_log)  # fmt: skip
-    final_params = T.to_physical(u, plain.base, floor)
-    final = T.evaluate(plain, final_params)
-    as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
-    result = {
-        "initial": {"params": as_dict(p0), **initial},
-        "start": {
-            "params": as_dict(start_params),
-            "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
-        },  # fmt: skip
-        "final": {"params": as_dict(final_params), **final},
-        "objective": obj._asdict(),
-        "history": {k: v for k, v in history.items() if k != "params"},
-        "config": cfg,
-    }
-    write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
-    params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), plain.base, floor))
-                      for p in history["params"]]  # fmt: skip
-    plot_tuning(history, params_history, out / "tuning.png")
-    _log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
+    r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force, log=_log)
     for name in ("rms_error", "chattering"):
-        print(f"{name:<12} initial {_fmt3(initial['metrics'][name])}   final {_fmt3(final['metrics'][name])}")
+        print(f"{name:<12} initial {_fmt3(r['initial']['metrics'][name])}   final {_fmt3(r['final']['metrics'][name])}")
     return 0
-
-
-def _fmt3(v) -> str:
-    return " ".join(f"{x:.4e}" for x in v)
-
-
-def _rollouts(problem) -> int:
-    """Rollouts in a problem's batch: plants x offsets x noise realizations."""
-    keys = 1 if problem.keys is None else problem.keys.shape[0]
-    return jax.tree.leaves(problem.plants)[0].shape[0] * problem.X0s.shape[0] * keys
 
 
 # ---------------------------------------------------------------------------- front
 
 
 def cmd_front(args) -> int:
-    from pathlib import Path
+    from ._front import AXES
 
-    from . import _front as F
-
-    cfg = _config.load(args.config)
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not (args.force or args.resume):
-        raise _config.ConfigError(f"--out: {out} exists and is not empty (use --resume or --force)")
-    for name, value in (("--points", args.points), ("--candidates", args.candidates), ("--steps", args.steps)):
-        if value is not None and value < (1 if name == "--points" else 0):
-            raise _config.ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
-                                      f"integer, got {value}")  # fmt: skip
-    if not args.budget > 0:
-        raise _config.ConfigError(f"--budget: expected a positive number of seconds, got {args.budget}")
-    for path in args.compare:
-        try:
-            json.loads(Path(path).read_text())
-        except (OSError, ValueError) as e:
-            raise _config.ConfigError(f"--compare: cannot read {path}: {e}") from None
-    out.mkdir(parents=True, exist_ok=True)
-    settings = F.Settings(points=args.points or 8, budget=args.budget, candidates=args.candidates or 0,
-                          steps=args.steps or 0)  # fmt: skip
     start = time.perf_counter()
-    result = F.study(cfg, settings, out=out, resume=args.resume, compare=tuple(args.compare), log=_log)
+    result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
+                         steps=args.steps, compare=tuple(args.compare), force=args.force, resume=args.resume,
+                         log=_log)  # fmt: skip
     _log(f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time)")
     for i, pt in enumerate(result["points"]):
-        e, c = (float(np.mean(pt["metrics"][k])) for k in F.AXES)
-        print(f"point {i:3d}  {F.AXES[0]} {e:.4e} rad  {F.AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
+        e, c = (float(np.mean(pt["metrics"][k])) for k in AXES)
+        print(f"point {i:3d}  {AXES[0]} {e:.4e} rad  {AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
     return 0
 
 
@@ -356,19 +168,8 @@ def cmd_front(args) -> int:
 
 
 def cmd_certify(args) -> int:
-    from . import _certify
-
-    cfg = _config.load(args.config)
-    switching = cfg["controller"]["switching"] if args.configured_switching else "sign"
-    opts = {"switching": switching, "seed": args.seed}
-    if args.vertices != "all":
-        if not args.vertices.isdigit() or int(args.vertices) < 1:
-            raise _config.ConfigError(f"--vertices: expected 'all' or a positive integer, got {args.vertices!r}")
-        opts["vertices"] = int(args.vertices)
-    _log(f"fosmc certify: {cfg['plant']['kind']} plant, {switching} switching ...")
-    start = time.perf_counter()
-    r = _certify.report(cfg, **opts)
-    _log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")
+    r = C.run_certify(args.config, vertices=args.vertices, configured_switching=args.configured_switching,
+                      seed=args.seed, log=_log)  # fmt: skip
     if args.json:
         print(json.dumps(jsonable(r), indent=1))
         return 0
