@@ -62,16 +62,22 @@ def hypervolume(e: np.ndarray, c: np.ndarray, ref: tuple[float, float]) -> float
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--config", required=True)
+    ap.add_argument("--config")
     ap.add_argument("--budget", type=float, default=300.0, help="wall time per method, s")
-    ap.add_argument("--name", required=True)
+    ap.add_argument("--name")
     ap.add_argument("--points", type=int, default=8)
     ap.add_argument("--methods", default="front,cma,random,grid")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     ap.add_argument("--check", action="store_true",
                     help="only the cost and surrogate check (check_costs), then exit")  # fmt: skip
+    ap.add_argument("--score", nargs="+", metavar="FRONT_JSON",
+                    help="only score these front.json files (score_fronts), then exit")  # fmt: skip
     args = ap.parse_args(argv)
+    if args.score:
+        return score_fronts(args.score)
+    if not args.config or not (args.name or args.check):
+        ap.error("--config and --name are required (but with --score; --check needs no --name)")
     cfg = _config.load(args.config)
     if args.check:
         return check_costs(cfg)
@@ -121,9 +127,7 @@ def main(argv=None) -> None:
         log(f"{label}: {len(e)} evaluations, {len(keep)} non-dominated, {out['methods'][label]['wall_s']:.0f} s")
 
     refs = front["references"]
-    ref_pts = np.array([[np.mean(v["metrics"]["rms_error"]), np.mean(v["metrics"]["chattering_hf"])]
-                        for v in refs.values()])  # fmt: skip
-    ref_point = (float(np.log10(ref_pts[:, 1].max()) + 0.5), float(np.log10(ref_pts[:, 0].max()) + 0.5))
+    ref_point = reference_point(refs)
     fe = np.array([np.mean(p["metrics"]["rms_error"]) for p in front["points"]])
     fc = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in front["points"]])
     summary = []
@@ -164,6 +168,31 @@ def main(argv=None) -> None:
     write_text(OUT / f"frontier_{args.name}.md", "\n".join(lines) + "\n")
     plot(out, OUT / f"frontier_{args.name}.png", args.config)
     print("\n".join(lines))
+
+
+def reference_point(refs: dict) -> tuple[float, float]:
+    """The hypervolume's reference point (log10 chattering_hf, log10 rms_error): half a decade
+    beyond the worst of the references (Table 1's sets, SGN)."""
+    pts = np.array(
+        [[np.mean(v["metrics"]["rms_error"]), np.mean(v["metrics"]["chattering_hf"])] for v in refs.values()]
+    )
+    return float(np.log10(pts[:, 1].max()) + 0.5), float(np.log10(pts[:, 0].max()) + 0.5)
+
+
+def score_fronts(paths: list[str]) -> None:
+    """Print, for each ``fosmc front`` result, its size, hypervolume (at the reference point of
+    its own references), best rms_error, and the lowest chattering_hf at rms_error <= 0.1,
+    0.01 and 0.001 rad."""
+    for path in paths:
+        front = json.loads(pathlib.Path(path).read_text())
+        e, c = axes_of(
+            {k: np.array([p["metrics"][k] for p in front["points"]]) for k in ("rms_error", "chattering_hf")}
+        )
+        low = ["-" if not np.any(e <= t) else f"{c[e <= t].min():.3g}" for t in (0.1, 0.01, 0.001)]
+        print(f"{path}: {front['stages'].get('evaluations', front['stages'].get('candidates'))} evaluations, "
+              f"{len(e)} points, hypervolume {hypervolume(e, c, reference_point(front['references'])):.2f}, best "
+              f"rms_error {e.min():.2g} rad at {c[e.argmin()]:.3g} V, lowest chattering_hf at rms_error <= 0.1 / "
+              f"0.01 / 0.001 rad: {' / '.join(low)} V")  # fmt: skip
 
 
 def check_costs(cfg: dict, n_random: int = 64) -> None:
