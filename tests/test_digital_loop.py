@@ -337,9 +337,9 @@ def test_readme_digital_loop_example_runs():
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = text[text.index("## Python API") : text.index("## The arm")]
+    section = text[text.index("## Python API") : text.index("### The commands from Python")]
     blocks = re.findall(r"```python\n(.*?)```", section, re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 2 and "DigitalLoop" in blocks[1]
     scope: dict = {}
     for code in blocks:
         exec(compile(code, "README.md", "exec"), scope)
