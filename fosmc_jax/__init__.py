@@ -39,7 +39,7 @@ from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._loop import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
 from ._metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._reference import Cycloid, Sinusoid, desired_state, feedforward
-from ._sharding import simulate_sharded, use_host_devices
+from ._sharding import simulate_sharded, use_all_cores, use_host_devices
 from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
 from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 
@@ -65,6 +65,7 @@ __all__ = [
     "summarize",
     "third_order_rows",
     "tuning",
+    "use_all_cores",
     "use_host_devices",
     "CHATTERING_CUTOFF",
     "SMC",

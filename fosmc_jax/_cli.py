@@ -207,7 +207,12 @@ def parser() -> argparse.ArgumentParser:
         help="use delta, gamma, poles from a `fosmc tune` result.json or a `fosmc front` front.json",
     )
     s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
-    s.add_argument("--devices", type=int, default=1, help="split the batch over N devices (on CPU: N host devices)")
+    s.add_argument(
+        "--devices",
+        type=int,
+        help="split the batch over N devices (default: every core, or the count set in "
+        "JAX_NUM_CPU_DEVICES / XLA_FLAGS; 1 turns sharding off)",
+    )
     s.set_defaults(func=cmd_simulate)
     b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
     b.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -225,10 +230,12 @@ def parser() -> argparse.ArgumentParser:
     f = sub.add_parser("front", help="Pareto front of tracking error against chattering")
     f.add_argument("--config", help="TOML config (default: the paper's setup)")
     f.add_argument("--out", default="out/front", help="output folder (default: out/front)")
-    f.add_argument("--points", type=int, help="refinement starts (default 8)")
+    f.add_argument("--points", type=int, help="parents per local round (default 8)")
     f.add_argument("--budget", type=float, default=300.0, help="wall time, s (default 300)")
-    f.add_argument("--candidates", type=int, help="global stage size (default: from the budget)")
-    f.add_argument("--steps", type=int, help="refinement steps (default: from the budget)")
+    f.add_argument(
+        "--candidates", type=int, help="global stage size: start, log grid, per-joint draws (default: from the budget)"
+    )
+    f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
     f.add_argument(
         "--compare",
         action="append",
@@ -263,17 +270,20 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
-    if getattr(args, "devices", 1) > 1:
-        from ._sharding import use_host_devices
+    if hasattr(args, "devices"):  # before the first JAX operation
+        from ._sharding import use_all_cores, use_host_devices
 
-        try:
-            use_host_devices(args.devices)  # before the first JAX operation
-        except RuntimeError as e:
-            print(f"fosmc: error: --devices: {e}", file=sys.stderr)
+        if args.devices is None:
+            args.devices = use_all_cores()
+        elif args.devices < 1:
+            print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
             return 2
-    elif getattr(args, "devices", 1) < 1:
-        print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
-        return 2
+        elif args.devices > 1:
+            try:
+                use_host_devices(args.devices)
+            except RuntimeError as e:
+                print(f"fosmc: error: --devices: {e}", file=sys.stderr)
+                return 2
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     try:
         return args.func(args)

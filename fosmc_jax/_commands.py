@@ -100,9 +100,10 @@ def run_simulate(
 
     ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose delta, gamma
     and poles replace the config's (``point``: the front's point). ``devices`` > 1 splits the
-    batch over that many devices (``simulate_sharded``; on CPU call ``use_host_devices``
-    first). ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000
-    samples when it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
+    batch over that many devices (``simulate_sharded``; on CPU call ``use_all_cores`` or
+    ``use_host_devices`` before the first JAX operation; the command line does).
+    ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
+    it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
 
     Returns ``{"rollouts": [{"plant_index", "offset_index", "realization_index", "metrics":
     {name: (3,)}, "diverged", "diverged_at"}, ...], "summary": batch_summary, "config":
@@ -122,7 +123,8 @@ def run_simulate(
     n_offsets, n_real = problem.X0s.shape[0], 1 if problem.keys is None else problem.keys.shape[0]
     n_rollouts = n_plants * n_offsets * n_real
     log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
-        f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}): compiling and running ...")  # fmt: skip
+        f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s): "
+        "compiling and running ...")  # fmt: skip
     start = time.perf_counter()
     if devices > 1:
         from ._sharding import simulate_sharded
@@ -133,7 +135,10 @@ def run_simulate(
     result = jax.block_until_ready(result)
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
 
+    # one transfer per array, then plain indexing (indexing a device array per rollout cost
+    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13)
     metrics = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+    diverged, diverged_at = np.asarray(result.diverged), np.asarray(result.diverged_at)
     rollouts = []
     for r in range(n_rollouts):
         rollouts.append({
@@ -141,8 +146,8 @@ def run_simulate(
             "offset_index": r // n_real % n_offsets,
             "realization_index": r % n_real,
             "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
-            "diverged": bool(result.diverged[r]),
-            "diverged_at": float(result.diverged_at[r]),
+            "diverged": bool(diverged[r]),
+            "diverged_at": float(diverged_at[r]),
         })  # fmt: skip
     out = {"rollouts": rollouts, "summary": batch_summary(result.metrics, result.diverged), "config": cfg}
     if keep_trace:

@@ -122,3 +122,29 @@ def test_resolve_is_idempotent_and_api_raises_valueerror():
 def test_devices_must_be_positive(capsys):
     assert main(["simulate", "--devices", "0"]) == 2
     assert "--devices" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # two fresh processes (~10 s)
+def test_simulate_shards_over_every_core_by_default_and_equals_one_device(tmp_path):
+    """In a fresh process `fosmc simulate` shows one device per core and splits the batch
+    over them; the rollouts equal `--devices 1` to rounding (5 plants: padded when split)."""
+    import os
+    import subprocess
+    import sys
+
+    path = tmp_path / "c.toml"
+    path.write_text(SHORT + '[plant]\nuncertainty = "sample"\nsamples = 5\n')
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
+
+    def simulate(*extra):
+        cmd = [sys.executable, "-m", "fosmc_jax._cli", "simulate", "--config", str(path), "--json", *extra]
+        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout), out.stderr
+
+    (default, log), (single, log1) = simulate(), simulate("--devices", "1")
+    assert f"on {len(os.sched_getaffinity(0))} device(s)" in log and "on 1 device(s)" in log1
+    assert len(default["rollouts"]) == len(single["rollouts"]) == 5
+    for a, b in zip(default["rollouts"], single["rollouts"], strict=True):
+        for name in METRIC_NAMES:
+            np.testing.assert_allclose(a["metrics"][name], b["metrics"][name], rtol=1e-12, atol=1e-300)

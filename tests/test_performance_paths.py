@@ -84,6 +84,7 @@ def test_fast_batch_float32():
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, np.float32(1e-3), **opts), rtol=1e-4)
 
 
+@pytest.mark.slow  # reverse mode through both paths with RK4 (~35 s of compilation on 2 cores)
 def test_fast_batch_gradient_with_checkpointing():
     plants, ctrl, ref, X0s = setup(P=2, O=2)
 
@@ -96,6 +97,7 @@ def test_fast_batch_gradient_with_checkpointing():
     np.testing.assert_allclose(jax.grad(loss)(ctrl.delta, fj.simulate_batch, 16), g, rtol=1e-9)
 
 
+@pytest.mark.slow  # five sharded programs in a subprocess (~35 s); the default tier shards once below
 def test_sharded_equals_single_device():
     code = textwrap.dedent(
         """
@@ -126,8 +128,10 @@ def test_sharded_equals_single_device():
 @pytest.mark.parametrize(
     "env, expected",
     # the host's cores by default; a count the user set wins (1 turns sharding off)
-    [({}, len(os.sched_getaffinity(0))), ({"JAX_NUM_CPU_DEVICES": "1"}, 1),
-     ({"XLA_FLAGS": "--xla_force_host_platform_device_count=3"}, 3)],
+    # (each a subprocess compiling afresh, ~8 s: the user's counts run in the slow tier)
+    [({}, len(os.sched_getaffinity(0))),
+     pytest.param({"JAX_NUM_CPU_DEVICES": "1"}, 1, marks=pytest.mark.slow),
+     pytest.param({"XLA_FLAGS": "--xla_force_host_platform_device_count=3"}, 3, marks=pytest.mark.slow)],
 )  # fmt: skip
 def test_use_all_cores_default_and_user_count(env, expected):
     code = textwrap.dedent(
