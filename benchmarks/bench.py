@@ -307,11 +307,7 @@ def cli(small: int, large: int, steps: int, devices: int) -> dict:
         for n in (small, large):
             cfg = Path(tmp) / f"cli{n}.toml"
             cfg.write_text(CLI_CONFIG.format(samples=n, t_final=steps * DT, dt=DT))
-            cmd = (
-                exe
-                + ["simulate", "--config", str(cfg), "--json"]
-                + (["--devices", str(devices)] if devices > 1 else [])
-            )
+            cmd = exe + ["simulate", "--config", str(cfg), "--json", "--devices", str(devices)]
             env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
             times = []
             for _ in range(2):

@@ -57,6 +57,7 @@ class Settings(NamedTuple):
     seed: int = 0
     global_share: float = 0.3  # share of the search time spent on the global stage (candidates = 0)
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
+    corner_share: float = 0.0  # share of the per-joint draws' coordinates put at a box end
     sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
     checkpoint_every: int = 5  # local rounds between checkpoints
 
@@ -95,13 +96,20 @@ def grid_factors(g: int) -> np.ndarray:
     return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), 3, axis=1)
 
 
-def global_factors(n: int, seed: int, grid_share: float = 0.5) -> np.ndarray:
+def global_factors(n: int, seed: int, grid_share: float = 0.5, corner_share: float = 0.0) -> np.ndarray:
     """``n`` log factors (n, 9): 0 (the start itself), then :func:`grid_factors` with g =
-    floor((grid_share n)^(1/3)) (no grid below n = 16), then per-joint log-uniform draws."""
+    floor((grid_share n)^(1/3)) (no grid below n = 16), then per-joint log-uniform draws, each
+    coordinate of which is moved to one end of its range (either, at random) with probability
+    ``corner_share``: per-joint structure at the box's faces, which the grid of common factors
+    cannot reach."""
     g = grid_size(n, grid_share)
     lo, hi = bounds()
     grid = grid_factors(g) if g else np.zeros((0, DIM))
-    draws = np.random.default_rng(seed).uniform(lo, hi, size=(n - 1 - len(grid), DIM))
+    rng = np.random.default_rng(seed)
+    draws = rng.uniform(lo, hi, size=(n - 1 - len(grid), DIM))
+    if corner_share > 0:
+        ends = np.where(rng.random(draws.shape) < 0.5, lo, hi)
+        draws = np.where(rng.random(draws.shape) < corner_share, ends, draws)
     return np.concatenate([np.zeros((1, DIM)), grid, draws])
 
 
@@ -277,7 +285,7 @@ def run(
         z, m = leaves[0], {k: v for k, v in zip(keys, leaves[1:])}
         r0 = state["round"]
     else:
-        z = global_factors(n_cand, settings.seed, settings.grid_share)
+        z = global_factors(n_cand, settings.seed, settings.grid_share, settings.corner_share)
         m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
         r0 = 0
 
