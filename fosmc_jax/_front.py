@@ -1,12 +1,14 @@
 """Pareto fronts of tracking error against chattering (``fosmc front``).
 
-A front is found in two stages, within a wall-time budget, over log10 factors z (9,) that
-scale the start's delta, gamma and poles per joint (:func:`from_factors`) within the box
-:data:`RANGES` (delta x 10^[-3, 1.5], poles x 10^[0, 2], gamma x 10^[-0.5, 0.5]):
+A front is found in two stages, within a wall-time budget, over log10 factors z that scale
+the start's parameters per joint (:func:`from_factors`) within the box of the controller
+kind's :class:`fosmc_jax._tuning.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
+gamma x 10^[-0.5, 0.5], poles x 10^[0, 2] (:data:`RANGES`); for SMC z (6,) scales k x
+10^[-2, 2], phi x 10^[-3, 2]; for super-twisting z (6,) scales k1 x 10^[-2, 2], k2 x 10^[-2, 3].
 
-1. global: the start, a log grid of factors common to the joints (g per axis, g^3 points:
-   the good controllers lie near this 3-D family), and per-joint log-uniform draws for the
-   rest (:func:`global_factors`);
+1. global: the start, a log grid of factors common to the joints (g per axis, g^k points for
+   k parameters: the good controllers lie near this k-D family), and per-joint log-uniform
+   draws for the rest (:func:`global_factors`);
 2. local: rounds of one chunk each; a round draws ``points`` parents at random from the
    non-dominated set of everything evaluated so far and perturbs a random subset of their
    factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
@@ -42,10 +44,11 @@ from ._metrics import METRIC_NAMES
 
 #: The two metrics a front is drawn in (means over rollouts and joints).
 AXES = ("rms_error", "chattering_hf")
-#: log10 ranges of the scale factors, per joint.
-RANGES = {"delta": (-3.0, 1.5), "poles": (0.0, 2.0), "gamma": (-0.5, 0.5)}
-#: Number of log factors: delta, gamma, poles, one per joint each.
-DIM = 9
+_FOSMC = T.SPACES["fosmc"]
+#: log10 ranges of the FOSMC's scale factors, per joint (a kind's: its Space's params' boxes).
+RANGES = {p.name: p.box for p in _FOSMC.params}
+#: Number of the FOSMC's log factors: delta, gamma, poles, one per joint each (a kind's: its Space's dim).
+DIM = _FOSMC.dim
 
 
 class Settings(NamedTuple):
@@ -72,69 +75,73 @@ def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return keep
 
 
-def bounds() -> tuple[np.ndarray, np.ndarray]:
-    """The search box of the log factors z (9,): delta, gamma, poles, three joints each."""
-    lo = np.repeat([RANGES[k][0] for k in T.PARAM_NAMES], 3)
-    hi = np.repeat([RANGES[k][1] for k in T.PARAM_NAMES], 3)
-    return lo, hi
+def bounds(space: T.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
+    """The search box of the log factors z (space.dim,): each parameter's range, three joints
+    each (the FOSMC's: delta, gamma, poles)."""
+    return space.bounds()
 
 
-def from_factors(p0: T.Tunable, z: np.ndarray) -> T.Tunable:
-    """Parameter sets (n,) from log10 factors z (n, 9): delta, gamma, poles of joint j scaled
-    by 10^z[:, j], 10^z[:, 3 + j], 10^z[:, 6 + j]."""
+def from_factors(p0: T.Params, z: np.ndarray) -> T.Params:
+    """Parameter sets (n,) of p0's kind from log10 factors z (n, 3 k): parameter i of joint j
+    scaled by 10^z[:, 3 i + j] (the FOSMC's delta, gamma, poles: i = 0, 1, 2)."""
     z = np.atleast_2d(z)
     scale = lambda x, f: jnp.asarray(np.asarray(x)[None] * (10.0 ** f).reshape(f.shape + (1,) * (np.ndim(x) - 1)),
                                      jnp.asarray(x).dtype)  # fmt: skip
-    return T.Tunable(scale(p0.delta, z[:, 0:3]), scale(p0.gamma, z[:, 3:6]), scale(p0.poles, z[:, 6:9]))
+    return type(p0)(*(scale(x, z[:, 3 * i : 3 * i + 3]) for i, x in enumerate(p0)))
 
 
-def grid_factors(g: int) -> np.ndarray:
-    """The g^3 log factors (g^3, 9) of a grid of common factors (the same for every joint):
-    g values per parameter, evenly spaced over its range, ends included."""
-    lo, hi = bounds()
-    axes = [np.linspace(lo[3 * k], hi[3 * k], g) for k in range(3)]
-    return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3), 3, axis=1)
+def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
+    """The g^k log factors (g^k, 3 k) of a grid of common factors (the same for every joint)
+    over the k parameters of ``space``: g values per parameter, evenly spaced over its range,
+    ends included."""
+    k = len(space.params)
+    axes = [np.linspace(*p.box, g) for p in space.params]
+    return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
 
 
-def global_factors(n: int, seed: int, grid_share: float = 0.5, corner_share: float = 0.0) -> np.ndarray:
-    """``n`` log factors (n, 9): 0 (the start itself), then :func:`grid_factors` with g =
-    floor((grid_share n)^(1/3)) (no grid below n = 16), then per-joint log-uniform draws, each
-    coordinate of which is moved to one end of its range (either, at random) with probability
-    ``corner_share``: per-joint structure at the box's faces, which the grid of common factors
-    cannot reach."""
-    g = grid_size(n, grid_share)
-    lo, hi = bounds()
-    grid = grid_factors(g) if g else np.zeros((0, DIM))
+def global_factors(n: int, seed: int, grid_share: float = 0.5, corner_share: float = 0.0,
+                   space: T.Space = _FOSMC) -> np.ndarray:  # fmt: skip
+    """``n`` log factors (n, space.dim): 0 (the start itself), then :func:`grid_factors` with
+    g = floor((grid_share n)^(1/k)) for k parameters (no grid below n = 16), then per-joint
+    log-uniform draws, each coordinate of which is moved to one end of its range (either, at
+    random) with probability ``corner_share``: per-joint structure at the box's faces, which
+    the grid of common factors cannot reach."""
+    g = grid_size(n, grid_share, len(space.params))
+    lo, hi = space.bounds()
+    grid = grid_factors(g, space) if g else np.zeros((0, space.dim))
     rng = np.random.default_rng(seed)
-    draws = rng.uniform(lo, hi, size=(n - 1 - len(grid), DIM))
+    draws = rng.uniform(lo, hi, size=(n - 1 - len(grid), space.dim))
     if corner_share > 0:
         ends = np.where(rng.random(draws.shape) < 0.5, lo, hi)
         draws = np.where(rng.random(draws.shape) < corner_share, ends, draws)
-    return np.concatenate([np.zeros((1, DIM)), grid, draws])
+    return np.concatenate([np.zeros((1, space.dim)), grid, draws])
 
 
-def grid_size(n: int, grid_share: float) -> int:
-    """Values per axis of the grid in :func:`global_factors` of size n (0 below n = 16)."""
-    g = int((grid_share * n) ** (1 / 3) + 1e-9) if n >= 16 else 0
-    return g if 1 + g**3 <= n else g - 1
+def grid_size(n: int, grid_share: float, k: int = 3) -> int:
+    """Values per axis of the grid over k parameters in :func:`global_factors` of size n (0
+    below n = 16)."""
+    g = int((grid_share * n) ** (1 / k) + 1e-9) if n >= 16 else 0
+    return g if 1 + g**k <= n else g - 1
 
 
-def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int) -> np.ndarray:
-    """``n`` children (n, 9) of the front of the evaluated factors z with metrics m: up to
-    ``points`` parents drawn without replacement from its non-dominated set, children in turn
-    per parent, each its parent + a step sigma (hi - lo) N(0, 1), clipped to the box: for every
-    other child per joint on every coordinate; for the others common to the joints, on a random
-    subset of delta, gamma, poles (each with probability 1/2, one at least), the same step for
-    the three joints: these keep children in the 3-D family of common factors and on the faces
-    of the box, where the grid of the global stage finds the ends of the front."""
+def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int,
+                  space: T.Space = _FOSMC) -> np.ndarray:  # fmt: skip
+    """``n`` children (n, space.dim) of the front of the evaluated factors z with metrics m:
+    up to ``points`` parents drawn without replacement from its non-dominated set, children in
+    turn per parent, each its parent + a step sigma (hi - lo) N(0, 1), clipped to the box: for
+    every other child per joint on every coordinate; for the others common to the joints, on
+    a random subset of the parameters (each with probability 1/2, one at least), the same step
+    for the three joints: these keep children in the family of common factors and on the
+    faces of the box, where the grid of the global stage finds the ends of the front."""
     e, c = _axes(m)
     idx = np.flatnonzero(nondominated(e, c))
     rng = np.random.default_rng(seed)
     parents = rng.choice(idx, size=min(points, len(idx)), replace=False)
-    lo, hi = bounds()
+    lo, hi = space.bounds()
+    k = len(space.params)
     zp = z[parents[np.arange(n) % len(parents)]]
-    joint = rng.standard_normal((n, DIM))
-    common = np.repeat(rng.standard_normal((n, 3)) * _subset(rng, n, 3, 1 / 2), 3, axis=1)
+    joint = rng.standard_normal((n, space.dim))
+    common = np.repeat(rng.standard_normal((n, k)) * _subset(rng, n, k, 1 / 2), 3, axis=1)
     step = np.where((np.arange(n) % 2 == 0)[:, None], joint, common)
     return np.clip(zp + sigma * (hi - lo) * step, lo, hi)
 
@@ -146,13 +153,13 @@ def _subset(rng: np.random.Generator, n: int, k: int, p: float) -> np.ndarray:
     return mask
 
 
-def sample_candidates(p0: T.Tunable, n: int, seed: int) -> T.Tunable:
-    """``n`` parameter sets around p0 (:func:`global_factors` with a grid of about half).
-    Leading axis n."""
-    return from_factors(p0, global_factors(n, seed, 0.5))
+def sample_candidates(p0: T.Params, n: int, seed: int) -> T.Params:
+    """``n`` parameter sets of p0's kind around p0 (:func:`global_factors` with a grid of about
+    half). Leading axis n."""
+    return from_factors(p0, global_factors(n, seed, 0.5, space=T.space_of(p0)))
 
 
-def evaluate_many(problem: T.Problem, params: T.Tunable, chunk: int, log: Callable[[str], None] = print,
+def evaluate_many(problem: T.Problem, params: T.Params, chunk: int, log: Callable[[str], None] = print,
                   what: str = "evaluating") -> dict[str, np.ndarray]:  # fmt: skip
     """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
     {metric: (n, 3)} and ``diverged`` (n,) counts, in vmapped chunks of ``chunk``."""
@@ -169,14 +176,15 @@ def evaluate_many(problem: T.Problem, params: T.Tunable, chunk: int, log: Callab
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Tunable, n: int, *, free=T.PARAM_NAMES, seed: int = 0,
-                 chunk: int = 16, log: Callable[[str], None] = print) -> tuple[T.Tunable, float]:  # fmt: skip
+def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
+                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print
+                 ) -> tuple[T.Params, float]:  # fmt: skip
     """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
-    (frozen parameters kept at p0; p0 itself among them) scored by ``obj`` on their batch-mean
-    metrics; returns the best and its score."""
+    (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
+    by ``obj`` on their batch-mean metrics; returns the best and its score."""
     cands = sample_candidates(p0, n, seed)
-    cands = T.Tunable(*(getattr(cands, k) if k in free else jnp.broadcast_to(getattr(p0, k), getattr(cands, k).shape)
-                        for k in T.PARAM_NAMES))  # fmt: skip
+    free = p0._fields if free is None else free
+    cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
     m = evaluate_many(problem, cands, chunk, log=log, what="global stage")
     means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
     J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
@@ -244,7 +252,7 @@ def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunk
 def run(
     train: T.Problem,
     plain: T.Problem,
-    p0: T.Tunable,
+    p0: T.Params,
     settings: Settings,
     *,
     checkpoint: Path | None = None,
@@ -255,8 +263,10 @@ def run(
     """Find the front (see module docstring). ``reserve`` = (compilations, chunks) of time
     left out of the budget for what follows (the held-out evaluation). Returns {"points":
     [...], "stages": {...}} with every point's parameters, plain mean metrics and diverged
-    count; non-dominated only, sorted by chattering."""
+    count; non-dominated only, sorted by chattering. The search space is that of ``p0``'s
+    controller kind (:func:`fosmc_jax._tuning.space_of`)."""
     t0 = time.perf_counter()
+    space = T.space_of(p0)
     state: dict[str, Any] = {}
     if resume and checkpoint is not None and checkpoint.exists():
         state, leaves = T._load(checkpoint)
@@ -264,7 +274,7 @@ def run(
     surrogate = not _same_simulation(train, plain)
     n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
     if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
-        probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1))
+        probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
         t = time.perf_counter()
         evaluate_many(train, probe, settings.chunk, log=lambda _: None)
         compile_s = time.perf_counter() - t
@@ -285,7 +295,7 @@ def run(
         z, m = leaves[0], {k: v for k, v in zip(keys, leaves[1:])}
         r0 = state["round"]
     else:
-        z = global_factors(n_cand, settings.seed, settings.grid_share, settings.corner_share)
+        z = global_factors(n_cand, settings.seed, settings.grid_share, settings.corner_share, space)
         m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
         r0 = 0
 
@@ -301,7 +311,7 @@ def run(
     s0, s1 = settings.sigma
     for r in range(r0, rounds):
         sigma = s0 * (s1 / s0) ** (r / max(1, rounds - 1))
-        zr = local_factors(z, m, settings.chunk, settings.points, sigma, settings.seed * 1_000_003 + r)
+        zr = local_factors(z, m, settings.chunk, settings.points, sigma, settings.seed * 1_000_003 + r, space)
         mr = evaluate_many(train, from_factors(p0, zr), settings.chunk, log=lambda _: None)
         z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
         log(f"front: local round {r + 1}/{rounds}  sigma {sigma:.3f}  {int(nondominated(*_axes(m)).sum())} "
@@ -318,8 +328,8 @@ def run(
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     params = from_factors(p0, z[idx[keep]])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), m, j) for i, j in enumerate(keep)]
-    stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share), "local_rounds": rounds,
-              "evaluations": len(z), "plain_reevaluations": len(idx) if surrogate else 0,
+    stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
+              "local_rounds": rounds, "evaluations": len(z), "plain_reevaluations": len(idx) if surrogate else 0,
               "wall_time_s": time.perf_counter() - t0, "from_local": int(np.sum(idx[keep] >= n_cand))}  # fmt: skip
     return {"axes": list(AXES), "points": points, "stages": stages}
 
@@ -330,7 +340,7 @@ def _same_simulation(a: T.Problem, b: T.Problem) -> bool:
     return float(a.dt) == float(b.dt) and opts(a) == opts(b) and a.make is b.make and a.keys is b.keys
 
 
-def point_of(p: T.Tunable, metrics: dict, i: int) -> dict[str, Any]:
+def point_of(p: T.Params, metrics: dict, i: int) -> dict[str, Any]:
     """A front point as JSON: parameters by name, per-joint mean metrics, diverged count."""
     return {"params": {k: np.asarray(v).tolist() for k, v in p._asdict().items()},
             "metrics": {name: np.asarray(metrics[name][i]).tolist() for name in METRIC_NAMES},
@@ -356,12 +366,13 @@ def held_out_config(cfg: dict) -> dict:
 
 
 def references(cfg: dict, chunk: int) -> dict[str, dict]:
-    """Plain mean metrics of Table 1's three sets (the config's switching) and SGN, with the
-    config's gains and poles, on the config's batch."""
+    """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
+    sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
+    batch."""
     out = {}
     for label, switching, sets in (("Table 1", cfg["controller"]["switching"], (0, 1, 2)), ("SGN", "sign", (0,))):
         c = copy.deepcopy(cfg)
-        c["controller"]["switching"] = switching
+        c["controller"].update(switching=switching, kind="fosmc")
         plain, _, p0 = _config.tuning_problems(c)
         ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
                        jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
@@ -374,18 +385,19 @@ def references(cfg: dict, chunk: int) -> dict[str, dict]:
 
 def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: bool = False,
           compare: tuple = (), log: Callable[[str], None] = print) -> dict[str, Any]:  # fmt: skip
-    """``fosmc front``: the front of a resolved config (training and plain problems as
-    ``fosmc tune`` builds them), each point also evaluated on :func:`held_out_config`'s batch,
-    Table 1's sets and SGN beside it. Writes ``front.json`` and ``front.png`` (and a
-    checkpoint) to ``out`` when given; returns what ``front.json`` holds."""
+    """``fosmc front``: the front of a resolved config's controller kind (its own parameters;
+    training and plain problems as ``fosmc tune`` builds them), each point also evaluated on
+    :func:`held_out_config`'s batch, the FOSMC's Table 1 sets and SGN beside it. Writes
+    ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when given; returns what
+    ``front.json`` holds."""
     t0 = time.perf_counter()
     plain, train, p0 = _config.tuning_problems(cfg)
     refs = references(cfg, settings.chunk)
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
     left = settings._replace(budget=settings.budget - (time.perf_counter() - t0))
     result = run(train, plain, p0, left, checkpoint=checkpoint, resume=resume, reserve=(1, 16), log=log)
-    params = T.Tunable(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), p0.delta.dtype)
-                         for k in T.PARAM_NAMES))  # fmt: skip
+    params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
+                        for k, x in zip(p0._fields, p0)))  # fmt: skip
     held_plain = _config.tuning_problems(held_out_config(cfg))[0]
     held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
     for i, pt in enumerate(result["points"]):

@@ -1,8 +1,15 @@
-"""Gradient-based tuning of delta, gamma and the poles (optax), robust over a batch of rollouts.
+"""Gradient-based tuning of a controller kind's parameters (optax), robust over a batch of rollouts.
 
-Parameters live in unconstrained coordinates: delta = exp(u_delta), poles = -exp(u_poles)
-(real, negative, repeats allowed), gamma = exp(u_gamma), or gamma = g_min(poles) + exp(u_gamma)
-to keep gamma above the bounds (24)-(26), which move with K and hence with the poles.
+Each ``[controller] kind`` has its own tunable parameter set, a :class:`Space` in
+:data:`SPACES`: the FOSMC's delta, gamma and poles (:class:`Tunable`), conventional SMC's k and
+phi (:class:`SMCGains`), super-twisting's k1 and k2 (:class:`STGains`). Each parameter holds
+one row per joint and names its config key, its sign and the log10 box of the scale factors
+that ``fosmc front`` searches (:mod:`fosmc_jax._front`).
+
+Parameters live in unconstrained coordinates: x = exp(u) for a positive parameter, x =
+-exp(u) for a negative one (the poles: real, negative, repeats allowed); the FOSMC's gamma can
+instead be gamma = g_min(poles) + exp(u_gamma) to keep it above the bounds (24)-(26), which
+move with K and hence with the poles.
 
 Objective (unit-free). Per rollout i, with the plain metrics of :mod:`fosmc_jax._metrics`,
 E_i = mean_j of the ``error_metric`` (``rms_error`` or ``max_abs_error``) and C_i = mean_j of
@@ -27,6 +34,7 @@ reported result is re-evaluated with the plain simulator (:func:`evaluate`).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -43,17 +51,92 @@ from ._design import gain_from_poles, gamma_bounds
 from ._io import atomic_write
 from ._simulator import simulate_batch
 
+#: The FOSMC's tunable parameters (a kind's are ``SPACES[kind].names``).
 PARAM_NAMES = ("delta", "gamma", "poles")
 WORST_CASE = ("none", "max", "cvar")
 MODES = ("auto", "reverse", "forward")
 
 
 class Tunable(NamedTuple):
-    """Physical tunable parameters: ``delta`` (3,), ``gamma`` (3,), ``poles`` (3, 3) in 1/s."""
+    """The FOSMC's tunable parameters: ``delta`` (3,), ``gamma`` (3,), ``poles`` (3, 3) in 1/s."""
 
     delta: Any
     gamma: Any
     poles: Any
+
+
+class SMCGains(NamedTuple):
+    """Conventional SMC's tunable parameters (:class:`fosmc_jax.SMC`): switching gains ``k``
+    (3,) and boundary-layer widths ``phi`` (3,)."""
+
+    k: Any
+    phi: Any
+
+
+class STGains(NamedTuple):
+    """Super-twisting's tunable parameters (:class:`fosmc_jax.SuperTwisting`): ``k1`` (3,),
+    ``k2`` (3,)."""
+
+    k1: Any
+    k2: Any
+
+
+#: A kind's parameter set (physical or unconstrained coordinates; with leading batch axes in fronts).
+Params = Tunable | SMCGains | STGains
+
+
+class Param(NamedTuple):
+    """One tunable parameter: an array with one row per joint, scaled by one factor per joint."""
+
+    name: str  # its field in the kind's parameters and law, and its name in result files
+    key: str  # the [controller] config key it comes from and goes back to
+    sign: int  # +1: positive, x = exp(u); -1: negative, x = -exp(u)
+    box: tuple[float, float]  # log10 range of the front's scale factors around the config's value
+
+
+class Space(NamedTuple):
+    """A controller kind's tunable parameter set: the NamedTuple ``values`` holding them (its
+    fields are the ``params``' names, in order) and the :class:`Param` of each."""
+
+    kind: str
+    values: type
+    params: tuple[Param, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    @property
+    def dim(self) -> int:
+        """Number of the front's log factors: one per joint per parameter."""
+        return 3 * len(self.params)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The front's box of log factors (dim,): each parameter's range, three joints each."""
+        return np.repeat([p.box[0] for p in self.params], 3), np.repeat([p.box[1] for p in self.params], 3)
+
+
+#: Each ``[controller] kind``'s parameter set. The boxes: FOSMC delta x 10^[-3, 1.5], gamma x
+#: 10^[-0.5, 0.5], poles x 10^[0, 2]; SMC k x 10^[-2, 2], phi x 10^[-3, 2]; super-twisting
+#: k1 x 10^[-2, 2], k2 x 10^[-2, 3].
+SPACES = {
+    s.kind: s
+    for s in (
+        Space("fosmc", Tunable, (Param("delta", "delta", 1, (-3.0, 1.5)), Param("gamma", "gamma", 1, (-0.5, 0.5)),
+                                 Param("poles", "poles", -1, (0.0, 2.0)))),
+        Space("smc", SMCGains, (Param("k", "smc_k", 1, (-2.0, 2.0)), Param("phi", "smc_phi", 1, (-3.0, 2.0)))),
+        Space("super_twisting", STGains, (Param("k1", "st_k1", 1, (-2.0, 2.0)), Param("k2", "st_k2", 1, (-2.0, 3.0)))),
+    )
+}  # fmt: skip
+
+
+def space_of(p: Params) -> Space:
+    """The :class:`Space` of a parameter set (a :class:`Tunable`, :class:`SMCGains` or
+    :class:`STGains`)."""
+    for s in SPACES.values():
+        if type(p) is s.values:
+            return s
+    raise TypeError(f"not a tunable parameter set: {type(p).__name__}")
 
 
 class GammaFloor(NamedTuple):
@@ -72,18 +155,24 @@ def gamma_floor(floor: GammaFloor | None, base: Controller, poles) -> Any:
     return gamma_bounds(floor.alpha, floor.beta, base.C, base.b_rows, K, floor.convention)
 
 
-def to_internal(p: Tunable, base: Controller, floor: GammaFloor | None = None) -> Tunable:
-    """Unconstrained coordinates of physical parameters (inverse of :func:`to_physical`)."""
-    excess = p.gamma - gamma_floor(floor, base, p.poles)
-    if floor is not None and np.any(np.asarray(excess) <= 0):
-        raise ValueError("tune: initial gamma must exceed the gamma bounds when keep_gamma_bound is on")
-    return Tunable(jnp.log(p.delta), jnp.log(excess), jnp.log(-p.poles))
+def to_internal(p: Params, base: Any, floor: GammaFloor | None = None) -> Params:
+    """Unconstrained coordinates of physical parameters (inverse of :func:`to_physical`):
+    u = log(sign x); with a ``floor`` (the FOSMC only) u_gamma = log(gamma - floor)."""
+    if floor is not None:
+        excess = p.gamma - gamma_floor(floor, base, p.poles)
+        if np.any(np.asarray(excess) <= 0):
+            raise ValueError("tune: initial gamma must exceed the gamma bounds when keep_gamma_bound is on")
+        p = p._replace(gamma=excess)
+    return type(p)(*(jnp.log(x if q.sign > 0 else -x) for q, x in zip(space_of(p).params, p)))
 
 
-def to_physical(u: Tunable, base: Controller, floor: GammaFloor | None = None) -> Tunable:
-    """Physical parameters from unconstrained ones: delta > 0, poles < 0, gamma > floor."""
-    poles = -jnp.exp(u.poles)
-    return Tunable(jnp.exp(u.delta), gamma_floor(floor, base, poles) + jnp.exp(u.gamma), poles)
+def to_physical(u: Params, base: Any, floor: GammaFloor | None = None) -> Params:
+    """Physical parameters from unconstrained ones: each of its sign (FOSMC: delta > 0, poles
+    < 0, gamma > 0), gamma > floor with a ``floor``."""
+    p = type(u)(*(jnp.exp(v) if q.sign > 0 else -jnp.exp(v) for q, v in zip(space_of(u).params, u)))
+    if floor is not None:
+        p = p._replace(gamma=gamma_floor(floor, base, p.poles) + p.gamma)
+    return p
 
 
 FORMS = ("weighted", "error_bound", "chattering_bound")
@@ -157,20 +246,23 @@ class Problem(NamedTuple):
     """What a tuning run simulates: the batch and the fixed parts of the controller."""
 
     plants: Any
-    base: Controller
+    base: Any  # whose fields the parameters replace: the FOSMC's Controller, the SMC or super-twisting law
     reference: Any
     X0s: Any
     dt: Any
     options: dict
     keys: Any = None  # noise realizations of a digital loop (simulate_batch's keys)
-    make: Callable[[Controller], Any] | None = None  # parameters -> controller (None: the ideal loop)
+    make: Callable[[Any], Any] | None = None  # base -> the controller of the loop (None: base itself)
 
-    def controller(self, p: Tunable) -> Any:
-        """The controller simulated with physical parameters ``p``."""
-        params = self.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
+    def controller(self, p: Params) -> Any:
+        """The controller simulated with physical parameters ``p`` (``base``'s fields of those names replaced)."""
+        if dataclasses.is_dataclass(self.base):  # the SMC and super-twisting laws
+            params = dataclasses.replace(self.base, **p._asdict())
+        else:
+            params = self.base._replace(**p._asdict())
         return params if self.make is None else self.make(params)
 
-    def simulate(self, p: Tunable, **options):
+    def simulate(self, p: Params, **options):
         return simulate_batch(self.plants, self.controller(p), self.reference, self.X0s, self.dt, keys=self.keys,
                               **dict(self.options, **options))  # fmt: skip
 
@@ -178,7 +270,7 @@ class Problem(NamedTuple):
 def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
 
-    def loss(u: Tunable):
+    def loss(u: Params):
         r = problem.simulate(to_physical(u, problem.base, floor), fast=False)
         J, e, c = rollout_costs(r.metrics, r.diverged, obj)
         return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
@@ -186,7 +278,7 @@ def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     return loss
 
 
-def evaluate(problem: Problem, p: Tunable) -> dict[str, Any]:
+def evaluate(problem: Problem, p: Params) -> dict[str, Any]:
     """Plain-simulator metrics of physical parameters ``p``, averaged over the non-diverged
     rollouts of the batch; plus the number of diverged rollouts."""
     r = problem.simulate(p, checkpoint_every=0)
@@ -204,11 +296,11 @@ class Settings(NamedTuple):
     schedule: str = "cosine"  # or "constant"
     clip: float = 1.0  # global-norm clipping of the gradient in internal coordinates
     mode: str = "auto"  # "reverse", "forward" or "auto" (time both, keep the faster)
-    free: tuple[str, ...] = PARAM_NAMES
+    free: tuple[str, ...] | None = None  # the parameters tuned (None: all), the rest frozen
     checkpoint_every: int = 10  # optimizer steps between checkpoints (0: none)
 
 
-def make_optimizer(s: Settings, labels: Tunable) -> optax.GradientTransformation:
+def make_optimizer(s: Settings, labels: Params) -> optax.GradientTransformation:
     lr = s.learning_rate
     if s.schedule == "cosine":
         lr = optax.cosine_decay_schedule(s.learning_rate, max(1, s.steps), alpha=0.1)
@@ -244,13 +336,13 @@ def _load(path: Path) -> tuple[dict, list[np.ndarray]]:
 
 def run(
     loss,
-    u0: Tunable,
+    u0: Params,
     settings: Settings,
     *,
     checkpoint: Path | None = None,
     resume: bool = False,
     log: Callable[[str], None] = print,
-) -> tuple[Tunable, dict[str, list]]:
+) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
 
     Non-finite losses or gradients skip the step (and say so). Every ``checkpoint_every``
@@ -258,7 +350,8 @@ def run(
     ends where an uninterrupted run would. Returns the final internal parameters and the
     history (per step: loss, error, chattering, gradient norm, skipped, internal params).
     """
-    labels = Tunable(*("free" if n in settings.free else "frozen" for n in PARAM_NAMES))
+    free = u0._fields if settings.free is None else settings.free
+    labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
     opt = make_optimizer(settings, labels)
     u, state = u0, opt.init(u0)
     history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
