@@ -204,7 +204,8 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--params",
         metavar="JSON",
-        help="use delta, gamma, poles from a `fosmc tune` result.json or a `fosmc front` front.json",
+        help="use the tuned parameters of the config's controller kind (delta, gamma, poles; k, phi; k1, k2) "
+        "from a `fosmc tune` result.json or a `fosmc front` front.json",
     )
     s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
     s.add_argument(
@@ -227,7 +228,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--dt", type=float, default=1e-4, help="step (s), default 1e-4")
     r.add_argument("--integrator", choices=("euler", "rk4"), default="rk4")
     r.set_defaults(func=cmd_reproduce)
-    f = sub.add_parser("front", help="Pareto front of tracking error against chattering")
+    f = sub.add_parser("front", help="Pareto front of tracking error against chattering (any controller kind)")
     f.add_argument("--config", help="TOML config (default: the paper's setup)")
     f.add_argument("--out", default="out/front", help="output folder (default: out/front)")
     f.add_argument("--points", type=int, help="parents per local round (default 8)")
@@ -246,7 +247,7 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     f.set_defaults(func=cmd_front)
-    t = sub.add_parser("tune", help="gradient-based tuning of delta, gamma and the poles (optax)")
+    t = sub.add_parser("tune", help="gradient-based tuning of the controller kind's parameters (optax)")
     t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
     t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
     t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")

@@ -98,8 +98,10 @@ def run_simulate(
 ) -> dict[str, Any]:
     """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
 
-    ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose delta, gamma
-    and poles replace the config's (``point``: the front's point). ``devices`` > 1 splits the
+    ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose parameters
+    replace the config's (``point``: the front's point): the FOSMC's delta, gamma, poles, or
+    SMC's k, phi (``smc_k``, ``smc_phi``) or super-twisting's k1, k2 (``st_k1``, ``st_k2``),
+    of the config's ``controller.kind`` only. ``devices`` > 1 splits the
     batch over that many devices (``simulate_sharded``; on CPU call ``use_all_cores`` or
     ``use_host_devices`` before the first JAX operation; the command line does).
     ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
@@ -334,16 +336,21 @@ def run_tune(
     force: bool = False,
     log: Log = _quiet,
 ) -> dict[str, Any]:
-    """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` (delta, gamma,
-    poles) on the training simulation (``tune.train_dt``, ``tune.train_t_final``), with the
-    objective's scales taken at the config's parameters, the optional gamma floor (24)-(26)
-    (``tune.keep_gamma_bound``) and global stage (``tune.global_candidates``); initial and
-    final parameters evaluated on the plain ``[sim]`` simulation.
+    """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` of the config's
+    ``controller.kind`` (every kind is tunable, each with its own parameters: the FOSMC's
+    delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2; default: all of them) on the
+    training simulation (``tune.train_dt``, ``tune.train_t_final``), with the objective's
+    scales taken at the config's parameters, the optional global stage
+    (``tune.global_candidates``) and, for the FOSMC only, gamma floor (24)-(26)
+    (``tune.keep_gamma_bound``); initial and final parameters evaluated on the plain
+    ``[sim]`` simulation.
 
     ``steps`` overrides ``tune.steps``. ``out``: folder for ``result.json``, ``tuning.png``
-    and ``checkpoint.npz`` (None: nothing written); ``resume`` continues from its checkpoint.
-    Returns what ``result.json`` holds: ``{"initial": {"params", "metrics", ...}, "start":
-    {"params", "global_candidates"}, "final": {...}, "objective", "history", "config"}``.
+    and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the FOSMC's parameters
+    and is written for that kind only); ``resume`` continues from its checkpoint. Returns what
+    ``result.json`` holds: ``{"initial": {"params", "metrics", ...}, "start": {"params",
+    "global_candidates"}, "final": {...}, "objective", "history", "config"}``, ``params`` by
+    the kind's names (e.g. ``{"k": [...], "phi": [...]}``).
     """
     from . import _tuning as T
 
@@ -353,6 +360,14 @@ def run_tune(
         if steps < 1:
             raise ConfigError(f"--steps: expected a positive integer, got {steps}")
         tcfg["steps"] = steps
+    kind = cfg["controller"]["kind"]
+    names = T.SPACES[kind].names
+    if not set(tcfg["params"]) <= set(names):
+        raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
+                          f"controller.kind = '{kind}'), got {tcfg['params']}")  # fmt: skip
+    if tcfg["keep_gamma_bound"] and kind != "fosmc":
+        raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
+                          f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
     plain, problem, p0 = _config.tuning_problems(cfg)
@@ -405,10 +420,13 @@ def run_tune(
         from ._plots import plot_tuning
 
         write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
-        params_history = [as_dict(T.to_physical(T.Tunable(*map(jax.numpy.asarray, p)), plain.base, floor))
-                          for p in history["params"]]  # fmt: skip
-        plot_tuning(history, params_history, out / "tuning.png")
-        log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
+        written = "result.json"
+        if kind == "fosmc":  # the figure's panels are delta, gamma, poles
+            params_history = [as_dict(T.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
+                              for p in history["params"]]  # fmt: skip
+            plot_tuning(history, params_history, out / "tuning.png")
+            written += f" and {out}/tuning.png"
+        log(f"tune: wrote {out}/{written} in {time.perf_counter() - start:.1f} s")
     return result
 
 
@@ -430,16 +448,20 @@ def run_front(
     log: Log = _quiet,
 ) -> dict[str, Any]:
     """``fosmc front``: the Pareto front of mean ``rms_error`` against mean
-    ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time
-    (``fosmc_jax._front.study``; ``points`` parents per local round, default 8;
-    ``candidates``, ``steps``: the global stage's size and the local rounds, default from the
-    budget). ``out``: folder for ``front.json``, ``front.png`` (with the ``compare`` files'
-    points drawn beside) and the checkpoint (None: nothing written); ``resume`` continues from
-    its checkpoint.
+    ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time, over the
+    parameters of the config's ``controller.kind`` (every kind is tunable: the FOSMC's delta,
+    gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
+    kind's box, ``fosmc_jax._tuning.SPACES``), by ``fosmc_jax._front.study``: ``points``
+    parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
+    the local rounds, default from the budget. ``out``: folder for ``front.json``,
+    ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
+    nothing written); ``resume`` continues from its checkpoint.
 
     Returns what ``front.json`` holds: ``{"axes", "points": [{params, metrics, held_out,
-    diverged}], "stages", "references", "held_out_batch", "config"}``. With ``candidates``
-    and ``steps`` given the result is deterministic except ``stages.wall_time_s``.
+    diverged}], "stages", "references", "held_out_batch", "config"}``, ``params`` by the
+    kind's names, ``references`` the paper's FOSMC (Table 1's sets, SGN) whatever the kind.
+    With ``candidates`` and ``steps`` given the result is deterministic except
+    ``stages.wall_time_s``.
     """
     from . import _front as F
 

@@ -30,7 +30,7 @@ from ._loop import DERIVATIVES, DigitalLoop, Sensors
 from ._reference import Cycloid, desired_state
 from ._simulator import INTEGRATORS
 from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
-from ._tuning import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, PARAM_NAMES, SCALES, WORST_CASE
+from ._tuning import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, SPACES, WORST_CASE
 
 try:  # Python >= 3.11
     import tomllib
@@ -49,6 +49,8 @@ BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
+#: Every kind's tunable parameters (``[tune] params`` names some of the config's kind's).
+TUNABLE_NAMES = tuple(name for space in SPACES.values() for name in space.names)
 
 
 def defaults() -> dict[str, Any]:
@@ -309,7 +311,7 @@ SCHEMA: dict[str, Any] = {
         "divergence_bound": _number("a positive number", lambda x: x > 0),
     },
     "tune": {
-        "params": _names(PARAM_NAMES),
+        "params": _names(TUNABLE_NAMES),
         "weight_error": _number("a non-negative number", lambda x: x >= 0),
         "weight_chattering": _number("a non-negative number", lambda x: x >= 0),
         "worst_case": _choice(WORST_CASE),
@@ -357,9 +359,12 @@ def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
 def resolve(user: dict | None = None) -> dict[str, Any]:
     """Validate a user configuration (nested dict, e.g. parsed TOML) and fill in defaults.
 
+    ``[tune] params`` defaults to every parameter of the config's ``controller.kind``.
     Raises :class:`ConfigError` naming the first offending key.
     """
     cfg = _merge(SCHEMA, defaults(), copy.deepcopy(user or {}), "")
+    if "params" not in (user or {}).get("tune", {}):
+        cfg["tune"]["params"] = list(SPACES[cfg["controller"]["kind"]].names)
     _check_consistency(cfg)
     return cfg
 
@@ -509,32 +514,32 @@ def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
     :class:`DigitalLoop` around a :class:`DiscreteFOSMC` with the config's sensors, delay and
     actuator; for ``smc`` and ``super_twisting`` the same around their laws (which take C and
     the nominal rows from the parameters, and their gains from the config)."""
+    law, loop = _law_and_loop(cfg, dtype)
+    return lambda params: loop(law(params))
+
+
+def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[Controller], Any], Callable[[Any], Any]]:
+    """(law, loop): FOSMC parameters -> the config's kind of law with the config's gains,
+    sampled with period T (T = 0: the ideal loop's); a law -> the controller of the config's
+    loop (the ideal loop: the law itself, super-twisting's v integrated with the plant)."""
     ctl, sens = cfg["controller"], cfg["sensors"]
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
     T = cast(ctl["sample_period"])
-    law = _law_factory(cfg, cast, T)
-    if not ctl["sample_period"]:
-        return law
+    sampled = bool(ctl["sample_period"])
+    surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
+    if ctl["kind"] == "fosmc":
+        law = (lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])) if sampled else (lambda p: p)
+    elif ctl["kind"] == "smc":
+        law = lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
+    else:
+        law = lambda params: SuperTwisting(surface(params), cast(ctl["st_k1"]), cast(ctl["st_k2"]), T)
+    if not sampled:
+        return law, ContinuousSuperTwisting if ctl["kind"] == "super_twisting" else (lambda law: law)
     noise_std = cast(sens["noise_std"]) if any(sens["noise_std"]) else None  # all zero: nothing to draw
     sensors = Sensors(cast(sens["encoder_counts"]), noise_std, sens["derivatives"])
     u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))
     m, d = sample_steps(cfg), ctl["delay_samples"]
-    return lambda params: DigitalLoop(law(params), sensors, u_max, T, m, d)
-
-
-def _law_factory(cfg: dict, cast, T) -> Callable[[Controller], Any]:
-    """FOSMC parameters -> the config's law, sampled with period T (T = 0: the ideal loop's)."""
-    ctl = cfg["controller"]
-    sampled = bool(ctl["sample_period"])
-    if ctl["kind"] == "fosmc":
-        if sampled:
-            return lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])
-        return lambda params: params
-    surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
-    if ctl["kind"] == "smc":
-        return lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
-    st = lambda params: SuperTwisting(surface(params), cast(ctl["st_k1"]), cast(ctl["st_k2"]), T)
-    return st if sampled else (lambda params: ContinuousSuperTwisting(st(params)))
+    return law, lambda law: DigitalLoop(law, sensors, u_max, T, m, d)
 
 
 def keys_of(cfg: dict) -> Any:
@@ -595,31 +600,41 @@ def build(cfg: dict) -> Problem:
 def tuning_problems(cfg: dict):
     """(plain, train, p0): the :class:`fosmc_jax._tuning.Problem` of ``[sim]`` (every result
     is evaluated on it), the training problem (``tune.train_dt``, ``tune.train_t_final``, the
-    scan rematerialised every ``tune.remat_steps``), and the config's parameters."""
-    if cfg["controller"]["kind"] != "fosmc":
-        raise ConfigError(
-            f"controller.kind: tuning and fronts search the FOSMC's delta, gamma and poles; kind = "
-            f"'{cfg['controller']['kind']}' has no tunable parameter set yet (simulate it, or tune kind = 'fosmc')"
-        )
-    built = build(cfg)
+    scan rematerialised every ``tune.remat_steps``), and the config's values of its kind's
+    parameters (``fosmc_jax._tuning.SPACES[kind].values``: the FOSMC's :class:`Tunable` of
+    delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2). The problems' ``base`` is what
+    those parameters are fields of: the FOSMC's :class:`Controller`, or the SMC or
+    super-twisting law built with the config's gains."""
+    space = SPACES[cfg["controller"]["kind"]]
     train_cfg = copy.deepcopy(cfg)
     for key, sim_key in (("train_dt", "dt"), ("train_t_final", "t_final")):
         if cfg["tune"][key]:
             train_cfg["sim"][sim_key] = cfg["tune"][key]
-    tb = build(train_cfg) if train_cfg != cfg else built  # no surrogate: the same simulation
 
-    def problem(b: Problem, **options) -> _tuning.Problem:
+    def problem(c: dict, **options) -> _tuning.Problem:
+        b = build(c)
+        if space.kind == "fosmc":
+            base, make = b.params, b.make
+        else:
+            law, loop = _law_and_loop(c, b.dt.dtype)
+            base, make = law(b.params), loop
         opts = dict(b.options, save_every=0, **options)
-        return _tuning.Problem(b.plants, b.params, b.reference, b.X0s, b.dt, opts, b.keys, b.make)
+        return _tuning.Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
 
-    p0 = _tuning.Tunable(built.params.delta, built.params.gamma, built.params.poles)
-    return problem(built), problem(tb, checkpoint_every=cfg["tune"]["remat_steps"]), p0
+    plain = problem(cfg)
+    remat = {"checkpoint_every": cfg["tune"]["remat_steps"]}
+    # no surrogate: the same simulation (the same make and keys tell fosmc_jax._front so)
+    train = problem(train_cfg, **remat) if train_cfg != cfg else plain._replace(options=dict(plain.options, **remat))
+    p0 = space.values(*(getattr(plain.base, name) for name in space.names))
+    return plain, train, p0
 
 
 def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
-    """``cfg`` with the controller's delta, gamma and poles taken from a ``fosmc tune`` result
-    file (its ``final.params``) or from point ``point`` of a ``fosmc front`` file, validated
-    like the config keys they replace."""
+    """``cfg`` with its controller kind's parameters (the FOSMC's delta, gamma, poles; SMC's
+    k, phi; super-twisting's k1, k2) taken from a ``fosmc tune`` result file (its
+    ``final.params``) or from point ``point`` of a ``fosmc front`` file, and put back into
+    their config keys (``smc_k``, ...), validated like those keys. A file of another kind's
+    parameters is refused."""
     try:
         data = json.loads(Path(path).read_text())
     except OSError as e:
@@ -638,6 +653,16 @@ def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
             params = data["final"]["params"]
         except (KeyError, TypeError):
             raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params) or front") from None
+    space = next((s for s in SPACES.values() if isinstance(params, dict) and params and set(params) <= set(s.names)),
+                 None)  # fmt: skip
+    if space is None:
+        kinds = "; ".join(f"{k}: {', '.join(s.names)}" for k, s in SPACES.items())
+        raise ConfigError(f"--params: {path}'s params are no controller kind's parameter set ({kinds}), "
+                          f"got {_short(params)}")  # fmt: skip
+    kind = cfg["controller"]["kind"]
+    if space.kind != kind:
+        raise ConfigError(f"--params: {path} holds {space.kind} parameters ({', '.join(space.names)}), but the "
+                          f"config's controller.kind is '{kind}' (set [controller] kind = '{space.kind}')")  # fmt: skip
     user = copy.deepcopy(cfg)
-    user["controller"].update({k: params[k] for k in ("delta", "gamma", "poles") if k in params})
+    user["controller"].update({p.key: params[p.name] for p in space.params if p.name in params})
     return resolve(user)

@@ -109,10 +109,9 @@ def test_each_kind_runs_from_the_config_alone_and_is_differentiable(kind, capsys
     assert np.isfinite(grad).all() and grad[0] == pytest.approx(fd, rel=1e-3, abs=1e-12)
 
 
-def test_tune_and_certify_refuse_other_kinds(capsys, tmp_path):
+def test_certify_refuses_other_kinds(capsys, tmp_path):
+    """The hitting condition (20) is the FOSMC's; tuning every kind is tests/test_tuning_kinds.py's."""
     path = tmp_path / "c.toml"
     path.write_text('[controller]\nkind = "smc"\n')
-    assert main(["tune", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
     assert main(["certify", "--config", str(path)]) == 2
-    assert capsys.readouterr()[1].count("controller.kind") == 2
-    assert not (tmp_path / "o").exists()
+    assert capsys.readouterr()[1].count("controller.kind") == 1

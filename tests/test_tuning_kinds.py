@@ -1,0 +1,178 @@
+"""Every controller kind is tunable with its own parameters: ``fosmc tune`` and ``fosmc front``
+on SMC's (k, phi) and super-twisting's (k1, k2), their results put back into the config's keys
+by ``fosmc simulate --params``, the tune loss's gradient in the log gains against central
+differences, and one-line errors for mixing kinds or FOSMC-only options."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from fosmc_jax import _config
+from fosmc_jax import _front as F
+from fosmc_jax import _tuning as T
+from fosmc_jax._cli import main
+
+#: (kind, [controller] extras, [tune] params): SMC in the ideal loop with all its parameters,
+#: super-twisting in a digital loop (sampled at 2 steps, one sample of delay) with k2 alone free.
+CASES = [("smc", {}, None), ("super_twisting", {"sample_period": 4e-3, "delay_samples": 1}, ["k2"])]
+SIM = {"t_final": 0.25, "dt": 2e-3, "integrator": "euler"}
+PLANT = {"uncertainty": "sample", "samples": 2}
+
+
+def toml(path, kind, controller=None, tune=None):
+    """A short config: the linear model at 2 box samples, 0.25 s of Euler at 2 ms."""
+    value = lambda v: json.dumps(v) if not isinstance(v, bool) else str(v).lower()
+    table = lambda name, keys: [f"[{name}]", *(f"{k} = {value(v)}" for k, v in keys.items())]
+    lines = [
+        *table("controller", {"kind": kind, **(controller or {})}),
+        *table("plant", PLANT),
+        *table("sim", SIM),
+        *table("tune", {"global_candidates": 0, "mode": "reverse", "remat_steps": 0, **(tune or {})}),
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def mean_metrics(capsys) -> dict:
+    return json.loads(capsys.readouterr()[0])["summary"]["mean"]
+
+
+@pytest.fixture(scope="module", params=CASES, ids=[c[0] for c in CASES])
+def tuned(request, tmp_path_factory):
+    kind, controller, params = request.param
+    tmp = tmp_path_factory.mktemp(f"tune_{kind}")
+    path = toml(tmp / "c.toml", kind, controller, {"params": params} if params else None)
+    assert main(["tune", "--config", path, "--steps", "4", "--out", str(tmp / "out")]) == 0
+    return kind, path, tmp / "out" / "result.json"
+
+
+def test_tune_lowers_the_objective_and_its_result_resimulates(tuned, capsys):
+    kind, path, result = tuned
+    res = json.loads(result.read_text())
+    space = T.SPACES[kind]
+    free = res["config"]["tune"]["params"]
+    assert set(res["final"]["params"]) == set(space.names) and free == (["k", "phi"] if kind == "smc" else ["k2"])
+    assert res["history"]["loss"][-1] < res["history"]["loss"][0]
+    for p in space.params:  # free parameters moved, frozen ones kept (to exp(log(x)) rounding), signs kept
+        moved = not np.allclose(res["final"]["params"][p.name], res["initial"]["params"][p.name], rtol=1e-12, atol=0)
+        assert moved == (p.name in free) and np.all(np.asarray(res["final"]["params"][p.name]) > 0)
+    cfg = _config.with_params(_config.load(path), result)
+    for p in space.params:
+        np.testing.assert_array_equal(cfg["controller"][p.key], res["final"]["params"][p.name])
+    assert main(["simulate", "--config", path, "--params", str(result), "--json", "--devices", "1"]) == 0
+    mean = mean_metrics(capsys)
+    for name, value in res["final"]["metrics"].items():
+        np.testing.assert_allclose(mean[name], value, rtol=1e-9, atol=1e-15, err_msg=name)
+    assert not (result.parent / "tuning.png").exists()  # the figure draws the FOSMC's parameters only
+
+
+@pytest.fixture(scope="module", params=CASES, ids=[c[0] for c in CASES])
+def front(request, tmp_path_factory):
+    """The front's search (fosmc_jax._front.run) on the kind's problem, written as a front.json."""
+    kind, controller, _ = request.param
+    tmp = tmp_path_factory.mktemp(f"front_{kind}")
+    path = toml(tmp / "c.toml", kind, controller)
+    cfg = _config.load(path)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    res = F.run(train, plain, p0, F.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None)
+    (tmp / "front.json").write_text(json.dumps({**res, "config": cfg}))
+    return kind, path, tmp / "front.json", res, (train, p0, cfg)
+
+
+def test_front_is_nondominated_sorted_with_the_kinds_params(front, capsys):
+    kind, path, front_json, res, _ = front
+    pts = res["points"]
+    assert len(pts) >= 2 and res["stages"]["evaluations"] == 16 + 2 * 8
+    assert res["stages"]["grid_per_axis"] == 3  # 1 + 3^2 of 16 on the grid of two parameters (three: 1 + 2^3)
+    e = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
+    c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in pts])
+    assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0) and F.nondominated(e, c).all()
+    space = T.SPACES[kind]
+    base = _config.load(path)["controller"]
+    lo, hi = space.bounds()
+    for pt in pts:
+        assert list(pt["params"]) == list(space.names)
+        z = np.concatenate([np.log10(np.asarray(pt["params"][p.name]) / base[p.key]) for p in space.params])
+        assert np.all((z >= lo - 1e-12) & (z <= hi + 1e-12))  # within the kind's box
+    i = len(pts) - 1
+    assert main(["simulate", "--config", path, "--params", str(front_json), "--point", str(i), "--json",
+                 "--devices", "1"]) == 0  # fmt: skip
+    mean = mean_metrics(capsys)
+    for name, value in pts[i]["metrics"].items():
+        np.testing.assert_allclose(mean[name], value, rtol=1e-9, atol=1e-15, err_msg=name)
+
+
+def test_global_stage_keeps_the_kinds_frozen_parameters(front):
+    kind, _, _, _, (train, p0, cfg) = front
+    obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
+    first, second = T.SPACES[kind].names
+    best, score = F.global_stage(train, obj, p0, 16, free=(first,), chunk=8, log=lambda _: None)
+    np.testing.assert_array_equal(getattr(best, second), getattr(p0, second))
+    assert type(best) is type(p0) and score <= 1e-9  # the start (score about 0) is among the candidates
+
+
+@pytest.mark.parametrize("kind", ["smc", "super_twisting"])
+def test_gradient_in_log_gains_matches_central_differences(kind):
+    # 0.05 rad off the reference: s leaves 0, where |s|^1/2 and the sign flips make the loss
+    # piecewise smooth; a central difference that straddles a flip is off, so the better of
+    # two steps must agree
+    sim = {"t_final": 0.1, "dt": 2e-3, "integrator": "euler", "initial_offset": [0.05] + [0.0] * 8}
+    cfg = _config.resolve({"controller": {"kind": kind}, "plant": {"uncertainty": "sample", "samples": 2}, "sim": sim})
+    _, train, p0 = _config.tuning_problems(cfg)
+    loss = T.make_loss(train, T.Objective(error_ref=0.01, chattering_ref=1.0), None)
+    u0 = T.to_internal(p0, train.base)
+    assert type(u0) is T.SPACES[kind].values
+    for a, b in zip(T.to_physical(u0, train.base), p0):
+        np.testing.assert_allclose(a, b, rtol=1e-12)
+    flat, unravel = jax.flatten_util.ravel_pytree(u0)
+    f = jax.jit(lambda x: loss(unravel(x))[0])
+    g = np.asarray(jax.jit(jax.grad(f))(flat))
+    for i in range(flat.size):
+        fd = [(f(flat.at[i].add(h)) - f(flat.at[i].add(-h))) / (2 * h) for h in (1e-5, 1e-6)]
+        best = min(fd, key=lambda d: abs(d - g[i]))
+        np.testing.assert_allclose(g[i], best, rtol=2e-4, atol=1e-8, err_msg=f"log parameter {i}")
+
+
+def test_mixing_kinds_and_fosmc_only_options_are_refused(tuned, tmp_path, capsys):
+    kind, _, result = tuned
+    other = "super_twisting" if kind == "smc" else "smc"
+    cases = [
+        (["simulate", "--config", toml(tmp_path / "o.toml", other), "--params", str(result)], "--params"),
+        (["simulate", "--params", str(result)], "--params"),  # the default config: the FOSMC
+        (["tune", "--config", toml(tmp_path / "d.toml", kind, tune={"params": ["delta"]})], "tune.params"),
+        (["tune", "--config", toml(tmp_path / "g.toml", kind, tune={"keep_gamma_bound": True})],
+         "tune.keep_gamma_bound"),
+    ]  # fmt: skip
+    for args, key in cases:
+        out = tmp_path / "out"
+        assert main([*args, *(["--out", str(out)] if args[0] == "tune" else [])]) == 2, args
+        err = capsys.readouterr()[1]
+        assert err.startswith(f"fosmc: error: {key}") and err.count("\n") == 1, err
+        assert not out.exists()
+    fosmc_file = tmp_path / "fosmc.json"
+    fosmc_file.write_text(json.dumps({"final": {"params": {"delta": [1.0] * 3}}}))
+    assert main(["simulate", "--config", toml(tmp_path / "k.toml", kind), "--params", str(fosmc_file)]) == 2
+    assert "holds fosmc parameters" in capsys.readouterr()[1]
+    fosmc_file.write_text(json.dumps({"final": {"params": {"k": [1.0] * 3, "k1": [1.0] * 3}}}))
+    assert main(["simulate", "--config", toml(tmp_path / "k.toml", kind), "--params", str(fosmc_file)]) == 2
+    assert "no controller kind's parameter set" in capsys.readouterr()[1]
+
+
+@pytest.mark.slow
+def test_the_front_command_writes_the_kinds_front_with_held_out_and_references(tmp_path, capsys):
+    """`fosmc front` end to end for SMC: the kind's params, held-out metrics, the FOSMC's
+    references, the figure (about 15 s: four compilations)."""
+    path = toml(tmp_path / "c.toml", "smc")
+    out = tmp_path / "out"
+    assert main(["front", "--config", path, "--out", str(out), "--candidates", "16", "--steps", "2",
+                 "--points", "3"]) == 0  # fmt: skip
+    res = json.loads((out / "front.json").read_text())
+    assert res["config"]["controller"]["kind"] == "smc" and len(res["points"]) >= 2
+    for pt in res["points"]:
+        assert list(pt["params"]) == ["k", "phi"] and len(pt["held_out"]["rms_error"]) == 3
+    assert set(res["references"]) == {"Table 1 set 1", "Table 1 set 2", "Table 1 set 3", "SGN"}
+    assert set(res["references"]["SGN"]["params"]) == {"delta", "gamma", "poles"}
+    assert (out / "front.png").stat().st_size > 10_000
+    assert len(capsys.readouterr()[0].splitlines()) == len(res["points"])
