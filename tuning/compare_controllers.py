@@ -14,8 +14,9 @@ joints) with about half the budget, the rest per-joint log-uniform draws. Every 
 whole training batch (vmapped chunks); the non-dominated sets in (mean rms_error, mean
 chattering_hf) form the kind's front, and each front point is re-run on
 :func:`fosmc_jax._front.held_out_config`'s batch (payloads 2.5, 5 and 7.5 kg, fresh noise seeds).
-This is a global search, not ``fosmc front`` (which searches the FOSMC only): the same method
-for the three laws keeps the comparison fair.
+This is a global search, not ``fosmc front`` (which now tunes every kind, each over the same
+boxes, fosmc_jax._tuning.SPACES, with local rounds after its global stage): the same method for
+the three laws keeps the comparison fair.
 
 Writes ``DIR.json`` (every front point: parameters, training and held-out metrics), ``DIR.md``
 (the tables and who wins where) and ``DIR.png`` (the three fronts, log-log).
