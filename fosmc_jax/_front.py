@@ -20,7 +20,10 @@ without a training surrogate the training metrics are the plain ones; with one (
 train_t_final``, ``train_dt``), the points non-dominated on the training metrics are
 re-evaluated on the plain problem and only those plain metrics count. The stage sizes are
 set once from the budget and the measured cost of one chunk (or given), and stored in the
-checkpoint, so a resumed run ends where an uninterrupted one does.
+checkpoint, so a resumed run ends where an uninterrupted one does. When the rounds come from
+the budget they also stop once the search's share of it is spent (a cheap problem's rounds
+cost more than its chunks, a loaded machine's chunks more than the probe's); ``stages``
+records the rounds run.
 """
 
 from __future__ import annotations
@@ -68,12 +71,20 @@ class Settings(NamedTuple):
 
 
 def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Mask of the points not dominated in (x, y), both minimised (NaN points never kept)."""
-    ok = np.isfinite(x) & np.isfinite(y)
-    keep = ok.copy()
-    for i in np.flatnonzero(ok):
-        dominated = ok & (x <= x[i]) & (y <= y[i]) & ((x < x[i]) | (y < y[i]))
-        keep[i] = not dominated.any()
+    """Mask of the points not dominated in (x, y), both minimised (NaN points never kept;
+    equal points kept together). One sort and one sweep: in (x, y) order a point is dominated
+    exactly when some earlier point that differs from it has y <= its y."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    keep = np.zeros(x.shape, bool)
+    idx = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    idx = idx[np.lexsort((y[idx], x[idx]))]
+    best = np.inf  # lowest y among the earlier points unequal to the current one
+    group_y, group_best = np.nan, np.inf  # the current run of equal points, and best before it
+    for i in idx:
+        if (x[i], y[i]) != group_y:
+            group_y, group_best = (x[i], y[i]), best
+        keep[i] = not group_best <= y[i]
+        best = min(best, y[i])
     return keep
 
 
@@ -275,6 +286,7 @@ def run(
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     surrogate = not _same_simulation(train, plain)
     n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
+    deadline = None  # with sizes from the budget, the local rounds also stop when it is spent
     if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
         probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
         t = time.perf_counter()
@@ -289,6 +301,8 @@ def run(
         final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
         search_s -= ratio * compile_s if surrogate else 0.0
         n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final)
+        if not settings.steps:
+            deadline = time.perf_counter() + search_s - final * chunk_s
         log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
             f"{n_cand} global candidates, {rounds} local rounds")  # fmt: skip
 
@@ -312,6 +326,10 @@ def run(
         log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
     s0, s1 = settings.sigma
     for r in range(r0, rounds):
+        if deadline is not None and time.perf_counter() > deadline:  # chunks cost more than the probe's
+            log(f"front: budget spent after {r} of {rounds} local rounds")
+            rounds = r
+            break
         sigma = s0 * (s1 / s0) ** (r / max(1, rounds - 1))
         zr = local_factors(z, m, settings.chunk, settings.points, sigma, settings.seed * 1_000_003 + r, space)
         mr = evaluate_many(train, from_factors(p0, zr), settings.chunk, log=lambda _: None)

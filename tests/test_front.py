@@ -200,3 +200,33 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only():
         p = T.Tunable(*(np.asarray(pt["params"][k]) for k in T.PARAM_NAMES))
         np.testing.assert_allclose(T.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-9)
         assert not np.allclose(T.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)
+
+
+def test_nondominated_equals_the_pairwise_definition():
+    """The sort-and-sweep mask against the definition, on small integer grids (many ties and
+    repeated points) with NaN and inf entries."""
+
+    def pairwise(x, y):
+        ok = np.isfinite(x) & np.isfinite(y)
+        keep = ok.copy()
+        for i in np.flatnonzero(ok):
+            keep[i] = not (ok & (x <= x[i]) & (y <= y[i]) & ((x < x[i]) | (y < y[i]))).any()
+        return keep
+
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        n = int(rng.integers(0, 25))
+        x, y = rng.integers(0, 5, n).astype(float), rng.integers(0, 5, n).astype(float)
+        if n:
+            x[rng.integers(0, n)] = np.nan
+            y[rng.integers(0, n)] = np.inf
+        np.testing.assert_array_equal(F.nondominated(x, y), pairwise(x, y))
+
+
+def test_rounds_from_the_budget_stop_when_it_is_spent():
+    """With sizes from the budget the local rounds end at the deadline even when the probe
+    chunk made them look cheap (here: a budget already spent), and stages say how many ran."""
+    plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
+    r = F.run(train, plain, p0, F.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None)
+    assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16
+    assert len(r["points"]) >= 1
