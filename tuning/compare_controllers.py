@@ -107,7 +107,7 @@ def markdown(res: dict) -> str:
         + ".",
         "",
     ]
-    lines += ["", "Best mean rms_error (rad) on each front at a chattering budget (mean chattering_hf <= level):", "",
+    lines += ["Best mean rms_error (rad) on each front at a chattering budget (mean chattering_hf <= level):", "",
               "| chattering_hf <= (V) | " + " | ".join(LABELS[k] for k in kinds) + " | best |",
               "|---:|" + "---:|" * (len(kinds) + 1)]  # fmt: skip
     for lv in levels:
