@@ -87,6 +87,7 @@ A_upper = {(A + 0.5 * (np.abs(A) > 20)).tolist()}
     assert as_json(fj.run_bounds(path)) == json.loads(out)
 
 
+@pytest.mark.slow  # the exact certificate over the box, twice (~8 s)
 def test_certify_equals_cli_json(capsys):
     code, out, _ = cli(capsys, "certify", "--json", "--vertices", "4", "--seed", "3")
     assert code == 0

@@ -188,6 +188,7 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     assert np.ptp(step[0::2].reshape(-1, 3, 3), axis=2).max() > 0  # per joint
 
 
+@pytest.mark.slow  # a second front study with its own compilations (~8 s)
 def test_with_a_training_surrogate_the_front_holds_plain_metrics_only():
     cfg = _config.resolve(dict(TINY, tune={"train_t_final": 0.1}))
     plain, train, p0 = _config.tuning_problems(cfg)
