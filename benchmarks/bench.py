@@ -318,7 +318,10 @@ def cli(small: int, large: int, steps: int, devices: int) -> dict:
                     raise RuntimeError(f"{' '.join(cmd)} failed: {out.stderr[-500:]}")
             walls[n] = min(times)
             loads.append(load())
-    rs = (large - small) * steps / (walls[large] - walls[small])
+    # the difference of two fresh processes' wall times; at small sizes it can be within their
+    # noise (start-up, compilation), even negative: then there is no steady state to report
+    dw = walls[large] - walls[small]
+    rs = (large - small) * steps / dw if dw > 0 else float("nan")
     return {"kind": f"fosmc simulate CLI ({devices} device{'s' if devices > 1 else ''}, steady state)",
             "plant": "linear", "integrator": "euler", "dtype": "float32", "batch": large, "steps": steps,
             "wall_s": walls[large], "compile_s": None, "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS["euler"],
