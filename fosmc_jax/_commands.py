@@ -346,8 +346,8 @@ def run_tune(
     ``[sim]`` simulation.
 
     ``steps`` overrides ``tune.steps``. ``out``: folder for ``result.json``, ``tuning.png``
-    and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the FOSMC's parameters
-    and is written for that kind only); ``resume`` continues from its checkpoint. Returns what
+    and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
+    parameters); ``resume`` continues from its checkpoint. Returns what
     ``result.json`` holds: ``{"initial": {"params", "metrics", ...}, "start": {"params",
     "global_candidates"}, "final": {...}, "objective", "history", "config"}``, ``params`` by
     the kind's names (e.g. ``{"k": [...], "phi": [...]}``).
@@ -420,13 +420,10 @@ def run_tune(
         from ._plots import plot_tuning
 
         write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
-        written = "result.json"
-        if kind == "fosmc":  # the figure's panels are delta, gamma, poles
-            params_history = [as_dict(T.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
-                              for p in history["params"]]  # fmt: skip
-            plot_tuning(history, params_history, out / "tuning.png")
-            written += f" and {out}/tuning.png"
-        log(f"tune: wrote {out}/{written} in {time.perf_counter() - start:.1f} s")
+        params_history = [as_dict(T.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
+                          for p in history["params"]]  # fmt: skip
+        plot_tuning(history, params_history, out / "tuning.png")
+        log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
     return result
 
 

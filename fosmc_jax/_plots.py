@@ -87,31 +87,45 @@ def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy
     save_figure(fig, path)
 
 
+#: Axis labels of the tunable parameters of every controller kind (fosmc_jax._tuning.SPACES).
+_PARAM_LABELS = {
+    "delta": "delta (same unit as s)",
+    "gamma": "gamma (gains of (23))",
+    "poles": "-pole (1/s)",
+    "k": "SMC k (unit of ds/dt)",
+    "phi": "SMC phi (same unit as s)",
+    "k1": "super-twisting k1 (s^1/2 / s)",
+    "k2": "super-twisting k2 (s / s^2)",
+}
+
+
 def plot_tuning(history: dict, params: list[dict], path: str | Path) -> None:
-    """Loss and its two parts, and delta, gamma, poles, against the optimizer step."""
+    """Loss and its two parts, and each tunable parameter (per joint; the FOSMC's delta,
+    gamma, poles, SMC's k, phi, super-twisting's k1, k2), against the optimizer step."""
     steps = np.arange(1, len(history["loss"]) + 1)
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
-    ax = axes[0, 0]
-    for key in ("loss", "error", "chattering"):
-        ax.plot(steps, history[key], label=key if key == "loss" else f"{key} part")
+    names = list(params[0])
+    rows = (len(names) + 2) // 2
+    fig, axes = plt.subplots(rows, 2, figsize=(12, 4 * rows), squeeze=False)
+    axes = axes.ravel()
+    ax = axes[0]
+    curves = {key: np.asarray(history[key], float) for key in ("loss", "error", "chattering")}
+    for key, y in curves.items():
+        ax.plot(steps, y, label=key if key == "loss" else f"{key} part")
     ax.set_ylabel("objective (unit-free)")
-    ax.set_yscale("log")
+    ax.set_yscale("log" if all(np.all(y > 0) for y in curves.values()) else "linear")  # log objectives go < 0
     ax.legend()
-    panels = (
-        (axes[0, 1], "delta", "delta (same unit as s)"),
-        (axes[1, 0], "gamma", "gamma (gains of (23))"),
-        (axes[1, 1], "poles", "-pole (1/s)"),
-    )
-    for ax, key, unit in panels:
+    for ax, key in zip(axes[1:], names):
         v = np.array([p[key] for p in params]).reshape(len(params), -1)
         v = -v if key == "poles" else v
         for i in range(v.shape[1]):
             label = f"joint {i // 3 + 1}, pole {i % 3 + 1}" if key == "poles" else f"joint {i + 1}"
             ax.plot(steps, v[:, i], label=label)
-        ax.set_ylabel(unit)
+        ax.set_ylabel(_PARAM_LABELS.get(key, key))
         ax.set_yscale("log")
         ax.legend(fontsize=7, ncol=3 if key == "poles" else 1)
-    for ax in axes.ravel():
+    for ax in axes[len(names) + 1 :]:
+        ax.set_visible(False)
+    for ax in axes[: len(names) + 1]:
         ax.set_xlabel("optimizer step")
         ax.grid(alpha=0.3)
     fig.tight_layout()
