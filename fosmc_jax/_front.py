@@ -3,7 +3,7 @@
 A front is found in two stages, within a wall-time budget, over log10 factors z that scale
 the start's parameters per joint (:func:`from_factors`) within the box of the controller
 kind's :class:`fosmc_jax._tuning.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
-gamma x 10^[-0.5, 0.5], poles x 10^[0, 2] (:data:`RANGES`); for SMC z (6,) scales k x
+gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
 10^[-2, 2], phi x 10^[-3, 2]; for super-twisting z (6,) scales k1 x 10^[-2, 2], k2 x 10^[-2, 3].
 
 1. global: the start, a log grid of factors common to the joints (g per axis, g^k points for
@@ -48,8 +48,6 @@ from ._metrics import METRIC_NAMES
 #: The two metrics a front is drawn in (means over rollouts and joints).
 AXES = ("rms_error", "chattering_hf")
 _FOSMC = T.SPACES["fosmc"]
-#: log10 ranges of the FOSMC's scale factors, per joint (a kind's: its Space's params' boxes).
-RANGES = {p.name: p.box for p in _FOSMC.params}
 #: Number of the FOSMC's log factors: delta, gamma, poles, one per joint each (a kind's: its Space's dim).
 DIM = _FOSMC.dim
 
@@ -65,7 +63,6 @@ class Settings(NamedTuple):
     # CMA-ES at equal wall time dominated 3 of 119 front points instead of 34-40 (tuning/README.md)
     global_share: float = 0.15
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
-    corner_share: float = 0.0  # share of the per-joint draws' coordinates put at a box end
     sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
     checkpoint_every: int = 5  # local rounds between checkpoints
 
@@ -112,21 +109,14 @@ def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
     return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
 
 
-def global_factors(n: int, seed: int, grid_share: float = 0.5, corner_share: float = 0.0,
-                   space: T.Space = _FOSMC) -> np.ndarray:  # fmt: skip
+def global_factors(n: int, seed: int, grid_share: float = 0.5, space: T.Space = _FOSMC) -> np.ndarray:
     """``n`` log factors (n, space.dim): 0 (the start itself), then :func:`grid_factors` with
     g = floor((grid_share n)^(1/k)) for k parameters (no grid below n = 16), then per-joint
-    log-uniform draws, each coordinate of which is moved to one end of its range (either, at
-    random) with probability ``corner_share``: per-joint structure at the box's faces, which
-    the grid of common factors cannot reach."""
+    log-uniform draws."""
     g = grid_size(n, grid_share, len(space.params))
     lo, hi = space.bounds()
     grid = grid_factors(g, space) if g else np.zeros((0, space.dim))
-    rng = np.random.default_rng(seed)
-    draws = rng.uniform(lo, hi, size=(n - 1 - len(grid), space.dim))
-    if corner_share > 0:
-        ends = np.where(rng.random(draws.shape) < 0.5, lo, hi)
-        draws = np.where(rng.random(draws.shape) < corner_share, ends, draws)
+    draws = np.random.default_rng(seed).uniform(lo, hi, size=(n - 1 - len(grid), space.dim))
     return np.concatenate([np.zeros((1, space.dim)), grid, draws])
 
 
@@ -311,7 +301,7 @@ def run(
         z, m = leaves[0], {k: v for k, v in zip(keys, leaves[1:])}
         r0 = state["round"]
     else:
-        z = global_factors(n_cand, settings.seed, settings.grid_share, settings.corner_share, space)
+        z = global_factors(n_cand, settings.seed, settings.grid_share, space)
         m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
         r0 = 0
 
