@@ -275,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
         from ._sharding import use_all_cores, use_host_devices
 
         if args.devices is None:
-            args.devices = use_all_cores()
+            use_all_cores()  # run_simulate then shards over every local device
         elif args.devices < 1:
             print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
             return 2

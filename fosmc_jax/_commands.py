@@ -92,7 +92,7 @@ def run_simulate(
     *,
     params: str | Path | None = None,
     point: int | None = None,
-    devices: int = 1,
+    devices: int | None = None,
     keep_trace: bool = False,
     log: Log = _quiet,
 ) -> dict[str, Any]:
@@ -101,9 +101,10 @@ def run_simulate(
     ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose parameters
     replace the config's (``point``: the front's point): the FOSMC's delta, gamma, poles, or
     SMC's k, phi (``smc_k``, ``smc_phi``) or super-twisting's k1, k2 (``st_k1``, ``st_k2``),
-    of the config's ``controller.kind`` only. ``devices`` > 1 splits the
-    batch over that many devices (``simulate_sharded``; on CPU call ``use_all_cores`` or
-    ``use_host_devices`` before the first JAX operation; the command line does).
+    of the config's ``controller.kind`` only. The batch is split over ``devices`` devices
+    (``simulate_sharded``; default: every local device, one per core on CPU after
+    ``use_all_cores()`` or ``use_host_devices(n)`` before the first JAX operation, as the
+    command line does; 1: unsharded).
     ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
     it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
 
@@ -112,6 +113,7 @@ def run_simulate(
     resolved config}``: what ``--json`` prints.
     """
     cfg = config_of(config)
+    devices = jax.local_device_count() if devices is None else devices
     if params:
         cfg = _config.with_params(cfg, params, point)
     elif point is not None:
