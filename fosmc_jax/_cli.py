@@ -271,20 +271,19 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
-    if hasattr(args, "devices"):  # before the first JAX operation
-        from ._sharding import use_all_cores, use_host_devices
+    from ._sharding import use_all_cores, use_host_devices  # before the first JAX operation
 
-        if args.devices is None:
-            use_all_cores()  # run_simulate then shards over every local device
-        elif args.devices < 1:
+    if getattr(args, "devices", None) is None:
+        use_all_cores()  # simulate, front (and tune's global stage) split their batches over every local device
+    else:
+        if args.devices < 1:
             print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
             return 2
-        elif args.devices > 1:
-            try:
-                use_host_devices(args.devices)
-            except RuntimeError as e:
-                print(f"fosmc: error: --devices: {e}", file=sys.stderr)
-                return 2
+        try:
+            use_host_devices(args.devices)
+        except RuntimeError as e:
+            print(f"fosmc: error: --devices: {e}", file=sys.stderr)
+            return 2
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     try:
         return args.func(args)

@@ -148,6 +148,17 @@ def test_use_all_cores_default_and_user_count(env, expected):
         a = simulate_sharded(*args, 1e-3, devices=n, n_steps=200, integrator="euler")
         t.assert_close(a, fj.simulate_batch(*args, 1e-3, n_steps=200, integrator="euler"), rtol=1e-12)
         assert len(a.metrics.rms_error.sharding.device_set) == n
+        if n > 1:  # the front's chunks split over the devices: each candidate as evaluated alone
+            from fosmc_jax import _config, _front, _tuning
+            cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 2},
+                                   "sim": {"t_final": 0.1, "dt": 2e-3, "integrator": "euler"}})
+            plain, _, p0 = _config.tuning_problems(cfg)
+            ps = _front.sample_candidates(p0, 5, seed=0)  # 5: a chunk padded to the devices
+            m = _front.evaluate_many(plain, ps, 3)
+            for i in range(5):
+                one = _tuning.evaluate(plain, jax.tree.map(lambda x: x[i], ps))
+                np.testing.assert_allclose(m["rms_error"][i], one["metrics"]["rms_error"], rtol=1e-12)
+                np.testing.assert_allclose(m["chattering_hf"][i], one["metrics"]["chattering_hf"], rtol=1e-12)
         print("devices", n)
         """
     )

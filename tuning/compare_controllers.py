@@ -31,6 +31,9 @@ from pathlib import Path
 
 import jax
 
+import fosmc_jax  # noqa: E402
+
+fosmc_jax.use_all_cores()  # every method evaluates its chunks on every core, as `fosmc front` does
 jax.config.update("jax_enable_x64", True)
 
 import matplotlib  # noqa: E402
