@@ -68,6 +68,11 @@ class Settings(NamedTuple):
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
     sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
     checkpoint_every: int = 5  # local rounds between checkpoints
+    # with a training surrogate: rounds on the plain problem after the training's front is
+    # re-evaluated (0: from the budget, polish_share of the search time; given sizes: none)
+    polish: int = 0
+    polish_share: float = 0.25
+    polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
 
 
 def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -285,7 +290,8 @@ def run(
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     surrogate = not _same_simulation(train, plain)
     n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
-    deadline = None  # with sizes from the budget, the local rounds also stop when it is spent
+    polish = state.get("polish", settings.polish) if surrogate else 0
+    deadline = polish_deadline = None  # with sizes from the budget, the rounds also stop when it is spent
     if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
         probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
         t = time.perf_counter()
@@ -299,57 +305,86 @@ def run(
         ratio = plain.options["n_steps"] / train.options["n_steps"]  # plain / training cost of a chunk
         final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
         search_s -= ratio * compile_s if surrogate else 0.0
-        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final)
+        if surrogate and not settings.polish:
+            polish = int(settings.polish_share * search_s / (ratio * chunk_s))
+        polish_s = polish * ratio * chunk_s
+        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s - polish_s, chunk_s,
+                                     final)  # fmt: skip
         if not settings.steps:
-            deadline = time.perf_counter() + search_s - final * chunk_s
+            polish_deadline = time.perf_counter() + search_s
+            deadline = polish_deadline - polish_s - final * chunk_s
         log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
-            f"{n_cand} global candidates, {rounds} local rounds")  # fmt: skip
+            f"{n_cand} global candidates, {rounds} local rounds, {polish} plain rounds")  # fmt: skip
 
     if "round" in state:
         keys = state["keys"]
-        z, m = leaves[0], {k: v for k, v in zip(keys, leaves[1:])}
+        z, m = leaves[0], dict(zip(keys, leaves[1 : 1 + len(keys)]))
         r0 = state["round"]
     else:
         z = global_factors(n_cand, settings.seed, settings.grid_share, space)
         m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
         r0 = 0
 
-    def save(r: int) -> None:
+    def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
         if checkpoint is not None:
-            header = {"stage": "global" if r == 0 else "local", "round": r, "candidates": n_cand, "steps": rounds,
-                      "keys": list(m)}  # fmt: skip
-            T._save(checkpoint, {**header, "leaves": [z, *m.values()]})
+            header = {"stage": "polish" if plain_state else "global" if r == 0 else "local", "round": r,
+                      "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m)}  # fmt: skip
+            if plain_state:
+                header["polish_round"] = plain_state[0]
+            plain_leaves = [plain_state[1], *plain_state[2].values()] if plain_state else []
+            T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
 
     if r0 == 0:
-        save(0)
+        save(0, z, m)
         log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
-    s0, s1 = settings.sigma
-    for r in range(r0, rounds):
-        if deadline is not None and time.perf_counter() > deadline:  # chunks cost more than the probe's
-            log(f"front: budget spent after {r} of {rounds} local rounds")
-            rounds = r
-            break
-        sigma = s0 * (s1 / s0) ** (r / max(1, rounds - 1))
-        zr = local_factors(z, m, settings.chunk, settings.points, sigma, settings.seed * 1_000_003 + r, space)
-        mr = evaluate_many(train, from_factors(p0, zr), settings.chunk, log=lambda _: None)
-        z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
-        log(f"front: local round {r + 1}/{rounds}  sigma {sigma:.3f}  {int(nondominated(*_axes(m)).sum())} "
-            f"non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
-        if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == rounds):
-            save(r + 1)
 
-    idx = np.arange(len(z))
-    if surrogate:  # plain metrics of the points non-dominated on the training metrics
+    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
+        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m); returns (z, m, rounds run)."""
+        s0, s1 = sigma
+        for r in range(r0, n):
+            if deadline is not None and time.perf_counter() > deadline:  # chunks cost more than the probe's
+                log(f"front: budget spent after {r} of {n} {what} rounds")
+                return z, m, r
+            sig = s0 * (s1 / s0) ** (r / max(1, n - 1))
+            zr = local_factors(z, m, settings.chunk, settings.points, sig, seed + r, space)
+            mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
+            z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
+            log(f"front: {what} round {r + 1}/{n}  sigma {sig:.4f}  {int(nondominated(*_axes(m)).sum())} "
+                f"non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+            if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n):
+                save_at(r + 1, z, m)
+        return z, m, n
+
+    seed = settings.seed * 1_000_003
+    if state.get("stage") != "polish":
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, deadline, "local",
+                                 lambda r, z_, m_: save(r, z_, m_))  # fmt: skip
+    n_train = len(z)
+    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
+    zp, mp, p_run = z, m, 0
+    if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx = np.flatnonzero(nondominated(*_axes(m)))
-        m = evaluate_many(plain, from_factors(p0, z[idx]), settings.chunk, log=log, what="plain evaluation")
-    e, c = _axes(m)
+        if state.get("stage") == "polish":
+            p_run, zp = state["polish_round"], leaves[1 + len(keys)]
+            mp = dict(zip(keys, leaves[2 + len(keys) :]))
+        else:
+            zp = z[idx]
+            mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
+            save(rounds, z, m, (0, zp, mp))
+        save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
+        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
+                                   polish_deadline, "plain", save_plain)  # fmt: skip
+        idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
+    e, c = _axes(mp)
     keep = np.flatnonzero(nondominated(e, c))
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
-    params = from_factors(p0, z[idx[keep]])
-    points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), m, j) for i, j in enumerate(keep)]
+    params = from_factors(p0, zp[keep])
+    points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
-              "local_rounds": rounds, "evaluations": len(z), "plain_reevaluations": len(idx) if surrogate else 0,
-              "wall_time_s": time.perf_counter() - t0, "from_local": int(np.sum(idx[keep] >= n_cand))}  # fmt: skip
+              "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
+              "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
+              "from_local": int(np.sum(idx[keep] >= n_cand)),
+              "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
     return {"axes": list(AXES), "points": points, "stages": stages}
 
 

@@ -188,19 +188,38 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     assert np.ptp(step[0::2].reshape(-1, 3, 3), axis=2).max() > 0  # per joint
 
 
-@pytest.mark.slow  # a second front study with its own compilations (~8 s)
-def test_with_a_training_surrogate_the_front_holds_plain_metrics_only():
+@pytest.mark.slow  # a second front study with its own compilations (~8 s), run three times
+def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
+    """The training front's points re-evaluated, then plain rounds from them: every point
+    holds its plain metrics, and a run killed in the plain rounds resumes to the same front."""
     cfg = _config.resolve(dict(TINY, tune={"train_t_final": 0.1}))
     plain, train, p0 = _config.tuning_problems(cfg)
     assert train.options["n_steps"] < plain.options["n_steps"]
-    res = F.run(train, plain, p0, SETTINGS, log=lambda _: None)
-    assert 0 < res["stages"]["plain_reevaluations"] < res["stages"]["evaluations"]
+    settings = SETTINGS._replace(polish=3)
+    res = F.run(train, plain, p0, settings, log=lambda _: None)
+    st = res["stages"]
+    assert st["plain_rounds"] == 3 and st["plain_evaluations"] > 3 * settings.chunk
     from fosmc_jax import _tuning as T
 
     for pt in res["points"]:
         p = T.Tunable(*(np.asarray(pt["params"][k]) for k in T.PARAM_NAMES))
         np.testing.assert_allclose(T.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-9)
         assert not np.allclose(T.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)
+
+    class Crash(Exception):
+        pass
+
+    def crash(msg):
+        if msg.startswith("front: plain round 2/"):
+            raise Crash
+
+    with pytest.raises(Crash):
+        F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
+    resumed = F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None)
+    assert resumed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
+    for a, b in zip(resumed["points"], res["points"], strict=True):
+        np.testing.assert_allclose(a["metrics"]["rms_error"], b["metrics"]["rms_error"], rtol=1e-12)
+        np.testing.assert_allclose(a["params"]["delta"], b["params"]["delta"], rtol=1e-12)
 
 
 def test_nondominated_equals_the_pairwise_definition():
