@@ -1,6 +1,6 @@
 """Pareto fronts of tracking error against chattering (``fosmc front``).
 
-A front is found in two stages, within a wall-time budget, over log10 factors z that scale
+A front is found in two or three stages, within a wall-time budget, over log10 factors z that scale
 the start's parameters per joint (:func:`from_factors`) within the box of the controller
 kind's :class:`fosmc_jax._tuning.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
 gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
@@ -12,15 +12,20 @@ gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
 2. local: rounds of one chunk each; a round draws ``points`` parents at random from the
    non-dominated set of everything evaluated so far and perturbs a random subset of their
    factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
-   sigma shrinking geometrically over the rounds (:func:`local_factors`).
+   sigma shrinking geometrically over the rounds (:func:`local_factors`);
+3. plain (with a training surrogate only): the points non-dominated on the training metrics
+   are re-evaluated on the plain problem, then ``polish_share`` of the search goes to local
+   rounds on the plain problem from them, with smaller steps (``polish_sigma``): the
+   surrogate ranks points like the plain problem but not to the last few percent of the
+   trade-off (tuning/README.md).
 
-Every evaluation is a vmapped chunk of the training problem. The front is the non-dominated
-set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of plain metrics:
-without a training surrogate the training metrics are the plain ones; with one (``[tune]
-train_t_final``, ``train_dt``), the points non-dominated on the training metrics are
-re-evaluated on the plain problem and only those plain metrics count. The stage sizes are
-set once from the budget and the measured cost of one chunk (or given), and stored in the
-checkpoint, so a resumed run ends where an uninterrupted one does. When the rounds come from
+Every evaluation is a vmapped chunk split over the local devices. The front is the
+non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of
+plain metrics: without a training surrogate (``[tune] train_t_final``, ``train_dt``) the
+training metrics are the plain ones; with one, only the plain metrics of stage 3 count.
+The stage sizes are set once from the budget and the measured cost of one chunk (or given:
+then no plain rounds unless ``polish``), and stored in the checkpoint, so a resumed run ends
+where an uninterrupted one does. When the rounds come from
 the budget they also stop once the search's share of it is spent (a cheap problem's rounds
 cost more than its chunks, a loaded machine's chunks more than the probe's); ``stages``
 records the rounds run.
@@ -68,6 +73,13 @@ class Settings(NamedTuple):
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
     sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
     checkpoint_every: int = 5  # local rounds between checkpoints
+    # CMA-ES (pycma) after the global stage: cma_starts runs from points along its front, each on
+    # the weighted log objective at the front's slope there, one generation of a chunk each;
+    # generations (0: from the budget, cma_share of the search time; given sizes: none)
+    cma: int = 0
+    cma_share: float = 0.4
+    cma_starts: int = 4
+    cma_sigma: float = 0.1  # the first step, in shares of each range
     # with a training surrogate: rounds on the plain problem after the training's front is
     # re-evaluated (0: from the budget, polish_share of the search time; given sizes: none)
     polish: int = 0
@@ -256,14 +268,52 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
 
 
-def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunks: int = 0) -> tuple[int, int]:
+def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunks: int = 0,
+                other_chunks: float = 0) -> tuple[int, int]:  # fmt: skip
     """(global candidates, local rounds) for ``search_s`` seconds of search at ``chunk_s`` per
     chunk: the global stage gets ``global_share`` of the chunks, the local rounds the rest but
-    ``final_chunks`` (a plain re-evaluation); given sizes are kept."""
+    ``final_chunks`` (a plain re-evaluation) and ``other_chunks`` (the other stages); given
+    sizes are kept."""
     chunks = max(0, int(search_s / chunk_s)) - final_chunks
     n = settings.candidates or max(1, round(settings.global_share * chunks)) * settings.chunk
-    rounds = settings.steps or max(1, chunks - n // settings.chunk)
+    rounds = settings.steps or max(1, int(chunks - other_chunks) - n // settings.chunk)
     return n, rounds
+
+
+def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings: Settings, generations: int,
+              deadline: float | None, log: Callable[[str], None]) -> tuple[np.ndarray, dict, int]:  # fmt: skip
+    """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
+    spread along the front of the evaluated (z, m) (:func:`pick_starts`), run k minimising
+    log E + w_k log C at the front's slope w_k there (the objective of the CMA-ES baseline,
+    :func:`fosmc_jax._search.cma_front`), steps ``cma_sigma`` of each range, within the box;
+    each generation of every run is one vmapped evaluation. Returns (z, m) with every point
+    evaluated appended and the generations run (fewer than ``generations`` when the
+    ``deadline`` passes or every run has stopped)."""
+    import cma
+
+    space = T.space_of(p0)
+    lo, hi = space.bounds()
+    starts, slopes = pick_starts(m, settings.cma_starts)
+    opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1, "verbose": -9,
+                      "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo)}  # fmt: skip
+    runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
+    t0 = time.perf_counter()
+    for g in range(generations):
+        live = [k for k, es in enumerate(runs) if not es.stop()]
+        if not live or (deadline is not None and time.perf_counter() > deadline):
+            log(f"front: CMA-ES stopped after {g} of {generations} generations")
+            return z, m, g
+        X = [np.asarray(runs[k].ask()) for k in live]
+        mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
+        e, c = _axes(mr)
+        f = np.log(e) + np.repeat(slopes[live], settings.chunk) * np.log(c) + np.where(mr["diverged"] > 0, 1e3, 0.0)
+        f = np.where(np.isfinite(f), f, 1e30).reshape(len(live), -1)
+        for k, x, fk in zip(live, X, f):
+            runs[k].tell(list(x), list(fk))
+        z, m = np.concatenate([z, *X]), {k: np.concatenate([m[k], mr[k]]) for k in m}
+        log(f"front: CMA-ES generation {g + 1}/{generations}  best {np.round(f.min(axis=1), 3).tolist()}  "
+            f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+    return z, m, generations
 
 
 def run(
@@ -277,8 +327,9 @@ def run(
     reserve: tuple[float, float] = (0.0, 0.0),
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Find the front (see module docstring). ``reserve`` = (compilations, chunks) of time
-    left out of the budget for what follows (the held-out evaluation). Returns {"points":
+    """Find the front (see module docstring). ``reserve`` = (compilations, share of the budget)
+    of time left out of it for what follows (the held-out evaluation, whose cost grows with
+    the front: 88 s of a 900 s budget in tuning/README.md's 15-minute study). Returns {"points":
     [...], "stages": {...}} with every point's parameters, plain mean metrics and diverged
     count; non-dominated only, sorted by chattering. The search space is that of ``p0``'s
     controller kind (:func:`fosmc_jax._tuning.space_of`)."""
@@ -291,7 +342,8 @@ def run(
     surrogate = not _same_simulation(train, plain)
     n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
     polish = state.get("polish", settings.polish) if surrogate else 0
-    deadline = polish_deadline = None  # with sizes from the budget, the rounds also stop when it is spent
+    generations = state.get("cma_generations", settings.cma)
+    deadline = polish_deadline = cma_deadline = None  # with sizes from the budget, stages also stop when it is spent
     if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
         probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
         t = time.perf_counter()
@@ -301,20 +353,24 @@ def run(
         evaluate_many(train, probe, settings.chunk, log=lambda _: None)
         chunk_s = time.perf_counter() - t
         compile_s -= chunk_s
-        search_s = settings.budget - (time.perf_counter() - t0) - reserve[0] * compile_s - reserve[1] * chunk_s
         ratio = plain.options["n_steps"] / train.options["n_steps"]  # plain / training cost of a chunk
+        search_s = settings.budget - (time.perf_counter() - t0) - reserve[0] * compile_s - reserve[1] * settings.budget
         final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
         search_s -= ratio * compile_s if surrogate else 0.0
         if surrogate and not settings.polish:
             polish = int(settings.polish_share * search_s / (ratio * chunk_s))
+        if not settings.cma:
+            generations = int(settings.cma_share * search_s / (chunk_s * settings.cma_starts))
         polish_s = polish * ratio * chunk_s
-        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s - polish_s, chunk_s,
-                                     final)  # fmt: skip
+        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final,
+                                     polish_s / chunk_s + generations * settings.cma_starts)  # fmt: skip
         if not settings.steps:
             polish_deadline = time.perf_counter() + search_s
             deadline = polish_deadline - polish_s - final * chunk_s
+            cma_deadline = deadline - rounds * chunk_s
         log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
-            f"{n_cand} global candidates, {rounds} local rounds, {polish} plain rounds")  # fmt: skip
+            f"{n_cand} global candidates, {generations} CMA-ES generations of {settings.cma_starts} runs, {rounds} "
+            f"local rounds, {polish} plain rounds")  # fmt: skip
 
     if "round" in state:
         keys = state["keys"]
@@ -327,16 +383,24 @@ def run(
 
     def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
         if checkpoint is not None:
-            header = {"stage": "polish" if plain_state else "global" if r == 0 else "local", "round": r,
-                      "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m)}  # fmt: skip
+            stage = "polish" if plain_state else "local" if r else "cma" if cma_done else "global"
+            header = {"stage": stage, "round": r,
+                      "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m),
+                      "cma_generations": generations, "cma_done": cma_done}  # fmt: skip
             if plain_state:
                 header["polish_round"] = plain_state[0]
             plain_leaves = [plain_state[1], *plain_state[2].values()] if plain_state else []
             T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
 
+    cma_done = state.get("cma_done", False)
     if r0 == 0:
-        save(0, z, m)
-        log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
+        if not cma_done:
+            save(0, z, m)
+            log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
+        if generations and not cma_done:  # a kill inside this stage resumes at its start
+            z, m, generations = cma_stage(train, p0, z, m, settings, generations, cma_deadline, log)
+            cma_done = True
+            save(0, z, m)
 
     def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
         """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m); returns (z, m, rounds run)."""
@@ -381,6 +445,7 @@ def run(
     params = from_factors(p0, zp[keep])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
+              "cma_generations": generations, "cma_runs": settings.cma_starts if generations else 0,
               "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
               "from_local": int(np.sum(idx[keep] >= n_cand)),
@@ -449,7 +514,7 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     refs = references(cfg, settings.chunk)
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
     left = settings._replace(budget=settings.budget - (time.perf_counter() - t0))
-    result = run(train, plain, p0, left, checkpoint=checkpoint, resume=resume, reserve=(1, 16), log=log)
+    result = run(train, plain, p0, left, checkpoint=checkpoint, resume=resume, reserve=(1, 0.1), log=log)
     params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
                         for k, x in zip(p0._fields, p0)))  # fmt: skip
     held_plain = _config.tuning_problems(held_out_config(cfg))[0]

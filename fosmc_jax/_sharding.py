@@ -183,7 +183,32 @@ def _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s,
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
 def _sharded(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys) -> Result:
-    options = dict(options)
+    return _split(mesh, plant_spec, x0_spec, dict(options), plants, controller, reference, X0s, dt, keys)
+
+
+def simulate_split(plants, controller, reference, X0s, dt, *, keys: Array | None = None, **options) -> Result:
+    """:func:`fosmc_jax.simulate_batch` with its rollouts split over this process's devices
+    when the initial states (O) or else the plants (P) divide evenly among them (the choice of
+    :func:`simulate_sharded`, which pads where neither does), and ``simulate_batch`` itself
+    otherwise. Traceable (inside ``jit`` and ``grad``, unlike
+    :func:`simulate_sharded`, which places concrete inputs): the tuner's loss runs on it.
+    Returns the same :class:`Result`, plant-major, (P*O*R, ...)."""
+    n = jax.local_device_count()
+    P, O = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0]
+    if n == 1 or (P % n and O % n):
+        return simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
+    mesh = Mesh(np.asarray(jax.local_devices()), (AXIS,))
+    plant_spec, x0_spec = (Spec(), Spec(AXIS)) if O % n == 0 else (Spec(AXIS), Spec())
+    if keys is None:
+        key = options.pop("key", None)
+        keys = (jax.random.PRNGKey(0) if key is None else key)[None]
+    r = _split(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys)
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), r)
+
+
+def _split(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys) -> Result:
+    """The rollouts under ``jax.shard_map``: each device runs ``simulate_batch`` on its plants or
+    initial states; results (P, O, R, ...), split on the axis that was."""
 
     def local(plants, controller, reference, X0s, dt, keys):
         p, o, r = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0], keys.shape[0]

@@ -49,6 +49,7 @@ import optax
 from ._controller import Controller
 from ._design import gain_from_poles, gamma_bounds
 from ._io import atomic_write
+from ._sharding import simulate_split
 from ._simulator import simulate_batch
 
 #: The FOSMC's tunable parameters (a kind's are ``SPACES[kind].names``).
@@ -262,16 +263,19 @@ class Problem(NamedTuple):
             params = self.base._replace(**p._asdict())
         return params if self.make is None else self.make(params)
 
-    def simulate(self, p: Params, **options):
-        return simulate_batch(self.plants, self.controller(p), self.reference, self.X0s, self.dt, keys=self.keys,
-                              **dict(self.options, **options))  # fmt: skip
+    def simulate(self, p: Params, split: bool = False, **options):
+        """The batch's rollouts with parameters ``p``; ``split``: over this process's devices
+        (:func:`fosmc_jax._sharding.simulate_split`, the tuner's loss)."""
+        run = simulate_split if split else simulate_batch
+        return run(self.plants, self.controller(p), self.reference, self.X0s, self.dt, keys=self.keys,
+                   **dict(self.options, **options))  # fmt: skip
 
 
 def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
 
     def loss(u: Params):
-        r = problem.simulate(to_physical(u, problem.base, floor), fast=False)
+        r = problem.simulate(to_physical(u, problem.base, floor), split=True, fast=False)
         J, e, c = rollout_costs(r.metrics, r.diverged, obj)
         return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
 

@@ -159,6 +159,16 @@ def test_use_all_cores_default_and_user_count(env, expected):
                 one = _tuning.evaluate(plain, jax.tree.map(lambda x: x[i], ps))
                 np.testing.assert_allclose(m["rms_error"][i], one["metrics"]["rms_error"], rtol=1e-12)
                 np.testing.assert_allclose(m["chattering_hf"][i], one["metrics"]["chattering_hf"], rtol=1e-12)
+            # the tuner's loss with its rollouts split over the devices: the same value and gradient
+            def value_and_grad(split):
+                def f(p):
+                    r = plain.simulate(p, split=split, fast=False)
+                    return jax.numpy.mean(r.metrics.rms_error) + jax.numpy.mean(r.metrics.chattering_hf)
+                return jax.jit(jax.value_and_grad(f))(p0)
+            (va, ga), (vb, gb) = value_and_grad(True), value_and_grad(False)
+            np.testing.assert_allclose(va, vb, rtol=1e-12)
+            for x, y in zip(ga, gb):
+                np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-300)
         print("devices", n)
         """
     )
