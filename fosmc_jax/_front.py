@@ -1,7 +1,7 @@
 """Pareto fronts of tracking error against chattering (``fosmc front``).
 
-A front is found in two or three stages, within a wall-time budget, over log10 factors z that scale
-the start's parameters per joint (:func:`from_factors`) within the box of the controller
+A front is found in three or four stages, within a wall-time budget, over log10 factors z
+that scale the start's parameters per joint (:func:`from_factors`) within the box of the controller
 kind's :class:`fosmc_jax._tuning.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
 gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
 10^[-2, 2], phi x 10^[-3, 2]; for super-twisting z (6,) scales k1 x 10^[-2, 2], k2 x 10^[-2, 3].
@@ -9,11 +9,15 @@ gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
 1. global: the start, a log grid of factors common to the joints (g per axis, g^k points for
    k parameters: the good controllers lie near this k-D family), and per-joint log-uniform
    draws for the rest (:func:`global_factors`);
-2. local: rounds of one chunk each; a round draws ``points`` parents at random from the
+2. CMA-ES: pycma runs from points along the global stage's front, each on the weighted log
+   objective at the front's slope there (:func:`cma_stage`), ``cma_share`` of the search:
+   CMA-ES adapts its steps to the problem's scaling and finds per-joint trade-offs that
+   random local steps miss (tuning/README.md);
+3. local: rounds of one chunk each; a round draws ``points`` parents at random from the
    non-dominated set of everything evaluated so far and perturbs a random subset of their
    factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
    sigma shrinking geometrically over the rounds (:func:`local_factors`);
-3. plain (with a training surrogate only): the points non-dominated on the training metrics
+4. plain (with a training surrogate only): the points non-dominated on the training metrics
    are re-evaluated on the plain problem, then ``polish_share`` of the search goes to local
    rounds on the plain problem from them, with smaller steps (``polish_sigma``): the
    surrogate ranks points like the plain problem but not to the last few percent of the
@@ -22,13 +26,13 @@ gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
 Every evaluation is a vmapped chunk split over the local devices. The front is the
 non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of
 plain metrics: without a training surrogate (``[tune] train_t_final``, ``train_dt``) the
-training metrics are the plain ones; with one, only the plain metrics of stage 3 count.
+training metrics are the plain ones; with one, only the plain metrics of stage 4 count.
 The stage sizes are set once from the budget and the measured cost of one chunk (or given:
-then no plain rounds unless ``polish``), and stored in the checkpoint, so a resumed run ends
-where an uninterrupted one does. When the rounds come from
-the budget they also stop once the search's share of it is spent (a cheap problem's rounds
-cost more than its chunks, a loaded machine's chunks more than the probe's); ``stages``
-records the rounds run.
+then no CMA-ES or plain rounds unless ``cma``, ``polish``), and stored in the checkpoint, so
+a resumed run ends where an uninterrupted one does (a run killed inside the CMA-ES stage
+resumes at its start). When the rounds come from the budget they also stop once the
+search's share of it is spent (a cheap problem's rounds cost more than its chunks, a loaded
+machine's chunks more than the probe's); ``stages`` records the rounds run.
 """
 
 from __future__ import annotations
@@ -289,7 +293,7 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
     each generation of every run is one vmapped evaluation. Returns (z, m) with every point
     evaluated appended and the generations run (fewer than ``generations`` when the
     ``deadline`` passes or every run has stopped)."""
-    import cma
+    import cma  # here, not at the top: importing pycma takes 1-2 s
 
     space = T.space_of(p0)
     lo, hi = space.bounds()
@@ -301,7 +305,8 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
     for g in range(generations):
         live = [k for k, es in enumerate(runs) if not es.stop()]
         if not live or (deadline is not None and time.perf_counter() > deadline):
-            log(f"front: CMA-ES stopped after {g} of {generations} generations")
+            why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
+            log(f"front: CMA-ES stopped after {g} of {generations} generations: {why}")
             return z, m, g
         X = [np.asarray(runs[k].ask()) for k in live]
         mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
@@ -445,7 +450,7 @@ def run(
     params = from_factors(p0, zp[keep])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
-              "cma_generations": generations, "cma_runs": settings.cma_starts if generations else 0,
+              "cma_generations": generations,
               "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
               "from_local": int(np.sum(idx[keep] >= n_cand)),

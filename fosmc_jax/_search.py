@@ -1,5 +1,5 @@
 """Derivative-free baselines for the front, at a wall-time budget: a log grid, random search
-and CMA-ES (pycma, the reference implementation, optional extra ``studies``).
+and CMA-ES (pycma, the reference implementation).
 
 They search the same space as :mod:`fosmc_jax._front` (the parameters of p0's controller kind,
 e.g. the FOSMC's delta, gamma and poles, as per-joint log factors of a start p0 in the kind's
@@ -55,10 +55,7 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
     """Minimise ``objective`` (a batch (n, d) -> (n,), one vmapped call per generation) with
     pycma's CMA-ES from ``x0`` until the wall-time ``budget`` (s) is spent; returns (best x,
     best value, every x evaluated, their values)."""
-    try:
-        import cma
-    except ModuleNotFoundError:  # pragma: no cover - the optional extra
-        raise ModuleNotFoundError("cma_es needs pycma: pip install 'fosmc_jax[studies]' (or pip install cma)") from None
+    import cma  # here, not at the top: importing pycma takes 1-2 s
     opts = {"popsize": popsize, "seed": seed + 1, "verbose": -9}
     if lower is not None:
         opts["bounds"] = [list(lower), list(upper)]

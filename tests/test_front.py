@@ -62,22 +62,29 @@ def test_point_resimulates_to_the_stored_metrics(study, tmp_path, capsys):
     assert "--point" in capsys.readouterr()[1]
 
 
-def test_resume_ends_where_an_uninterrupted_run_does(tmp_path):
+@pytest.mark.parametrize("kill_at", ["front: CMA-ES generation 2/", "front: local round 2/"])
+def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, kill_at):
+    """Killed inside the CMA-ES stage (which resumes at its start) or in the local rounds."""
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
-    whole = F.run(train, plain, p0, SETTINGS, log=lambda _: None)
+    settings = SETTINGS._replace(cma=2)
+    whole = F.run(train, plain, p0, settings, log=lambda _: None)
+    st = whole["stages"]
+    cma_evaluations = st["evaluations"] - 16 - 3 * 8  # but the global stage's and the local rounds'
+    assert st["cma_generations"] == 2 and cma_evaluations in (2 * 8 * k for k in range(1, 5))  # 1-4 runs
 
     class Crash(Exception):
         pass
 
-    def crash_at_step_2(msg):
-        if msg.startswith("front: local round 2/"):
+    def crash(msg):
+        if msg.startswith(kill_at):
             raise Crash
 
     checkpoint = tmp_path / "checkpoint.npz"
     with pytest.raises(Crash):
-        F.run(train, plain, p0, SETTINGS, checkpoint=checkpoint, log=crash_at_step_2)
-    resumed = F.run(train, plain, p0, SETTINGS, checkpoint=checkpoint, resume=True, log=lambda _: None)
+        F.run(train, plain, p0, settings, checkpoint=checkpoint, log=crash)
+    resumed = F.run(train, plain, p0, settings, checkpoint=checkpoint, resume=True, log=lambda _: None)
+    assert resumed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
     assert len(resumed["points"]) == len(whole["points"])
     for a, b in zip(resumed["points"], whole["points"]):
         for k in a["params"]:

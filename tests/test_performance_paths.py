@@ -148,27 +148,6 @@ def test_use_all_cores_default_and_user_count(env, expected):
         a = simulate_sharded(*args, 1e-3, devices=n, n_steps=200, integrator="euler")
         t.assert_close(a, fj.simulate_batch(*args, 1e-3, n_steps=200, integrator="euler"), rtol=1e-12)
         assert len(a.metrics.rms_error.sharding.device_set) == n
-        if n > 1:  # the front's chunks split over the devices: each candidate as evaluated alone
-            from fosmc_jax import _config, _front, _tuning
-            cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 2},
-                                   "sim": {"t_final": 0.1, "dt": 2e-3, "integrator": "euler"}})
-            plain, _, p0 = _config.tuning_problems(cfg)
-            ps = _front.sample_candidates(p0, 5, seed=0)  # 5: a chunk padded to the devices
-            m = _front.evaluate_many(plain, ps, 3)
-            for i in range(5):
-                one = _tuning.evaluate(plain, jax.tree.map(lambda x: x[i], ps))
-                np.testing.assert_allclose(m["rms_error"][i], one["metrics"]["rms_error"], rtol=1e-12)
-                np.testing.assert_allclose(m["chattering_hf"][i], one["metrics"]["chattering_hf"], rtol=1e-12)
-            # the tuner's loss with its rollouts split over the devices: the same value and gradient
-            def value_and_grad(split):
-                def f(p):
-                    r = plain.simulate(p, split=split, fast=False)
-                    return jax.numpy.mean(r.metrics.rms_error) + jax.numpy.mean(r.metrics.chattering_hf)
-                return jax.jit(jax.value_and_grad(f))(p0)
-            (va, ga), (vb, gb) = value_and_grad(True), value_and_grad(False)
-            np.testing.assert_allclose(va, vb, rtol=1e-12)
-            for x, y in zip(ga, gb):
-                np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-300)
         print("devices", n)
         """
     )
@@ -176,3 +155,45 @@ def test_use_all_cores_default_and_user_count(env, expected):
     env = dict(base, **env, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")]))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith(f"devices {expected}"), out.stderr[-3000:]
+
+
+@pytest.mark.slow  # a subprocess compiling a chunk evaluator and two gradients (~25 s)
+def test_tuners_split_over_the_devices_as_on_one():
+    """The front's chunks split over two devices equal each candidate evaluated alone, and the
+    tuner's loss with its rollouts split (simulate_split) has one device's value and gradient."""
+    code = textwrap.dedent(
+        """
+        from fosmc_jax._sharding import use_host_devices
+        use_host_devices(2)
+        import jax, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        assert jax.device_count() == 2
+        from fosmc_jax import _config, _front, _tuning
+        cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 2},
+                               "sim": {"t_final": 0.1, "dt": 2e-3, "integrator": "euler"}})
+        plain, _, p0 = _config.tuning_problems(cfg)
+        ps = _front.sample_candidates(p0, 5, seed=0)  # 5: a chunk padded to the devices
+        m = _front.evaluate_many(plain, ps, 3)
+        for i in range(5):
+            one = _tuning.evaluate(plain, jax.tree.map(lambda x: x[i], ps))
+            np.testing.assert_allclose(m["rms_error"][i], one["metrics"]["rms_error"], rtol=1e-12)
+            np.testing.assert_allclose(m["chattering_hf"][i], one["metrics"]["chattering_hf"], rtol=1e-12)
+        # the tuner's loss with its rollouts split over the devices: the same value and gradient
+        def value_and_grad(split):
+            def f(p):
+                r = plain.simulate(p, split=split, fast=False)
+                return jax.numpy.mean(r.metrics.rms_error) + jax.numpy.mean(r.metrics.chattering_hf)
+            return jax.jit(jax.value_and_grad(f))(p0), str(jax.make_jaxpr(f)(p0))
+        ((va, ga), split), ((vb, gb), whole) = value_and_grad(True), value_and_grad(False)
+        assert "shard_map" in split and "shard_map" not in whole  # the 2 plants: one per device
+        np.testing.assert_allclose(va, vb, rtol=1e-12)
+        for x, y in zip(ga, gb):
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-300)
+        print("ok")
+        """
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")]))
+    env.pop("XLA_FLAGS", None)
+    env.pop("JAX_NUM_CPU_DEVICES", None)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
