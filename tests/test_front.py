@@ -197,15 +197,17 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
 
 @pytest.mark.slow  # a second front study with its own compilations (~8 s), run three times
 def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
-    """The training front's points re-evaluated, then plain rounds from them: every point
-    holds its plain metrics, and a run killed in the plain rounds resumes to the same front."""
+    """The training front's points re-evaluated, then CMA-ES on the plain problem from them:
+    every point holds its plain metrics, and a run killed in the plain CMA-ES resumes to the
+    same front."""
     cfg = _config.resolve(dict(TINY, tune={"train_t_final": 0.1}))
     plain, train, p0 = _config.tuning_problems(cfg)
     assert train.options["n_steps"] < plain.options["n_steps"]
     settings = SETTINGS._replace(polish=3)
     res = F.run(train, plain, p0, settings, log=lambda _: None)
     st = res["stages"]
-    assert st["plain_rounds"] == 3 and st["plain_evaluations"] > 3 * settings.chunk
+    assert st["plain_cma_generations"] == 3 and st["plain_evaluations"] >= 3 * settings.chunk
+    assert st["from_plain_cma"] >= 1
     from fosmc_jax import _tuning as T
 
     for pt in res["points"]:
@@ -217,7 +219,7 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
         pass
 
     def crash(msg):
-        if msg.startswith("front: plain round 2/"):
+        if msg.startswith("front: plain CMA-ES generation 2/"):
             raise Crash
 
     with pytest.raises(Crash):
@@ -227,6 +229,18 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
     for a, b in zip(resumed["points"], res["points"], strict=True):
         np.testing.assert_allclose(a["metrics"]["rms_error"], b["metrics"]["rms_error"], rtol=1e-12)
         np.testing.assert_allclose(a["params"]["delta"], b["params"]["delta"], rtol=1e-12)
+
+
+def test_epsilon_indicator_by_hand():
+    """I(A, B): the factor by which A must shrink, in both metrics, to weakly dominate B."""
+    a = (np.array([1.0, 4.0]), np.array([4.0, 1.0]))
+    assert F.epsilon(a, a) == 1.0
+    assert F.epsilon(a, (np.array([2.0, 8.0]), np.array([8.0, 2.0]))) == 0.5  # B is A doubled
+    # a point in A's gap: (2, 2) needs A's (1, 4) shrunk by 2 (or (4, 1) by 2)
+    assert F.epsilon(a, (np.array([2.0]), np.array([2.0]))) == 2.0
+    # B beats A's second point by 10% in error only: A's best cover of it is 4 / 3.6
+    assert np.isclose(F.epsilon(a, (np.array([3.6]), np.array([1.0]))), 4 / 3.6)
+    assert F.epsilon((np.array([3.6]), np.array([1.0])), a) == 3.6  # covering (1, 4) takes (3.6, 1) / 3.6
 
 
 def test_nondominated_equals_the_pairwise_definition():

@@ -74,6 +74,8 @@ def main(argv=None) -> None:
                     help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     ap.add_argument("--check", action="store_true",
                     help="only the cost and surrogate check (check_costs), then exit")  # fmt: skip
+    ap.add_argument("--epsilon", nargs="+", metavar="FRONTIER_JSON",
+                    help="only compare the front of these studies with each baseline (compare_study), then exit")  # fmt: skip
     ap.add_argument("--score", nargs="+", metavar="FRONT_JSON",
                     help="only score these front.json files (score_fronts), then exit")  # fmt: skip
     ap.add_argument("--dominance-check", metavar="FRONTIER_JSON",
@@ -82,6 +84,10 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     if args.score:
         return score_fronts(args.score)
+    if args.epsilon:
+        for path in args.epsilon:
+            compare_study(path)
+        return
     if args.dominance_check:
         return dominance_check(args.dominance_check)
     if not args.config or not (args.name or args.check):
@@ -146,8 +152,10 @@ def main(argv=None) -> None:
                          for i in range(len(fe)))  # fmt: skip
         m["hypervolume"] = hypervolume(e, c, ref_point)
         m["front_points_dominated"] = dominating if label != "fosmc front" else 0
+        m["beats_front_by"], m["front_beats_it_by"] = F.epsilon((fe, fc), (e, c)), F.epsilon((e, c), (fe, fc))
         summary.append((label, m["wall_s"], m["evaluations"], len(m["points"]), m["hypervolume"],
-                        m["front_points_dominated"], e.min(), c.min(), m["load"]))  # fmt: skip
+                        m["front_points_dominated"], m["beats_front_by"], m["front_beats_it_by"],
+                        e.min(), c.min(), m["load"]))  # fmt: skip
     dominated_refs = {k: bool(np.any((fe <= np.mean(v["metrics"]["rms_error"])) & (fc <= np.mean(v["metrics"]["chattering_hf"]))
                                      & ((fe < np.mean(v["metrics"]["rms_error"])) | (fc < np.mean(v["metrics"]["chattering_hf"])))))
                       for k, v in refs.items()}  # fmt: skip
@@ -161,12 +169,15 @@ def main(argv=None) -> None:
              f"machine (`.venv/bin/python tuning/frontier.py --config {args.config} --budget {args.budget:.0f} "
              f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
              f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
+             "Epsilon: the multiplicative epsilon indicator (`fosmc_jax._front.epsilon`), the largest "
+             "factor by which one set beats the other anywhere (1: nowhere).",
              "", "| method | wall s | load (1-min, start/end) | evaluations | front points | hypervolume | "
-             "`fosmc front` points it dominates | best rms_error (rad) | lowest chattering_hf (V) |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
-    for label, wall, n, k, hv, dom, emin, cmin, ld in summary:
-        lines.append(f"| {label} | {wall:.0f} | {ld[0]:.1f} / {ld[1]:.1f} | {n} | {k} | {hv:.3f} | {dom} | {emin:.3g} "
-                     f"| {cmin:.3g} |")  # fmt: skip
+             "`fosmc front` points it dominates | epsilon: it beats the front by | epsilon: the front beats it by | "
+             "best rms_error (rad) | lowest chattering_hf (V) |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for label, wall, n, k, hv, dom, eps_f, eps_b, emin, cmin, ld in summary:
+        lines.append(f"| {label} | {wall:.0f} | {ld[0]:.1f} / {ld[1]:.1f} | {n} | {k} | {hv:.3f} | {dom} | {eps_f:.3f} "
+                     f"| {eps_b:.3f} | {emin:.3g} | {cmin:.3g} |")  # fmt: skip
     lines += ["", f"CMA-ES weights (the front's slopes): {np.round(weights, 2).tolist()}.",
               "", "`fosmc front` dominates: " + ", ".join(f"{k}: {'yes' if v else 'no'}" for k, v in dominated_refs.items()) + ".",
               "", "Held-out batch " + json.dumps(front["held_out_batch"]) + ": ratio held-out / training, per front "
@@ -185,6 +196,19 @@ def reference_point(refs: dict) -> tuple[float, float]:
         [[np.mean(v["metrics"]["rms_error"]), np.mean(v["metrics"]["chattering_hf"])] for v in refs.values()]
     )
     return float(np.log10(pts[:, 1].max()) + 0.5), float(np.log10(pts[:, 0].max()) + 0.5)
+
+
+def compare_study(path: str) -> None:
+    """Print, for a study's result (``frontier_<name>.json``), each baseline's count of front
+    points it dominates and the epsilon indicator both ways (:func:`fosmc_jax._front.epsilon`)."""
+    study = json.loads(pathlib.Path(path).read_text())
+    sets = {label: axes_of({k: np.array([p["metrics"][k] for p in m["points"]]) for k in ("rms_error", "chattering_hf")})
+            for label, m in study["methods"].items()}  # fmt: skip
+    fe, fc = sets.pop("fosmc front")
+    for label, (e, c) in sets.items():
+        dom = sum(bool(np.any((e <= fe[i]) & (c <= fc[i]) & ((e < fe[i]) | (c < fc[i])))) for i in range(len(fe)))
+        print(f"{path}: {label} dominates {dom} of {len(fe)} front points; it beats the front by at most "
+              f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x")
 
 
 def score_fronts(paths: list[str]) -> None:
