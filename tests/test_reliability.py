@@ -74,7 +74,10 @@ def test_tune_killed_with_sigkill_resumes_to_the_uninterrupted_result(tmp_path, 
     capsys.readouterr()
 
     cmd = [sys.executable, "-m", "fosmc_jax._cli", "tune", "--config", str(config), "--out", str(killed)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # one device, as in this process: the loss sums its rollouts split over the devices, so the
+    # last bits of a step depend on their count (the CLI uses every core by default)
+    env = dict(os.environ, JAX_NUM_CPU_DEVICES="1")
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 240
     try:
         for line in proc.stderr:  # progress lines; kill mid-run, after some checkpoints
