@@ -31,9 +31,10 @@ training metrics are the plain ones; with one, only the plain metrics of stage 4
 The stage sizes are set once from the budget and the measured cost of one chunk (or given:
 then no CMA-ES stages unless ``cma``, ``polish``), and stored in the checkpoint, so
 a resumed run ends where an uninterrupted one does (a run killed inside a CMA-ES stage
-resumes at its start). When the rounds come from the budget they also stop once the
-search's share of it is spent (a cheap problem's rounds cost more than its chunks, a loaded
-machine's chunks more than the probe's); ``stages`` records the rounds run.
+resumes at its start). When the sizes come from the budget, every stage also stops once its
+share of the budget is spent (a cheap problem's rounds cost more than its chunks, a loaded
+machine's chunks more than the probe's), and ``stages`` records what ran; a resumed run
+then runs the sizes the first run planned, without its deadlines, which it cannot know.
 """
 
 from __future__ import annotations
@@ -362,11 +363,11 @@ def run(
         state, leaves = T._load(checkpoint)
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     surrogate = not _same_simulation(train, plain)
-    n_cand, rounds = state.get("candidates") or settings.candidates, state.get("steps") or settings.steps
+    n_cand, rounds = (state["candidates"], state["steps"]) if state else (settings.candidates, settings.steps)
     polish = state.get("polish", settings.polish) if surrogate else 0
     generations = state.get("cma_generations", settings.cma)
     deadline = polish_deadline = cma_deadline = None  # with sizes from the budget, stages also stop when it is spent
-    if not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
+    if not state and not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
         probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
         t = time.perf_counter()
         evaluate_many(train, probe, settings.chunk, log=lambda _: None)
@@ -376,9 +377,10 @@ def run(
         chunk_s = time.perf_counter() - t
         compile_s -= chunk_s
         ratio = plain.options["n_steps"] / train.options["n_steps"]  # plain / training cost of a chunk
+        plain_compile = ratio * compile_s if surrogate else 0.0  # the plain re-evaluation compiles first
         search_s = settings.budget - (time.perf_counter() - t0) - reserve[0] * compile_s - reserve[1] * settings.budget
+        search_s = max(0.0, search_s - plain_compile)
         final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
-        search_s -= ratio * compile_s if surrogate else 0.0
         if surrogate and not settings.polish:
             polish = int(settings.polish_share * search_s / (ratio * chunk_s * settings.cma_starts))
         if not settings.cma:
@@ -387,8 +389,9 @@ def run(
         n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final,
                                      polish_s / chunk_s + generations * settings.cma_starts)  # fmt: skip
         if not settings.steps:
-            polish_deadline = time.perf_counter() + search_s
-            deadline = polish_deadline - polish_s - final * chunk_s
+            end = time.perf_counter() + search_s
+            polish_deadline = end + plain_compile
+            deadline = end - polish_s - final * chunk_s
             cma_deadline = deadline - rounds * chunk_s
         log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
             f"{n_cand} global candidates, {generations} CMA-ES generations of {settings.cma_starts} runs, {rounds} "
@@ -410,18 +413,20 @@ def run(
             stage = "polish" if plain else "local" if r else "cma" if cma_done else "global"
             header = {"stage": stage, "round": r,
                       "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m),
-                      "cma_generations": generations, "cma_done": cma_done, "polish_done": polish_done}  # fmt: skip
+                      "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma,
+                      "polish_done": polish_done}  # fmt: skip
             plain_leaves = [plain[0], *plain[1].values()] if plain else []
             T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
 
     cma_done, polish_done = state.get("cma_done", False), state.get("polish_done", False)
+    n_cma = state.get("cma_end", n_cand)  # evaluations up to the end of the CMA-ES stage
     if r0 == 0:
         if not cma_done:
             save(0, z, m)
             log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
         if generations and not cma_done:  # a kill inside this stage resumes at its start
             z, m, generations = cma_stage(train, p0, z, m, settings, generations, cma_deadline, log)
-            cma_done = True
+            cma_done, n_cma = True, len(z)
             save(0, z, m)
 
     if state.get("stage") != "polish":  # the local rounds r0..rounds-1
@@ -465,7 +470,8 @@ def run(
               "cma_generations": generations,
               "local_rounds": rounds, "plain_cma_generations": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
-              "from_local": int(np.sum(idx[keep] >= n_cand)),
+              "from_cma": int(np.sum((idx[keep] >= n_cand) & (idx[keep] < n_cma))),
+              "from_local": int(np.sum(idx[keep] >= n_cma)),
               "from_plain_cma": int(np.sum(idx[keep] < 0))}  # fmt: skip
     return {"axes": list(AXES), "points": points, "stages": stages}
 

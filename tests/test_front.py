@@ -206,8 +206,7 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
     settings = SETTINGS._replace(polish=3)
     res = F.run(train, plain, p0, settings, log=lambda _: None)
     st = res["stages"]
-    assert st["plain_cma_generations"] == 3 and st["plain_evaluations"] >= 3 * settings.chunk
-    assert st["from_plain_cma"] >= 1
+    assert st["plain_cma_generations"] == 3 and st["from_plain_cma"] >= 1
     from fosmc_jax import _tuning as T
 
     for pt in res["points"]:
@@ -270,4 +269,5 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
     r = F.run(train, plain, p0, F.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None)
     assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16
+    assert r["stages"]["cma_generations"] == 0  # a spent budget leaves no stage a negative size
     assert len(r["points"]) >= 1
