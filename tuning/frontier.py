@@ -6,8 +6,9 @@ included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
 and a log grid over the same search space (:mod:`fosmc_jax._search`). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
-reference point (beyond the worst of Table 1's sets and SGN), and how many of the
-front's points some baseline point dominates. The front's held-out evaluation (fresh payloads
+reference point (beyond the worst of Table 1's sets and SGN), how many of the
+front's points some baseline point dominates, and the epsilon indicator both ways (by how
+much, at most, one set beats the other: :func:`fosmc_jax._front.epsilon`). The front's held-out evaluation (fresh payloads
 or box samples, fresh noise seeds) is reported beside its training metrics.
 
     .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic
@@ -47,6 +48,23 @@ def log(msg: str) -> None:
 
 def axes_of(metrics: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.mean(metrics["rms_error"], axis=-1), np.mean(metrics["chattering_hf"], axis=-1)
+
+
+def axes_of_points(points: list[dict], key: str = "metrics") -> tuple[np.ndarray, np.ndarray]:
+    """Mean rms_error and chattering_hf of JSON front points (their ``key`` metrics)."""
+    return tuple(np.array([np.mean(p[key][k]) for p in points]) for k in ("rms_error", "chattering_hf"))
+
+
+def dominated_pairs(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> list[tuple[int, int]]:
+    """(i, j) for every point i of b = (errors, chatterings) that some point of a dominates, j
+    the one of lowest error among them."""
+    (ae, ac), (be, bc) = a, b
+    pairs = []
+    for i in range(len(be)):
+        dom = np.flatnonzero((ae <= be[i]) & (ac <= bc[i]) & ((ae < be[i]) | (ac < bc[i])))
+        if len(dom):
+            pairs.append((i, int(dom[np.argmin(ae[dom])])))
+    return pairs
 
 
 def hypervolume(e: np.ndarray, c: np.ndarray, ref: tuple[float, float]) -> float:
@@ -91,7 +109,8 @@ def main(argv=None) -> None:
     if args.dominance_check:
         return dominance_check(args.dominance_check)
     if not args.config or not (args.name or args.check):
-        ap.error("--config and --name are required (but with --score; --check needs no --name)")
+        ap.error("--config and --name are required (but with --score, --epsilon, --dominance-check; --check needs "
+                 "no --name)")
     cfg = _config.load(args.config)
     if args.check:
         return check_costs(cfg)
@@ -142,14 +161,11 @@ def main(argv=None) -> None:
 
     refs = front["references"]
     ref_point = reference_point(refs)
-    fe = np.array([np.mean(p["metrics"]["rms_error"]) for p in front["points"]])
-    fc = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in front["points"]])
+    fe, fc = axes_of_points(front["points"])
     summary = []
     for label, m in out["methods"].items():
-        e = np.array([np.mean(p["metrics"]["rms_error"]) for p in m["points"]])
-        c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in m["points"]])
-        dominating = sum(bool(np.any((e <= fe[i]) & (c <= fc[i]) & ((e < fe[i]) | (c < fc[i]))))
-                         for i in range(len(fe)))  # fmt: skip
+        e, c = axes_of_points(m["points"])
+        dominating = len(dominated_pairs((e, c), (fe, fc)))
         m["hypervolume"] = hypervolume(e, c, ref_point)
         m["front_points_dominated"] = dominating if label != "fosmc front" else 0
         m["beats_front_by"], m["front_beats_it_by"] = F.epsilon((fe, fc), (e, c)), F.epsilon((e, c), (fe, fc))
@@ -159,8 +175,8 @@ def main(argv=None) -> None:
     dominated_refs = {k: bool(np.any((fe <= np.mean(v["metrics"]["rms_error"])) & (fc <= np.mean(v["metrics"]["chattering_hf"]))
                                      & ((fe < np.mean(v["metrics"]["rms_error"])) | (fc < np.mean(v["metrics"]["chattering_hf"])))))
                       for k, v in refs.items()}  # fmt: skip
-    held = [(np.mean(p["held_out"]["rms_error"]) / np.mean(p["metrics"]["rms_error"]),
-             np.mean(p["held_out"]["chattering_hf"]) / np.mean(p["metrics"]["chattering_hf"])) for p in front["points"]]  # fmt: skip
+    he, hc = axes_of_points(front["points"], "held_out")
+    held = list(zip((he / fe).tolist(), (hc / fc).tolist()))
     out.update(reference_point_log10=ref_point, references=refs, references_dominated_by_front=dominated_refs,
                held_out_ratios=held, held_out_batch=front["held_out_batch"])  # fmt: skip
 
@@ -170,7 +186,7 @@ def main(argv=None) -> None:
              f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
              f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
              "Epsilon: the multiplicative epsilon indicator (`fosmc_jax._front.epsilon`), the largest "
-             "factor by which one set beats the other anywhere (1: nowhere).",
+             "factor by which one set beats the other anywhere (1 or less: nowhere).",
              "", "| method | wall s | load (1-min, start/end) | evaluations | front points | hypervolume | "
              "`fosmc front` points it dominates | epsilon: it beats the front by | epsilon: the front beats it by | "
              "best rms_error (rad) | lowest chattering_hf (V) |",
@@ -202,11 +218,10 @@ def compare_study(path: str) -> None:
     """Print, for a study's result (``frontier_<name>.json``), each baseline's count of front
     points it dominates and the epsilon indicator both ways (:func:`fosmc_jax._front.epsilon`)."""
     study = json.loads(pathlib.Path(path).read_text())
-    sets = {label: axes_of({k: np.array([p["metrics"][k] for p in m["points"]]) for k in ("rms_error", "chattering_hf")})
-            for label, m in study["methods"].items()}  # fmt: skip
+    sets = {label: axes_of_points(m["points"]) for label, m in study["methods"].items()}
     fe, fc = sets.pop("fosmc front")
     for label, (e, c) in sets.items():
-        dom = sum(bool(np.any((e <= fe[i]) & (c <= fc[i]) & ((e < fe[i]) | (c < fc[i])))) for i in range(len(fe)))
+        dom = len(dominated_pairs((e, c), (fe, fc)))
         print(f"{path}: {label} dominates {dom} of {len(fe)} front points; it beats the front by at most "
               f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x")
 
@@ -217,9 +232,7 @@ def score_fronts(paths: list[str]) -> None:
     0.01 and 0.001 rad."""
     for path in paths:
         front = json.loads(pathlib.Path(path).read_text())
-        e, c = axes_of(
-            {k: np.array([p["metrics"][k] for p in front["points"]]) for k in ("rms_error", "chattering_hf")}
-        )
+        e, c = axes_of_points(front["points"])
         low = ["-" if not np.any(e <= t) else f"{c[e <= t].min():.3g}" for t in (0.1, 0.01, 0.001)]
         print(f"{path}: {front['stages'].get('evaluations', front['stages'].get('candidates'))} evaluations, "
               f"{len(e)} points, hypervolume {hypervolume(e, c, reference_point(front['references'])):.2f}, best "
@@ -235,13 +248,8 @@ def dominance_check(path: str) -> None:
     study = json.loads(pathlib.Path(path).read_text())
     plain, train, p0 = _config.tuning_problems(_config.load(study["config"]))
     points = [study["methods"][k]["points"] for k in ("fosmc front", "CMA-ES (pycma)")]
-    (fe, fc), (ce, cc) = (axes_of({k: np.array([p["metrics"][k] for p in pts]) for k in ("rms_error", "chattering_hf")})
-                          for pts in points)  # fmt: skip
-    pairs = []
-    for i in range(len(fe)):
-        dom = np.flatnonzero((ce <= fe[i]) & (cc <= fc[i]) & ((ce < fe[i]) | (cc < fc[i])))
-        if len(dom):
-            pairs.append((i, dom[np.argmin(ce[dom])]))
+    (fe, fc), (ce, cc) = (axes_of_points(pts) for pts in points)
+    pairs = dominated_pairs((ce, cc), (fe, fc))
     if not pairs:
         return print(f"{path}: no front point is dominated by a CMA-ES point")
     as_params = lambda pts: type(p0)(*(np.array([p["params"][k] for p in pts]) for k in p0._fields))
