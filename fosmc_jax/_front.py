@@ -18,19 +18,18 @@ gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
    factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
    sigma shrinking geometrically over the rounds (:func:`local_factors`);
 4. plain (with a training surrogate only): the points non-dominated on the training metrics
-   are re-evaluated on the plain problem, then ``polish_share`` of the search goes to CMA-ES
-   runs on the plain problem from points along that front at its slopes, started with small
-   steps (``polish_sigma``): the surrogate ranks points like the plain problem but not to
-   the last few percent of the trade-off, and CMA-ES converges on the plain problem's
-   trade-off where local random steps did not (tuning/README.md).
+   are re-evaluated on the plain problem, then ``polish_share`` of the search goes to local
+   rounds on the plain problem from them, with smaller steps (``polish_sigma``): the
+   surrogate ranks points like the plain problem but not to the last few percent of the
+   trade-off (tuning/README.md).
 
 Every evaluation is a vmapped chunk split over the local devices. The front is the
 non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of
 plain metrics: without a training surrogate (``[tune] train_t_final``, ``train_dt``) the
 training metrics are the plain ones; with one, only the plain metrics of stage 4 count.
 The stage sizes are set once from the budget and the measured cost of one chunk (or given:
-then no CMA-ES stages unless ``cma``, ``polish``), and stored in the checkpoint, so
-a resumed run ends where an uninterrupted one does (a run killed inside a CMA-ES stage
+then no CMA-ES or plain rounds unless ``cma``, ``polish``), and stored in the checkpoint, so
+a resumed run ends where an uninterrupted one does (a run killed inside the CMA-ES stage
 resumes at its start). When the sizes come from the budget, every stage also stops once its
 share of the budget is spent (a cheap problem's rounds cost more than its chunks, a loaded
 machine's chunks more than the probe's), and ``stages`` records what ran; a resumed run
@@ -86,13 +85,11 @@ class Settings(NamedTuple):
     cma_share: float = 0.4
     cma_starts: int = 4
     cma_sigma: float = 0.1  # the first step, in shares of each range
-    # with a training surrogate: after the training's front is re-evaluated on the plain problem,
-    # cma_starts CMA-ES runs on the plain problem from points along that front at its slopes,
-    # started with steps polish_sigma of each range; generations (0: from the budget,
-    # polish_share of the search time; given sizes: none)
+    # with a training surrogate: rounds on the plain problem after the training's front is
+    # re-evaluated (0: from the budget, polish_share of the search time; given sizes: none)
     polish: int = 0
     polish_share: float = 0.25
-    polish_sigma: float = 0.01
+    polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
 
 
 def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -300,13 +297,12 @@ def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunk
 
 
 def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings: Settings, generations: int,
-              deadline: float | None, log: Callable[[str], None], *, sigma: float | None = None,
-              what: str = "CMA-ES") -> tuple[np.ndarray, dict, int]:  # fmt: skip
+              deadline: float | None, log: Callable[[str], None]) -> tuple[np.ndarray, dict, int]:  # fmt: skip
     """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
     spread along the front of the evaluated (z, m) (:func:`pick_starts`), run k minimising
     log E + w_k log C at the front's slope w_k there (the objective of the CMA-ES baseline,
-    :func:`fosmc_jax._search.cma_front`), steps ``sigma`` (default ``cma_sigma``) of each range,
-    within the box; each generation of every run is one vmapped evaluation. Returns (z, m) with every point
+    :func:`fosmc_jax._search.cma_front`), steps ``cma_sigma`` of each range, within the box;
+    each generation of every run is one vmapped evaluation. Returns (z, m) with every point
     evaluated appended and the generations run (fewer than ``generations`` when the
     ``deadline`` passes or every run has stopped)."""
     import cma  # here, not at the top: importing pycma takes 1-2 s
@@ -314,17 +310,15 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
     space = T.space_of(p0)
     lo, hi = space.bounds()
     starts, slopes = pick_starts(m, settings.cma_starts)
-    seed = settings.seed * 1_000_003 + (700_000 if sigma is None else 800_000)
-    opts = lambda k: {"popsize": settings.chunk, "seed": seed + k + 1, "verbose": -9,
+    opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1, "verbose": -9,
                       "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo)}  # fmt: skip
-    sigma = settings.cma_sigma if sigma is None else sigma
-    runs = [cma.CMAEvolutionStrategy(z[i], sigma, opts(k)) for k, i in enumerate(starts)]
+    runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
     t0 = time.perf_counter()
     for g in range(generations):
         live = [k for k, es in enumerate(runs) if not es.stop()]
         if not live or (deadline is not None and time.perf_counter() > deadline):
             why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
-            log(f"front: {what} stopped after {g} of {generations} generations: {why}")
+            log(f"front: CMA-ES stopped after {g} of {generations} generations: {why}")
             return z, m, g
         X = [np.asarray(runs[k].ask()) for k in live]
         mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
@@ -334,7 +328,7 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
         for k, x, fk in zip(live, X, f):
             runs[k].tell(list(x), list(fk))
         z, m = np.concatenate([z, *X]), {k: np.concatenate([m[k], mr[k]]) for k in m}
-        log(f"front: {what} generation {g + 1}/{generations}  best {np.round(f.min(axis=1), 3).tolist()}  "
+        log(f"front: CMA-ES generation {g + 1}/{generations}  best {np.round(f.min(axis=1), 3).tolist()}  "
             f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
     return z, m, generations
 
@@ -382,10 +376,10 @@ def run(
         search_s = max(0.0, search_s - plain_compile)
         final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
         if surrogate and not settings.polish:
-            polish = int(settings.polish_share * search_s / (ratio * chunk_s * settings.cma_starts))
+            polish = int(settings.polish_share * search_s / (ratio * chunk_s))
         if not settings.cma:
             generations = int(settings.cma_share * search_s / (chunk_s * settings.cma_starts))
-        polish_s = polish * settings.cma_starts * ratio * chunk_s
+        polish_s = polish * ratio * chunk_s
         n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final,
                                      polish_s / chunk_s + generations * settings.cma_starts)  # fmt: skip
         if not settings.steps:
@@ -395,7 +389,7 @@ def run(
             cma_deadline = deadline - rounds * chunk_s
         log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
             f"{n_cand} global candidates, {generations} CMA-ES generations of {settings.cma_starts} runs, {rounds} "
-            f"local rounds, {polish} plain CMA-ES generations")  # fmt: skip
+            f"local rounds, {polish} plain rounds")  # fmt: skip
 
     if "round" in state:
         keys = state["keys"]
@@ -406,19 +400,18 @@ def run(
         m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
         r0 = 0
 
-    def save(r: int, z: np.ndarray, m: dict, plain: tuple = ()) -> None:
-        """Checkpoint the training evaluations (z, m) after local round r, and with ``plain`` = (zp,
-        mp) the plain ones after the re-evaluation (polish_done: after the plain CMA-ES too)."""
+    def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
         if checkpoint is not None:
-            stage = "polish" if plain else "local" if r else "cma" if cma_done else "global"
+            stage = "polish" if plain_state else "local" if r else "cma" if cma_done else "global"
             header = {"stage": stage, "round": r,
                       "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m),
-                      "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma,
-                      "polish_done": polish_done}  # fmt: skip
-            plain_leaves = [plain[0], *plain[1].values()] if plain else []
+                      "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma}  # fmt: skip
+            if plain_state:
+                header["polish_round"] = plain_state[0]
+            plain_leaves = [plain_state[1], *plain_state[2].values()] if plain_state else []
             T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
 
-    cma_done, polish_done = state.get("cma_done", False), state.get("polish_done", False)
+    cma_done = state.get("cma_done", False)
     n_cma = state.get("cma_end", n_cand)  # evaluations up to the end of the CMA-ES stage
     if r0 == 0:
         if not cma_done:
@@ -429,37 +422,42 @@ def run(
             cma_done, n_cma = True, len(z)
             save(0, z, m)
 
-    if state.get("stage") != "polish":  # the local rounds r0..rounds-1
-        s0, s1 = settings.sigma
-        for r in range(r0, rounds):
+    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
+        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m); returns (z, m, rounds run)."""
+        s0, s1 = sigma
+        for r in range(r0, n):
             if deadline is not None and time.perf_counter() > deadline:  # chunks cost more than the probe's
-                log(f"front: budget spent after {r} of {rounds} local rounds")
-                rounds = r
-                break
-            sig = s0 * (s1 / s0) ** (r / max(1, rounds - 1))
-            zr = local_factors(z, m, settings.chunk, settings.points, sig, settings.seed * 1_000_003 + r, space)
-            mr = evaluate_many(train, from_factors(p0, zr), settings.chunk, log=lambda _: None)
+                log(f"front: budget spent after {r} of {n} {what} rounds")
+                return z, m, r
+            sig = s0 * (s1 / s0) ** (r / max(1, n - 1))
+            zr = local_factors(z, m, settings.chunk, settings.points, sig, seed + r, space)
+            mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
             z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
-            log(f"front: local round {r + 1}/{rounds}  sigma {sig:.4f}  {int(nondominated(*_axes(m)).sum())} "
+            log(f"front: {what} round {r + 1}/{n}  sigma {sig:.4f}  {int(nondominated(*_axes(m)).sum())} "
                 f"non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
-            if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == rounds):
-                save(r + 1, z, m)
+            if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n):
+                save_at(r + 1, z, m)
+        return z, m, n
+
+    seed = settings.seed * 1_000_003
+    if state.get("stage") != "polish":
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, deadline, "local",
+                                 lambda r, z_, m_: save(r, z_, m_))  # fmt: skip
     n_train = len(z)
-    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: the plain CMA-ES's)
-    zp, mp = z, m
-    if surrogate:  # plain metrics of the points non-dominated on the training metrics, then CMA-ES on them
+    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
+    zp, mp, p_run = z, m, 0
+    if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx = np.flatnonzero(nondominated(*_axes(m)))
-        if state.get("stage") == "polish":  # a kill inside the plain CMA-ES resumes at its start
-            zp, mp = leaves[1 + len(keys)], dict(zip(keys, leaves[2 + len(keys) :]))
+        if state.get("stage") == "polish":
+            p_run, zp = state["polish_round"], leaves[1 + len(keys)]
+            mp = dict(zip(keys, leaves[2 + len(keys) :]))
         else:
             zp = z[idx]
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
-            save(rounds, z, m, (zp, mp))
-        if polish and not polish_done:
-            zp, mp, polish = cma_stage(plain, p0, zp, mp, settings, polish, polish_deadline, log,
-                                       sigma=settings.polish_sigma, what="plain CMA-ES")  # fmt: skip
-            polish_done = True
-            save(rounds, z, m, (zp, mp))
+            save(rounds, z, m, (0, zp, mp))
+        save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
+        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
+                                   polish_deadline, "plain", save_plain)  # fmt: skip
         idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
     e, c = _axes(mp)
     keep = np.flatnonzero(nondominated(e, c))
@@ -468,11 +466,11 @@ def run(
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
               "cma_generations": generations,
-              "local_rounds": rounds, "plain_cma_generations": polish, "evaluations": n_train,
+              "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
               "from_cma": int(np.sum((idx[keep] >= n_cand) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
-              "from_plain_cma": int(np.sum(idx[keep] < 0))}  # fmt: skip
+              "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
     return {"axes": list(AXES), "points": points, "stages": stages}
 
 
