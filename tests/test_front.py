@@ -270,3 +270,14 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
     assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16
     assert r["stages"]["cma_generations"] == 0  # a spent budget leaves no stage a negative size
     assert len(r["points"]) >= 1
+
+
+def test_held_out_batch_has_the_payloads_and_seeds_training_did_not_see():
+    cfg = _config.resolve({"plant": {"kind": "arm", "payloads": [0.0, 10.0]}})
+    held = F.held_out_config(cfg)
+    assert held["plant"]["payloads"] == [1.0, 3.0, 5.0, 7.0, 9.0]
+    assert held["sensors"]["seed"] == cfg["sensors"]["seed"] + 1
+    cfg = _config.resolve({"plant": {"kind": "arm", "payloads": [1.0, 5.0]}})
+    assert F.held_out_config(cfg)["plant"]["payloads"] == [3.0, 7.0, 9.0]
+    cfg = _config.resolve(TINY)  # linear, sampled box: fresh samples
+    assert F.held_out_config(cfg)["plant"]["seed"] == cfg["plant"]["seed"] + 1

@@ -12,8 +12,8 @@ on the config with ``[controller] kind`` set, over the kind's own parameters
 (``fosmc_jax._tuning.SPACES``: the FOSMC's delta, gamma, poles; SMC's k, phi; super-twisting's
 k1, k2; per-joint log factors around the config's values), with ``--budget`` seconds (its
 compilations, references and held-out evaluation included); the front's points carry their
-held-out metrics (:func:`fosmc_jax._front.held_out_config`: payloads 2.5, 5 and 7.5 kg, fresh
-noise seeds). The kind's defaults (the config's values) are evaluated beside it.
+held-out metrics (:func:`fosmc_jax._front.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
+849d357, 2.5, 5 and 7.5 kg in the committed study; fresh noise seeds). The kind's defaults (the config's values) are evaluated beside it.
 
 Writes ``DIR.json`` (every front point: parameters, training and held-out metrics), ``DIR.md``
 (the tables and who wins where) and ``DIR.png`` (the three fronts, log-log).
@@ -135,7 +135,7 @@ def plot(res: dict, path: Path) -> None:
         ax.plot(c, e, marker=mark, ls="-", label=f"{LABELS[k]}: training (0, 10 kg)")
         eh, ch = np.array([_means(p, "held_out") for p in pts]).T
         ax.plot(ch, eh, marker=mark, ls=":", mfc="none", color=ax.lines[-1].get_color(),
-                label=f"{LABELS[k]}: held out (2.5, 5, 7.5 kg)")  # fmt: skip
+                label=f"{LABELS[k]}: held out ({', '.join(f'{p:g}' for p in res.get('held_out_payloads', (2.5, 5, 7.5)))} kg)")  # fmt: skip
         d = _means(res["results"][k]["default"])
         ax.plot(d[1], d[0], marker="*", ms=14, ls="none", color=ax.lines[-1].get_color(), label=f"{k} defaults")
     ax.set(xscale="log", yscale="log", xlabel="mean chattering_hf (V)", ylabel="mean rms tracking error (rad)",
@@ -162,7 +162,8 @@ def main(argv=None) -> None:
     res = {"config": args.config, "budget_s": args.budget, "kinds": args.kinds, "load_before": load(),
            "command": "python tuning/compare_controllers.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "jax": jax.__version__, "machine": platform.machine(),
-           "chattering_levels": [0.03, 0.1, 0.3, 1.0, 3.0, 10.0]}  # fmt: skip
+           "chattering_levels": [0.03, 0.1, 0.3, 1.0, 3.0, 10.0],
+           "held_out_payloads": F.held_out_config(cfg)["plant"]["payloads"]}  # fmt: skip
     t0 = time.perf_counter()
     res["results"] = {k: study(cfg, k, args.budget, args.seed) for k in args.kinds}
     res["load_after"], res["wall_s"] = load(), time.perf_counter() - t0

@@ -1,7 +1,8 @@
 """Plain metrics of tuned parameters on the training batch and on a held-out batch.
 
 The held-out batch is :func:`fosmc_jax._front.held_out_config`'s: arm payloads the training did
-not use (2.5, 5, 7.5 kg), fresh box samples for the linear model, fresh noise seeds.
+not use (1, 3, 5, 7, 9 kg; 2.5, 5, 7.5 kg for the committed results), fresh box samples for
+the linear model, fresh noise seeds.
 
     .venv/bin/python tuning/held_out.py --config tuning/configs/arm_ideal_set2.toml \\
         --params tuning/results/tune_arm_default/result.json
