@@ -351,8 +351,11 @@ def run(
 
     Non-finite losses or gradients skip the step (and say so). Every ``checkpoint_every``
     steps the state is written atomically to ``checkpoint``; ``resume`` continues from it and
-    ends where an uninterrupted run would. Returns the final internal parameters and the
-    history (per step: loss, error, chattering, gradient norm, skipped, internal params).
+    ends where an uninterrupted run would. Returns the best internal parameters, those of the
+    lowest finite loss among every step's and the last update's (a step can land where the
+    rollouts diverge: a flat penalty with zero gradient that Adam's momentum does not leave),
+    and the history (per step: loss, error, chattering, gradient norm, skipped, internal
+    params; ``best_step``: the index of the returned parameters, ``steps`` for the last update).
     """
     free = u0._fields if settings.free is None else settings.free
     labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
@@ -409,4 +412,11 @@ def run(
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
             _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
-    return u, history
+    (last, _), _ = value_and_grad(u)  # the last update's point, not yet evaluated
+    losses = np.asarray(history["loss"] + [float(last)], float)
+    best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+    if best < len(history["params"]):
+        u = type(u)(*(jnp.asarray(p, x.dtype) for p, x in zip(history["params"][best], u)))
+        log(f"tune: the parameters of step {best + 1} (loss {losses[best]:.5f}) are returned: the lowest loss of the "
+            f"run (after the last step: {float(last):.5f})")  # fmt: skip
+    return u, dict(history, best_step=best)

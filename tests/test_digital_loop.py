@@ -49,6 +49,7 @@ def assert_results_close(a, b, rtol=1e-10, atol=1e-12):
 # ---------------------------------------------------------------------------- equality with the ideal loop
 
 
+@pytest.mark.slow  # four compilations (~13 s); the config-level test below checks the same in the default tier
 def test_sample_period_dt_equals_the_ideal_loop_with_euler():
     """T = dt, d = 0, no noise, no quantization, no limit, Euler: the discrete integral
     w_{j+1} = w_j + T S Z_j is Euler's step for (14), so the results equal the ideal loop."""

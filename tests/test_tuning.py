@@ -104,6 +104,25 @@ def test_nan_guard_skips_the_step():
         np.testing.assert_array_equal(a, b)  # nothing applied
 
 
+def test_the_best_iterate_is_returned_when_a_step_lands_on_a_flat_penalty():
+    """Past delta[0] = 0.5 the loss is a flat penalty with zero gradient (what diverged
+    rollouts give); large steps jump there and Adam's momentum keeps going: the run returns
+    the step of lowest loss, not the last one."""
+    target = T.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    base = quadratic(target)
+
+    def loss(u):
+        v, aux = base(u)
+        return jnp.where(u.delta[0] > 0.5, 100.0, v), aux
+
+    s = T.Settings(steps=6, learning_rate=0.3, schedule="constant", mode="reverse", checkpoint_every=0)
+    u, hist = T.run(loss, start_point(), s, log=lambda _: None)
+    assert hist["loss"][-1] == 100.0  # the run ended on the penalty
+    assert hist["best_step"] == int(np.argmin(hist["loss"])) < 6
+    assert np.isclose(float(loss(u)[0]), min(hist["loss"]), rtol=1e-12) and min(hist["loss"]) < hist["loss"][0]
+    np.testing.assert_array_equal(u.delta, hist["params"][hist["best_step"]][0])
+
+
 def test_resume_equals_uninterrupted(tmp_path):
     prob = problem(n_steps=100)
     obj = T.Objective(error_ref=0.05, chattering_ref=5.0)
