@@ -56,6 +56,7 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
     pycma's CMA-ES from ``x0`` until the wall-time ``budget`` (s) is spent; returns (best x,
     best value, every x evaluated, their values)."""
     import cma  # here, not at the top: importing pycma takes 1-2 s
+
     opts = {"popsize": popsize, "seed": seed + 1, "verbose": -9}
     if lower is not None:
         opts["bounds"] = [list(lower), list(upper)]

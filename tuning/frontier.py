@@ -109,8 +109,9 @@ def main(argv=None) -> None:
     if args.dominance_check:
         return dominance_check(args.dominance_check)
     if not args.config or not (args.name or args.check):
-        ap.error("--config and --name are required (but with --score, --epsilon, --dominance-check; --check needs "
-                 "no --name)")
+        ap.error(
+            "--config and --name are required (but with --score, --epsilon, --dominance-check; --check needs no --name)"
+        )
     cfg = _config.load(args.config)
     if args.check:
         return check_costs(cfg)
@@ -222,8 +223,10 @@ def compare_study(path: str) -> None:
     fe, fc = sets.pop("fosmc front")
     for label, (e, c) in sets.items():
         dom = len(dominated_pairs((e, c), (fe, fc)))
-        print(f"{path}: {label} dominates {dom} of {len(fe)} front points; it beats the front by at most "
-              f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x")
+        print(
+            f"{path}: {label} dominates {dom} of {len(fe)} front points; it beats the front by at most "
+            f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x"
+        )
 
 
 def score_fronts(paths: list[str]) -> None:

@@ -82,12 +82,16 @@ def payload_check(cfg: dict, front_json: str, payloads: list[float]) -> None:
         print(f"{min(i + 16, len(pts))}/{len(pts)} points", flush=True)
     E = np.concatenate(errors)
     worst = E.max(axis=1) / trained
-    print(f"{front_json}: {len(pts)} points x payloads {payloads} kg, {diverged} rollouts diverged; worst payload's "
-          f"rms_error / training: median {np.median(worst):.2f}, 90% {np.quantile(worst, 0.9):.2f}, max {worst.max():.3g}")
+    print(
+        f"{front_json}: {len(pts)} points x payloads {payloads} kg, {diverged} rollouts diverged; worst payload's "
+        f"rms_error / training: median {np.median(worst):.2f}, 90% {np.quantile(worst, 0.9):.2f}, max {worst.max():.3g}"
+    )
     for i in np.flatnonzero(worst > 1.25):
         c = np.mean(pts[i]["metrics"]["chattering_hf"])
-        print(f"  point {i} (training {trained[i]:.3g} rad at {c:.3g} V): rms_error by payload "
-              + ", ".join(f"{e:.3g}" for e in E[i]))
+        print(
+            f"  point {i} (training {trained[i]:.3g} rad at {c:.3g} V): rms_error by payload "
+            + ", ".join(f"{e:.3g}" for e in E[i])
+        )
 
 
 if __name__ == "__main__":
