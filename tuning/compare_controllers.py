@@ -13,7 +13,8 @@ on the config with ``[controller] kind`` set, over the kind's own parameters
 k1, k2; per-joint log factors around the config's values), with ``--budget`` seconds (its
 compilations, references and held-out evaluation included); the front's points carry their
 held-out metrics (:func:`fosmc_jax._front.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
-849d357, 2.5, 5 and 7.5 kg in the committed study; fresh noise seeds). The kind's defaults (the config's values) are evaluated beside it.
+849d357, 2.5, 5 and 7.5 kg in the committed study; fresh noise seeds). The kind's defaults
+(the config's values) are evaluated beside it.
 
 Writes ``DIR.json`` (every front point: parameters, training and held-out metrics), ``DIR.md``
 (the tables and who wins where) and ``DIR.png`` (the three fronts, log-log).
