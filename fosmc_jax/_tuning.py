@@ -412,7 +412,9 @@ def run(
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
             _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
-    (last, _), _ = value_and_grad(u)  # the last update's point, not yet evaluated
+    # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
+    # cost) rather than a jit of the loss alone, which would compile a second program
+    (last, _), _ = value_and_grad(u)
     losses = np.asarray(history["loss"] + [float(last)], float)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     if best < len(history["params"]):

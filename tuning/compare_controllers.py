@@ -136,7 +136,7 @@ def plot(res: dict, path: Path) -> None:
         ax.plot(c, e, marker=mark, ls="-", label=f"{LABELS[k]}: training (0, 10 kg)")
         eh, ch = np.array([_means(p, "held_out") for p in pts]).T
         ax.plot(ch, eh, marker=mark, ls=":", mfc="none", color=ax.lines[-1].get_color(),
-                label=f"{LABELS[k]}: held out ({', '.join(f'{p:g}' for p in res.get('held_out_payloads', (2.5, 5, 7.5)))} kg)")  # fmt: skip
+                label=f"{LABELS[k]}: held out ({', '.join(f'{p:g}' for p in res['held_out_payloads'])} kg)")  # fmt: skip
         d = _means(res["results"][k]["default"])
         ax.plot(d[1], d[0], marker="*", ms=14, ls="none", color=ax.lines[-1].get_color(), label=f"{k} defaults")
     ax.set(xscale="log", yscale="log", xlabel="mean chattering_hf (V)", ylabel="mean rms tracking error (rad)",

@@ -173,9 +173,7 @@ def main(argv=None) -> None:
         summary.append((label, m["wall_s"], m["evaluations"], len(m["points"]), m["hypervolume"],
                         m["front_points_dominated"], m["beats_front_by"], m["front_beats_it_by"],
                         e.min(), c.min(), m["load"]))  # fmt: skip
-    dominated_refs = {k: bool(np.any((fe <= np.mean(v["metrics"]["rms_error"])) & (fc <= np.mean(v["metrics"]["chattering_hf"]))
-                                     & ((fe < np.mean(v["metrics"]["rms_error"])) | (fc < np.mean(v["metrics"]["chattering_hf"])))))
-                      for k, v in refs.items()}  # fmt: skip
+    dominated_refs = {k: bool(dominated_pairs((fe, fc), axes_of_points([v]))) for k, v in refs.items()}
     he, hc = axes_of_points(front["points"], "held_out")
     held = list(zip((he / fe).tolist(), (hc / fc).tolist()))
     out.update(reference_point_log10=ref_point, references=refs, references_dominated_by_front=dominated_refs,
@@ -217,30 +215,44 @@ def reference_point(refs: dict) -> tuple[float, float]:
 
 def compare_study(path: str) -> None:
     """Print, for a study's result (``frontier_<name>.json``), each baseline's count of front
-    points it dominates and the epsilon indicator both ways (:func:`fosmc_jax._front.epsilon`)."""
+    points it dominates, the epsilon indicator both ways (:func:`fosmc_jax._front.epsilon`), and
+    by chattering_hf band where it wins."""
     study = json.loads(pathlib.Path(path).read_text())
     sets = {label: axes_of_points(m["points"]) for label, m in study["methods"].items()}
     fe, fc = sets.pop("fosmc front")
     for label, (e, c) in sets.items():
-        dom = len(dominated_pairs((e, c), (fe, fc)))
+        beaten = {i for i, _ in dominated_pairs((e, c), (fe, fc))}
         print(
-            f"{path}: {label} dominates {dom} of {len(fe)} front points; it beats the front by at most "
+            f"{path}: {label} dominates {len(beaten)} of {len(fe)} front points; it beats the front by at most "
             f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x"
         )
+        # by chattering_hf band: front points, those beaten, and the median over the band's points of
+        # (the lowest error of this method at no more chattering) / (the front point's error)
+        edges = (0, 0.1, 0.2, 0.5, 2, 10, np.inf)
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            band = np.flatnonzero((fc >= lo) & (fc < hi))
+            ratio = [e[c <= fc[i]].min() / fe[i] if np.any(c <= fc[i]) else np.nan for i in band]
+            median = f"{np.nanmedian(ratio):.2f}" if len(band) and not np.all(np.isnan(ratio)) else "-"
+            print(f"  {lo:g}-{hi:g} V: {len(band)} front points, {len(beaten.intersection(band))} beaten, "
+                  f"median ratio {median}")  # fmt: skip
 
 
 def score_fronts(paths: list[str]) -> None:
     """Print, for each ``fosmc front`` result, its size, hypervolume (at the reference point of
-    its own references), best rms_error, and the lowest chattering_hf at rms_error <= 0.1,
-    0.01 and 0.001 rad."""
+    its own references), best rms_error, the lowest chattering_hf at rms_error <= 0.1, 0.01
+    and 0.001 rad, and the range of its points' held-out / training ratios."""
     for path in paths:
         front = json.loads(pathlib.Path(path).read_text())
         e, c = axes_of_points(front["points"])
         low = ["-" if not np.any(e <= t) else f"{c[e <= t].min():.3g}" for t in (0.1, 0.01, 0.001)]
+        he, hc = axes_of_points(front["points"], "held_out")
+        re, rc = he / e, hc / c
         print(f"{path}: {front['stages'].get('evaluations', front['stages'].get('candidates'))} evaluations, "
               f"{len(e)} points, hypervolume {hypervolume(e, c, reference_point(front['references'])):.2f}, best "
               f"rms_error {e.min():.2g} rad at {c[e.argmin()]:.3g} V, lowest chattering_hf at rms_error <= 0.1 / "
-              f"0.01 / 0.001 rad: {' / '.join(low)} V")  # fmt: skip
+              f"0.01 / 0.001 rad: {' / '.join(low)} V; held out / training: rms_error {re.min():.2f}-{re.max():.2f}, "
+              f"chattering_hf {rc.min():.2f}-{rc.max():.2f}, {int(np.sum((re > 1.25) | (rc > 1.25)))} points beyond "
+              f"1.25x")  # fmt: skip
 
 
 def dominance_check(path: str) -> None:

@@ -75,10 +75,12 @@ def payload_check(cfg: dict, front_json: str, payloads: list[float]) -> None:
     plain = _config.tuning_problems(_config.resolve(cfg))[0]
     run = jax.jit(jax.vmap(lambda p: plain.simulate(p, checkpoint_every=0)))
     errors, diverged = [], 0
-    for i in range(0, len(pts), 16):
-        r = run(jax.tree.map(lambda x, i=i: x[i : i + 16], params))
-        errors.append(np.asarray(r.metrics.rms_error).mean(-1))  # (points, payloads): mean over joints
-        diverged += int(np.sum(r.diverged))
+    for i in range(0, len(pts), 16):  # chunks of 16, the last padded: one compilation
+        part = jax.tree.map(lambda x, i=i: x[i : i + 16], params)
+        n = len(part[0])
+        r = run(jax.tree.map(lambda x: np.concatenate([x, np.repeat(x[-1:], 16 - n, 0)]), part))
+        errors.append(np.asarray(r.metrics.rms_error)[:n].mean(-1))  # (points, payloads): mean over joints
+        diverged += int(np.sum(np.asarray(r.diverged)[:n]))
         print(f"{min(i + 16, len(pts))}/{len(pts)} points", flush=True)
     E = np.concatenate(errors)
     worst = E.max(axis=1) / trained
