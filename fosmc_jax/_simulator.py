@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _metrics
+from . import _metrics, _native
 from ._controller import FOSMC, Controller, derive, safe_norm, safe_sqrt, switch
 from ._linear_plant import LinearPlant
 from ._reference import desired_state, feedforward
@@ -333,9 +333,12 @@ def _linear_batch(
     checkpoint_every: int = 0,
     divergence_bound: float = 1e6,
     chattering_cutoff: float = _metrics.CHATTERING_CUTOFF,
+    native: bool = False,
 ) -> Result:
     """:func:`simulate_batch` without a trace for plants (P,) of :class:`LinearPlant` and
-    X0s (O, 9); results with a leading axis P * O, plant-major."""
+    X0s (O, 9); results with a leading axis P * O, plant-major. With ``native`` the time loop
+    runs in the compiled kernel of :mod:`fosmc_jax._native` (forward only), else in
+    ``lax.scan``."""
     if integrator not in _STEPPERS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
     dtype = X0s.dtype
@@ -422,7 +425,10 @@ def _linear_batch(
         bad,
         jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
     )
-    if checkpoint_every:
+    if native:
+        carry = _kernel_advance(carry, n_steps, A, B, controller, derived, reference, dt, gain, divergence_bound,
+                                rk4=integrator == "rk4", switching=switching, law=law)  # fmt: skip
+    elif checkpoint_every:
         blocks, rest = divmod(n_steps, checkpoint_every)
         remat = jax.checkpoint(lambda c, _: (advance(c, checkpoint_every), None))
         carry = jax.lax.scan(remat, carry, None, length=blocks)[0]
@@ -437,6 +443,57 @@ def _linear_batch(
     return Result(jax.tree.map(flat, metrics), flat(carry.diverged), flat(carry.diverged_at), None)
 
 
+def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **how) -> _Batch:
+    """``n_steps`` of ``body`` in :mod:`fosmc_jax._native`'s kernel: the carry packed into
+    rows of lanes (padded to a multiple of its block), the time-only terms in a table."""
+    dtype = dt.dtype
+    lanes = c.diverged.shape
+    n = c.diverged.size
+    pad = (-n) % _native.LANES
+
+    def rows(entries):
+        flat = [jnp.broadcast_to(e, lanes).reshape(n) for e in entries]
+        return jnp.pad(jnp.stack(flat), ((0, 0), (0, pad)), mode="edge")
+
+    acc = [field for fields in zip(*c.acc) for field in fields]  # field-major, joint-minor
+    carry = rows([*c.x, *c.w, *c.U, *acc, c.diverged.astype(dtype), c.diverged_at])
+    ab = rows([e for row in A + B for e in row])
+    consts = jnp.concatenate([jnp.ravel(m).astype(dtype) for m in (controller.C, derived.S, derived.CB_inv, derived.K,
+                              controller.gamma, controller.delta, dt, gain, jnp.asarray(bound, dtype))])  # fmt: skip
+    gamma = controller.gamma
+    X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
+
+    def table(k):
+        t = k.astype(dtype) * dt
+        stages = [X_d_at(t)] if not how["rk4"] else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)]
+        t1 = (k + 1).astype(dtype) * dt
+
+        def sample(t):
+            ref = reference(t)
+            X_d = desired_state(ref)
+            Omega = feedforward(controller.a_rows, controller.b_rows, ref)
+            rho_ref = gamma[1] * safe_norm(X_d) + gamma[2] * safe_norm(Omega)
+            return jnp.concatenate([X_d, Omega, rho_ref[None], t[None]])
+
+        return jnp.concatenate([*stages, jax.vmap(sample)(t1)], axis=1)
+
+    out = _native.advance(carry, ab, consts, table, c.k, n_steps, **how)[:, :n].reshape((-1, *lanes))
+    x, w, U, acc, div, div_at = out[:9], out[9:12], out[12:15], out[15:45], out[45], out[46]
+    acc = tuple(_metrics.Accumulator(*acc[j::3]) for j in range(3))
+    return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
+
+
+def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
+    """:func:`_linear_batch` with its time loop in the native kernel where that is built;
+    reverse-mode derivatives (``custom_vjp``) differentiate the ``lax.scan`` loop instead."""
+    if not _native.available():
+        return _linear_batch(plants, controller, reference, X0s, dt, **options)
+    scan = lambda *args: _linear_batch(*args, **options)
+    run = jax.custom_vjp(lambda *args: _linear_batch(*args, native=True, **options))
+    run.defvjp(lambda *args: jax.vjp(scan, *args), lambda vjp, g: vjp(g))
+    return run(plants, controller, reference, X0s, dt)
+
+
 @functools.partial(jax.jit, static_argnames=_STATIC + ("fast",))
 def simulate_batch(
     plants, controller, reference, X0s: Array, dt: Array, *, keys: Array | None = None, fast: bool = True, **options
@@ -448,16 +505,18 @@ def simulate_batch(
     keyword arguments (``key`` too, when ``keys`` is None).
 
     With ``fast`` (static), a batch of :class:`LinearPlant` under the ideal-loop FOSMC without
-    a trace (``save_every`` = 0) runs a structure-of-arrays fast path with the same results to
-    rounding; anything else runs ``vmap`` of :func:`simulate`. The fast path speeds up large
-    forward batches; under reverse-mode differentiation it compiles several times slower and
-    runs slower than the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``."""
+    a trace (``save_every`` = 0) runs a fast path with the same results to rounding: its time
+    loop is one compiled kernel on every core (:mod:`fosmc_jax._native`), or, where that cannot
+    be built, a structure-of-arrays ``lax.scan``; anything else runs ``vmap`` of
+    :func:`simulate`. Reverse-mode derivatives of the fast path go through the ``lax.scan``
+    (forward mode is not defined there); it compiles several times slower and runs slower
+    than the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
     if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
         options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
         options.update(switching=ctrl.switching, law=ctrl.law)
-        return _linear_batch(plants, ctrl.params, reference, X0s, dt, **options)
+        return _fast_batch(plants, ctrl.params, reference, X0s, dt, **options)
     key = options.pop("key", None)
     if keys is None:
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]

@@ -2,6 +2,7 @@
 simulate_batch against vmap of simulate (values, divergence, gradients, float32), and the
 sharded batch against the single-device one (in a subprocess with two host devices)."""
 
+import functools
 import os
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import paper
+from fosmc_jax import _native, _simulator, paper
 
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
 
@@ -85,6 +86,31 @@ def test_fast_batch_float32():
     fast = fj.simulate_batch(plants, ctrl, ref, X0s, np.float32(1e-3), **opts)
     assert fast.metrics.rms_error.dtype == jnp.float32
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, np.float32(1e-3), **opts), rtol=1e-4)
+
+
+def test_scan_loop_equals_vmap_of_simulate():
+    """The fast path's ``lax.scan`` loop, which runs where the native kernel cannot be built
+    (and under reverse-mode derivatives); the cases above run the kernel where it is."""
+    plants, ctrl, ref, X0s = setup()
+    opts = dict(n_steps=300, integrator="rk4", switching="ratio")
+    scan = jax.jit(functools.partial(_simulator._linear_batch, **opts))(plants, ctrl, ref, X0s, 1e-3)
+    assert_close(scan, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
+
+
+@pytest.mark.skipif(_native._compiler() is None, reason="no C++ compiler: the fast path runs lax.scan")
+def test_native_kernel_is_built_where_a_compiler_is():
+    assert _native.available()
+
+
+def test_failed_kernel_build_is_one_clear_error_and_leaves_no_file(tmp_path, monkeypatch):
+    monkeypatch.setenv("FOSMC_JAX_CACHE", str(tmp_path))
+    monkeypatch.setenv("CXX", "false")  # a "compiler" that fails at once
+    with pytest.raises(OSError, match="^false failed"):
+        _native._build()
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(_native, "_compiler", lambda: None)
+    with pytest.raises(OSError, match="no C\\+\\+ compiler found"):
+        _native._build()
 
 
 @pytest.mark.slow  # reverse mode through both paths with RK4 (~35 s of compilation on 2 cores)

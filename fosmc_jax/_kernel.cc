@@ -1,0 +1,249 @@
+// The fast path's time loop as one XLA FFI kernel for the CPU (fosmc_jax/_native.py builds it
+// with the host's C++ compiler and registers it; issue 13).
+//
+// It advances L steps of the ideal-loop FOSMC ((14), (23) or the equivalent law, switching
+// (28), sign, sat or tanh) on linear plants (3), exactly the operations of
+// fosmc_jax._simulator._linear_batch's ``body`` in the same order, for N independent rollouts
+// ("lanes"). Everything that depends on time only (X_d at the integrator's stage times, and at
+// the sample: X_d, Omega (10), the reference part of rho) comes in a table computed by JAX, so
+// any reference works. The rollouts are held W at a time in SIMD lanes with the time loop
+// inside (the structure of ../shared/anchors/simd_kernel), and blocks of W are spread over
+// XLA's intra-op thread pool.
+//
+// Layouts (T = float or double; rows of N lanes, lane-minor):
+//   ab      (36, N)  rows 0-26: the plant's A rows (3 x 9), 27-35: its B rows (3 x 3)
+//   consts  (102,)   C (27), S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3),
+//                    dt, the low-pass gain of chattering_hf, the divergence bound
+//   table   (L, R)   per step: X_d at the stage times (9 each: t; or t, t + dt/2, t + dt for
+//                    RK4), then at the sample t' = (k + 1) dt: X_d (9), Omega (3), rho_ref, t'
+//   carry   (47, N)  x (9), w (3), U (3), the accumulator's 10 fields x 3 joints (field-major,
+//                    as fosmc_jax._metrics.Accumulator), diverged (0 / 1), diverged_at
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <memory>
+#include <thread>
+
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+constexpr int kBytes = 64;  // one block: a 64-byte SIMD vector (16 float or 8 double rollouts)
+constexpr int kRows = 47;
+enum { kX = 0, kWi = 9, kU = 12, kAcc = 15, kDiv = 45, kDivAt = 46 };
+enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
+
+template <typename T>
+struct Consts {
+  T C[27], S[27], CBi[9], K[27], gamma[3], delta[3], dt, gain, bound;
+};
+
+// A block's rollouts as one GCC vector: each variable below holds one quantity of every
+// rollout of the block, each operator acts lane by lane, and a comparison gives a lane mask.
+template <typename T>
+struct Simd {
+  typedef T V __attribute__((vector_size(kBytes)));
+  static constexpr int W = kBytes / sizeof(T);
+  static V Load(const T* p) { V v; std::memcpy(&v, p, sizeof v); return v; }
+  static void Store(T* p, V v) { std::memcpy(p, &v, sizeof v); }
+  template <typename F>
+  static V Map(V x, F f) {
+    V r;
+    for (int l = 0; l < W; l++) r[l] = f(x[l]);
+    return r;
+  }
+  static V Abs(V x) { return Map(x, [](T a) { return std::fabs(a); }); }
+  static V Sqrt(V x) { return Map(x, [](T a) { return std::sqrt(a); }); }
+  static V Max(V a, V b) { return a < b ? b : a; }  // jnp.maximum on finite values
+  static V Min(V a, V b) { return b < a ? b : a; }
+};
+
+template <typename T, int Rk4, int Sw, int Law>
+void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in, T* out, int64_t N) {
+  using S = Simd<T>;
+  using V = typename S::V;
+  V st[kRows], A[27], B[9];
+  for (int r = 0; r < kRows; r++) st[r] = S::Load(in + r * N);
+  for (int q = 0; q < 27; q++) A[q] = S::Load(ab + q * N);
+  for (int q = 0; q < 9; q++) B[q] = S::Load(ab + (27 + q) * N);
+  const T dt = c.dt, half = c.dt / 2, big = std::numeric_limits<T>::max();
+  V zero = {};
+  // dx/dt and dw/dt (the field of _linear_batch): x' = (x2, x3, jerk_1, ...), w' = S (x - X_d)
+  auto field = [&](const V* U, const V* x, const T* xd, V* dx, V* dw) {
+    for (int j = 0; j < 3; j++) {
+      V ax = A[9 * j] * x[0];
+      for (int i = 1; i < 9; i++) ax += A[9 * j + i] * x[i];
+      V bu = B[3 * j] * U[0] + B[3 * j + 1] * U[1];
+      bu += B[3 * j + 2] * U[2];
+      dx[3 * j] = x[3 * j + 1];
+      dx[3 * j + 1] = x[3 * j + 2];
+      dx[3 * j + 2] = ax + bu;
+    }
+    V z[9];
+    for (int i = 0; i < 9; i++) z[i] = x[i] - xd[i];
+    for (int j = 0; j < 3; j++) {
+      V q = c.S[9 * j] * z[0];
+      for (int i = 1; i < 9; i++) q += c.S[9 * j + i] * z[i];
+      dw[j] = q;
+    }
+  };
+  for (int64_t k = 0; k < L; k++) {
+    const T* row = table + k * R;
+    const T* sample = row + (Rk4 ? 27 : 9);  // X_d (9), Omega (3), rho_ref, t'
+    const V *x = st + kX, *w = st + kWi, *U = st + kU;
+    // the integrator step, as fosmc_jax._simulator._euler / _rk4
+    V nx[9], nw[3], k1x[9], k1w[3];
+    field(U, x, row, k1x, k1w);
+    if constexpr (!Rk4) {
+      for (int i = 0; i < 9; i++) nx[i] = x[i] + dt * k1x[i];
+      for (int j = 0; j < 3; j++) nw[j] = w[j] + dt * k1w[j];
+    } else {
+      V y[12], k2x[9], k2w[3], k3x[9], k3w[3], k4x[9], k4w[3];
+      V* yw = y + 9;
+      for (int i = 0; i < 9; i++) y[i] = x[i] + half * k1x[i];
+      for (int j = 0; j < 3; j++) yw[j] = w[j] + half * k1w[j];
+      field(U, y, row + 9, k2x, k2w);
+      for (int i = 0; i < 9; i++) y[i] = x[i] + half * k2x[i];
+      for (int j = 0; j < 3; j++) yw[j] = w[j] + half * k2w[j];
+      field(U, y, row + 9, k3x, k3w);
+      for (int i = 0; i < 9; i++) y[i] = x[i] + dt * k3x[i];
+      for (int j = 0; j < 3; j++) yw[j] = w[j] + dt * k3w[j];
+      field(U, y, row + 18, k4x, k4w);
+      for (int i = 0; i < 9; i++) nx[i] = x[i] + dt * ((k1x[i] + 2 * k2x[i] + 2 * k3x[i] + k4x[i]) / 6);
+      for (int j = 0; j < 3; j++) nw[j] = w[j] + dt * ((k1w[j] + 2 * k2w[j] + 2 * k3w[j] + k4w[j]) / 6);
+    }
+    // the controller sample at t' (_linear_batch's ``sample``)
+    V Z[9];
+    for (int i = 0; i < 9; i++) Z[i] = nx[i] - sample[i];
+    V zz = Z[0] * Z[0];
+    for (int i = 1; i < 9; i++) zz += Z[i] * Z[i];
+    const V rho = c.gamma[0] * (zz > 0 ? S::Sqrt(zz) : zero) + sample[12];  // safe_sqrt
+    V s[3], f[3], nU[3];
+    for (int j = 0; j < 3; j++) {
+      V cz = c.C[9 * j] * Z[0];
+      for (int i = 1; i < 9; i++) cz += c.C[9 * j + i] * Z[i];
+      s[j] = cz - nw[j];
+      const T d = c.delta[j];
+      V sw;  // the switching function f(s)
+      if constexpr (Sw == 0) sw = s[j] > 0 ? zero + 1 : (s[j] < 0 ? zero - 1 : s[j]);  // sign
+      if constexpr (Sw == 1) sw = s[j] / (S::Abs(s[j]) + d);                           // ratio (28)
+      if constexpr (Sw == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);       // sat
+      if constexpr (Sw == 3) sw = S::Map(s[j] / d, [](T a) { return std::tanh(a); });
+      f[j] = rho * sw;
+    }
+    for (int j = 0; j < 3; j++) {
+      V q = c.CBi[3 * j] * f[0] + c.CBi[3 * j + 1] * f[1];
+      q += c.CBi[3 * j + 2] * f[2];
+      nU[j] = sample[9 + j] - q;
+      if constexpr (Law == 1) {
+        V kz = c.K[9 * j] * Z[0];
+        for (int i = 1; i < 9; i++) kz += c.K[9 * j + i] * Z[i];
+        nU[j] = nU[j] + kz;
+      }
+    }
+    auto ok = S::Abs(nx[0]) <= c.bound;  // a lane mask; NaN fails every comparison
+    for (int i = 1; i < 9; i++) ok &= S::Abs(nx[i]) <= c.bound;
+    for (int j = 0; j < 3; j++) ok &= (S::Abs(nw[j]) <= big) & (S::Abs(nU[j]) <= big) & (S::Abs(s[j]) <= big);
+    // _simulator._guard: a rollout that diverged, or fails now, keeps its old carry
+    const auto diverged = st[kDiv] != 0;
+    const auto keep = diverged | ~ok;
+    st[kDivAt] = (~diverged & ~ok) ? zero + sample[13] : st[kDivAt];
+    st[kDiv] = keep ? zero + 1 : zero;
+    for (int i = 0; i < 9; i++) st[kX + i] = keep ? st[kX + i] : nx[i];
+    for (int j = 0; j < 3; j++) {
+      // fosmc_jax._metrics.add (no actuator limit: ``saturated`` stays)
+      V* a = st + kAcc + j;  // the field f of joint j: a[3 * f]
+      const V e = nx[3 * j] - sample[3 * j], u = nU[j], low = a[3 * kULow] + c.gain * (u - a[3 * kULow]);
+      const V fresh[9] = {a[3 * kCount] + 1,
+                          a[3 * kSumE2] + e * e,
+                          S::Max(a[3 * kMaxE], S::Abs(e)),
+                          e,
+                          a[3 * kTV] + S::Abs(u - st[kU + j]),
+                          a[3 * kSumU2] + u * u,
+                          S::Max(a[3 * kMaxU], S::Abs(u)),
+                          low,
+                          a[3 * kSumHf2] + (u - low) * (u - low)};
+      for (int g = 0; g < 9; g++) a[3 * g] = keep ? a[3 * g] : fresh[g];
+      st[kWi + j] = keep ? st[kWi + j] : nw[j];
+      st[kU + j] = keep ? st[kU + j] : u;
+    }
+  }
+  for (int r = 0; r < kRows; r++) S::Store(out + r * N, st[r]);
+}
+
+template <typename T, int Rk4, int Sw, int Law>
+void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in,
+         T* out, int64_t N) {
+  const int64_t W = Simd<T>::W, blocks = N / W;
+  auto one = [=, &c](int64_t i) {
+    Block<T, Rk4, Sw, Law>(c, ab + i * W, table, L, R, in + i * W, out + i * W, N);
+  };
+  // Blocks are handed out from a shared counter: the calling thread takes its share too and
+  // waits only for blocks already taken, so the call finishes even if no pool thread is free.
+  struct Shared {
+    std::atomic<int64_t> next{0}, done{0};
+  };
+  auto shared = std::make_shared<Shared>();
+  auto work = [shared, one, blocks] {
+    for (int64_t i; (i = shared->next.fetch_add(1)) < blocks;) {
+      one(i);
+      shared->done.fetch_add(1, std::memory_order_release);
+    }
+  };
+  const int64_t helpers = std::min<int64_t>(pool.num_threads(), blocks) - 1;
+  for (int64_t h = 0; h < helpers; h++) pool.Schedule([work] { work(); });
+  work();
+  while (shared->done.load(std::memory_order_acquire) < blocks) std::this_thread::yield();
+}
+
+template <typename T>
+ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer ab, ffi::AnyBuffer consts, ffi::AnyBuffer table,
+                    ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t sw, int32_t law) {
+  const int64_t N = in.dimensions()[1], L = table.dimensions()[0], R = table.dimensions()[1];
+  if (N % Simd<T>::W) return ffi::Error::InvalidArgument("fosmc kernel: the lane count must be a multiple of 16");
+  Consts<T> c;
+  std::copy_n(consts.typed_data<T>(), sizeof(Consts<T>) / sizeof(T), reinterpret_cast<T*>(&c));
+  const T *a = ab.typed_data<T>(), *tb = table.typed_data<T>(), *i = in.typed_data<T>();
+  T* o = out->typed_data<T>();
+#define FOSMC_CASE(RK, SW, LAW) \
+  if (rk4 == RK && sw == SW && law == LAW) return Run<T, RK, SW, LAW>(pool, c, a, tb, L, R, i, o, N), ffi::Error::Success();
+#define FOSMC_LAWS(RK, SW) FOSMC_CASE(RK, SW, 0) FOSMC_CASE(RK, SW, 1)
+#define FOSMC_SWS(RK) FOSMC_LAWS(RK, 0) FOSMC_LAWS(RK, 1) FOSMC_LAWS(RK, 2) FOSMC_LAWS(RK, 3)
+  FOSMC_SWS(0)
+  FOSMC_SWS(1)
+#undef FOSMC_SWS
+#undef FOSMC_LAWS
+#undef FOSMC_CASE
+  return ffi::Error::InvalidArgument("fosmc kernel: unknown integrator, switching or law");
+}
+
+ffi::Error Advance(ffi::ThreadPool pool, ffi::AnyBuffer ab, ffi::AnyBuffer consts, ffi::AnyBuffer table,
+                   ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t sw, int32_t law) {
+  switch (in.element_type()) {
+    case ffi::DataType::F32:
+      return Dispatch<float>(pool, ab, consts, table, in, out, rk4, sw, law);
+    case ffi::DataType::F64:
+      return Dispatch<double>(pool, ab, consts, table, in, out, rk4, sw, law);
+    default:
+      return ffi::Error::InvalidArgument("fosmc kernel: float32 or float64 only");
+  }
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcAdvance, Advance,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::AnyBuffer>()  // ab
+                                  .Arg<ffi::AnyBuffer>()  // consts
+                                  .Arg<ffi::AnyBuffer>()  // table
+                                  .Arg<ffi::AnyBuffer>()  // carry in
+                                  .Ret<ffi::AnyBuffer>()  // carry out
+                                  .Attr<int32_t>("rk4")
+                                  .Attr<int32_t>("switching")
+                                  .Attr<int32_t>("law"));

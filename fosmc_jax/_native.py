@@ -1,0 +1,115 @@
+"""The fast path's time loop in one compiled kernel (``_kernel.cc``), called from XLA.
+
+XLA:CPU runs every step of a ``lax.scan`` as a few dozen separate kernels, each a pass over the
+batch in memory; the loop body of :func:`fosmc_jax._simulator._linear_batch` costs about 0.7 us
+per kernel, which held the package at 3-7% of the hand-written SIMD anchor (BENCHMARKS.md,
+issue 13). ``_kernel.cc`` is that body written once in C++ with the time loop inside, the
+rollouts in SIMD lanes and the batch spread over XLA's intra-op thread pool (every core, with
+or without sharding), registered as an XLA FFI target (``jax.ffi``).
+
+It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
+headers come with jaxlib) for this CPU (``-march=native``) and cached under
+``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``), keyed by the source, the flags, jaxlib
+and the CPU. Where no compiler works, or with ``FOSMC_JAX_NATIVE=0``, the fast path runs its
+``lax.scan`` as before, with a one-line warning in the first case. Results equal the scan's to
+rounding (tests/test_performance_paths.py); gradients go through the scan (``custom_vjp`` in
+``_simulator``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+TARGET = "fosmc_advance"
+LANES = 16  # rollouts per SIMD block (kW in _kernel.cc): the batch is padded to a multiple
+ROWS = 47  # carry rows (see _kernel.cc)
+CHUNK = 512  # steps per kernel call: the time table of a call stays in cache
+_SOURCE = Path(__file__).with_name("_kernel.cc")
+_FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
+SWITCHING = {"sign": 0, "ratio": 1, "sat": 2, "tanh": 3}
+LAWS = {"paper": 0, "equivalent": 1}
+
+
+def _cpu() -> str:
+    """What ``-march=native`` depends on: the CPU's model and flags."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().splitlines()
+        return "".join(sorted({line for line in info if line.startswith(("model name", "flags"))}))
+    except OSError:
+        return platform.processor() + platform.machine()
+
+
+def _compiler() -> str | None:
+    for cxx in (os.environ.get("CXX"), "c++", "g++", "clang++"):
+        if cxx and shutil.which(cxx):
+            return cxx
+    return None
+
+
+def _build() -> Path:
+    """The kernel's shared library, compiled once per source, flags, jaxlib and CPU."""
+    cxx = _compiler()
+    if cxx is None:
+        raise OSError("no C++ compiler found (set CXX)")
+    cmd = [cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}"]
+    key = hashlib.sha256("\n".join([_SOURCE.read_text(), " ".join(cmd), jax.__version__, _cpu()]).encode())
+    cache = Path(os.environ.get("FOSMC_JAX_CACHE", Path.home() / ".cache" / "fosmc_jax"))
+    lib = cache / f"kernel-{key.hexdigest()[:16]}.so"
+    if not lib.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
+            out = Path(tmp) / lib.name
+            run = subprocess.run([*cmd, str(_SOURCE), "-o", str(out)], capture_output=True, text=True)
+            if run.returncode:
+                errors = [line for line in run.stderr.splitlines() if "error" in line] or [f"exit {run.returncode}"]
+                raise OSError(f"{cxx} failed: {errors[0].strip()}")
+            os.replace(out, lib)
+    return lib
+
+
+@functools.cache
+def available() -> bool:
+    """Whether the kernel is built and registered (built on the first call)."""
+    if os.environ.get("FOSMC_JAX_NATIVE", "1") == "0":
+        return False
+    try:
+        lib = ctypes.cdll.LoadLibrary(str(_build()))
+    except (OSError, subprocess.SubprocessError) as e:
+        warnings.warn(f"fosmc_jax: the native kernel is not available ({e}); the fast path runs lax.scan", stacklevel=2)
+        return False
+    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.FosmcAdvance), platform="cpu")
+    return True
+
+
+def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: int, *, rk4: bool, switching: str,
+            law: str) -> Array:  # fmt: skip
+    """``n_steps`` steps of the kernel from step ``k0``: ``carry`` (ROWS, N) and ``ab`` (36, N),
+    N a multiple of LANES, ``consts`` (102,) as in ``_kernel.cc``; ``table(k)`` gives the rows
+    of steps ``k`` (a vector of step indices), (len(k), R). Calls of CHUNK steps in a scan."""
+    call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")
+    attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING[switching]), law=np.int32(LAWS[law]))
+
+    def chunk(c, k, length):
+        return call(ab, consts, table(k + jnp.arange(length)), c, **attrs)
+
+    chunks, rest = divmod(n_steps, CHUNK)
+    if chunks:
+        body = lambda c, i: (chunk(c, k0 + i * CHUNK, CHUNK), None)
+        carry = jax.lax.scan(body, carry, jnp.arange(chunks))[0]
+    if rest:
+        carry = chunk(carry, k0 + chunks * CHUNK, rest)
+    return carry
