@@ -176,6 +176,8 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
   for (int r = 0; r < kRows; r++) S::Store(out + r * N, st[r]);
 }
 
+std::atomic<int64_t> g_busy{0};  // threads running blocks, over every call in the process
+
 template <typename T, int Rk4, int Sw, int Law>
 void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in,
          T* out, int64_t N) {
@@ -185,6 +187,8 @@ void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table,
   };
   // Blocks are handed out from a shared counter: the calling thread takes its share too and
   // waits only for blocks already taken, so the call finishes even if no pool thread is free.
+  // A helper that starts when every pool thread is already at work in some call (several
+  // devices running their shards at once) leaves at once instead of oversubscribing the cores.
   struct Shared {
     std::atomic<int64_t> next{0}, done{0};
   };
@@ -195,9 +199,15 @@ void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table,
       shared->done.fetch_add(1, std::memory_order_release);
     }
   };
-  const int64_t helpers = std::min<int64_t>(pool.num_threads(), blocks) - 1;
-  for (int64_t h = 0; h < helpers; h++) pool.Schedule([work] { work(); });
+  const int64_t threads = pool.num_threads(), helpers = std::min(threads, blocks) - 1;
+  for (int64_t h = 0; h < helpers; h++)
+    pool.Schedule([work, threads] {
+      if (g_busy.fetch_add(1) < threads) work();
+      g_busy.fetch_sub(1);
+    });
+  g_busy.fetch_add(1);
   work();
+  g_busy.fetch_sub(1);
   while (shared->done.load(std::memory_order_acquire) < blocks) std::this_thread::yield();
 }
 

@@ -37,7 +37,9 @@ from jax import Array
 TARGET = "fosmc_advance"
 LANES = 16  # rollouts per SIMD block (kW in _kernel.cc): the batch is padded to a multiple
 ROWS = 47  # carry rows (see _kernel.cc)
-CHUNK = 512  # steps per kernel call: the time table of a call stays in cache
+# Steps per kernel call: as many as keep the call's time table within 24 KiB, in the core's
+# L1 cache (256 Euler float32 steps; 512 were 1.4x slower, BENCHMARKS.md), at least 64.
+TABLE_BYTES = 24 * 1024
 _SOURCE = Path(__file__).with_name("_kernel.cc")
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
 SWITCHING = {"sign": 0, "ratio": 1, "sat": 2, "tanh": 3}
@@ -99,17 +101,20 @@ def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: i
             law: str) -> Array:  # fmt: skip
     """``n_steps`` steps of the kernel from step ``k0``: ``carry`` (ROWS, N) and ``ab`` (36, N),
     N a multiple of LANES, ``consts`` (102,) as in ``_kernel.cc``; ``table(k)`` gives the rows
-    of steps ``k`` (a vector of step indices), (len(k), R). Calls of CHUNK steps in a scan."""
+    of steps ``k`` (a vector of step indices), (len(k), R). Calls of a few hundred steps (see
+    TABLE_BYTES) in a scan."""
     call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")
     attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING[switching]), law=np.int32(LAWS[law]))
 
     def chunk(c, k, length):
         return call(ab, consts, table(k + jnp.arange(length)), c, **attrs)
 
-    chunks, rest = divmod(n_steps, CHUNK)
+    row_bytes = jax.eval_shape(table, jnp.zeros(1, jnp.int32)).shape[1] * carry.dtype.itemsize
+    steps = max(64, TABLE_BYTES // row_bytes)
+    chunks, rest = divmod(n_steps, steps)
     if chunks:
-        body = lambda c, i: (chunk(c, k0 + i * CHUNK, CHUNK), None)
+        body = lambda c, i: (chunk(c, k0 + i * steps, steps), None)
         carry = jax.lax.scan(body, carry, jnp.arange(chunks))[0]
     if rest:
-        carry = chunk(carry, k0 + chunks * CHUNK, rest)
+        carry = chunk(carry, k0 + chunks * steps, rest)
     return carry
