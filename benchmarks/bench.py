@@ -30,6 +30,7 @@ not counted):
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -54,7 +55,7 @@ jax.config.update("jax_enable_x64", True)
 import baselines  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax import _tuning, paper  # noqa: E402
+from fosmc_jax import _simulator, _tuning, paper  # noqa: E402
 
 FLOPS = {"euler": 303, "rk4": 810}
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -105,9 +106,10 @@ def digital(ctrl, m, dtype):
     return fj.DigitalLoop(fj.DiscreteFOSMC(ctrl, T), sensors, jnp.full(3, 24.0, dtype), T, m, 1)
 
 
-def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast=True):
+def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast=True, scan=False):
     """``loop`` = m > 0: the digital loop of :func:`digital` (vmap path); ``fast`` = False: the
-    ideal loop through the vmap path (the tuner's)."""
+    ideal loop through the vmap path (the tuner's); ``scan``: the fast path with its
+    ``lax.scan`` loop instead of the native kernel (where no compiler is, and before issue 13)."""
     args = problem(batch, dtype, arm)
     if loop:
         args = (args[0], digital(args[1], loop, dtype), *args[2:])
@@ -122,7 +124,8 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast
         first = time.perf_counter() - t0
     else:
         t0 = time.perf_counter()
-        compiled = fj.simulate_batch.lower(*args, **opts).compile()
+        run = jax.jit(functools.partial(_simulator._linear_batch, **opts)) if scan else fj.simulate_batch
+        compiled = run.lower(*args, **({} if scan else opts)).compile()
         compile_s = time.perf_counter() - t0
         fn = lambda: compiled(*args)
         first = None
@@ -131,6 +134,7 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast
     rs = batch * steps / wall
     kind = "fosmc_jax" + (f" ({devices} devices)" if devices else "") + (f" digital m={loop}" if loop else "")
     kind += " vmap path" if not fast and not loop and not arm else ""
+    kind += " scan loop" if scan else ""
     return {"kind": kind, "plant": "arm" if arm else "linear",
             "integrator": integrator, "dtype": np.dtype(dtype).name, "batch": batch, "steps": steps,
             "wall_s": wall, "compile_s": compile_s, "first_call_s": first, "rollout_steps_per_s": rs,
@@ -293,11 +297,12 @@ precision = "float32"
 """
 
 
-def cli(small: int, large: int, steps: int, devices: int) -> dict:
-    """``fosmc simulate --json`` as a user runs it (a fresh process: start-up, compilation,
-    the run, the JSON of every rollout) on the same work (linear, Euler, float32, set 1,
-    ratio switching; ``uncertainty = "sample"``, one offset), at ``small`` and ``large``
-    samples: the steady state is (large - small) x steps / (difference of the wall times)."""
+def cli(small: int, large: int, steps: int, devices: int, output: str = "json") -> dict:
+    """``fosmc simulate --json`` (``output = "json"``) or ``--npz FILE`` (``"npz"``) as a user
+    runs it (a fresh process: start-up, compilation, the run, every rollout's metrics written
+    out) on the same work (linear, Euler, float32, set 1, ratio switching; ``uncertainty =
+    "sample"``, one offset), at ``small`` and ``large`` samples: the steady state is
+    (large - small) x steps / (difference of the wall times)."""
     import tempfile
 
     fosmc = Path(sys.executable).with_name("fosmc")
@@ -307,7 +312,8 @@ def cli(small: int, large: int, steps: int, devices: int) -> dict:
         for n in (small, large):
             cfg = Path(tmp) / f"cli{n}.toml"
             cfg.write_text(CLI_CONFIG.format(samples=n, t_final=steps * DT, dt=DT))
-            cmd = exe + ["simulate", "--config", str(cfg), "--json", "--devices", str(devices)]
+            out_args = ["--json"] if output == "json" else ["--npz", str(Path(tmp) / "out.npz")]
+            cmd = exe + ["simulate", "--config", str(cfg), *out_args, "--devices", str(devices)]
             env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
             times = []
             for _ in range(2):
@@ -322,7 +328,7 @@ def cli(small: int, large: int, steps: int, devices: int) -> dict:
     # noise (start-up, compilation), even negative: then there is no steady state to report
     dw = walls[large] - walls[small]
     rs = (large - small) * steps / dw if dw > 0 else float("nan")
-    return {"kind": f"fosmc simulate CLI ({devices} device{'s' if devices > 1 else ''}, steady state)",
+    return {"kind": f"fosmc simulate --{output} ({devices} device{'s' if devices > 1 else ''}, steady state)",
             "plant": "linear", "integrator": "euler", "dtype": "float32", "batch": large, "steps": steps,
             "wall_s": walls[large], "compile_s": None, "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS["euler"],
             "reps": 2, "load": max(loads), "cli_wall_s": {str(k): v for k, v in walls.items()},
@@ -382,6 +388,8 @@ def main(argv=None):
                 rows.append(time_jax(batch, dtype, integrator, steps)), say(rows[-1])
     if long_steps:
         rows.append(time_jax(head, np.float32, "euler", long_steps)), say(rows[-1])
+    for batch in (head,) if q else (head, 16384):
+        rows.append(time_jax(batch, np.float32, "euler", steps, scan=True)), say(rows[-1])
     loop_batch = 1024
     rows.append(time_jax(loop_batch, np.float32, "euler", steps, fast=False)), say(rows[-1])
     for m in (1, 10):
@@ -390,8 +398,9 @@ def main(argv=None):
         rows.append(r), say(r)
     rows.append(time_jax(head, np.float32, "euler", steps, devices=1)), say(rows[-1])
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
-    for d in (1, 2):
-        rows.append(cli(head // 4 if q else head, head if q else 4 * head, steps, d)), say(rows[-1])
+    for output in ("json", "npz"):
+        for d in (1, 2):
+            rows.append(cli(head // 4 if q else head, head if q else 4 * head, steps, d, output)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 import warnings
@@ -16,7 +17,7 @@ import numpy as np
 from . import _commands as C
 from . import _config, _paper
 from ._design import CONVENTIONS
-from ._io import jsonable
+from ._io import atomic_write, jsonable
 from ._metrics import METRIC_NAMES, UNITS
 
 
@@ -29,27 +30,62 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
-                       keep_trace=bool(args.plot), log=_log)  # fmt: skip
-    cfg, rollouts, summary = r["config"], r["rollouts"], r["summary"]
+                       keep_trace=bool(args.plot), records=bool(args.json or not args.npz), log=_log)  # fmt: skip
+    cfg, summary = r["config"], r["summary"]
+    rollouts = r.get("rollouts")
+    n = len(rollouts) if rollouts is not None else len(r["arrays"]["diverged"])
     if args.plot:
         from ._plots import plot_rollouts
 
-        shown = min(len(rollouts), 12)
+        shown = min(n, 12)
         tr = r.pop("trace")
-        labels = [f"plant {x['plant_index']}, offset {x['offset_index']}" for x in rollouts[:shown]]
+        index = (
+            r["arrays"] if rollouts is None else {k: [x[k] for x in rollouts] for k in ("plant_index", "offset_index")}
+        )
+        labels = [f"plant {p}, offset {o}" for p, o in zip(index["plant_index"][:shown], index["offset_index"][:shown])]
         plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
                       title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
                             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
         _log(f"fosmc: wrote {args.plot}")
+    if args.npz:
+        if rollouts is None:
+            arrays = r["arrays"]
+        else:  # --json too: the records are there
+            columns = {name: [x["metrics"][name] for x in rollouts] for name in METRIC_NAMES}
+            for key in ("diverged", "diverged_at", "plant_index", "offset_index", "realization_index"):
+                columns[key] = [x[key] for x in rollouts]
+            real = np.float32 if cfg["sim"]["precision"] == "float32" else np.float64  # the run's, as records=False
+            arrays = {k: np.asarray(v, real if k in METRIC_NAMES or k == "diverged_at" else None)
+                      for k, v in columns.items()}  # fmt: skip
+
+        def write(tmp):
+            with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to a name
+                np.savez(f, **arrays)
+
+        atomic_write(args.npz, write)
+        _log(f"fosmc: wrote {args.npz}")
     if args.json:
-        print(json.dumps(jsonable(r), indent=1))
+        print(_simulate_json(r))
     else:
-        _print_rollouts(rollouts)
-        if len(rollouts) > 1:
-            print(f"batch of {len(rollouts)}: {summary['diverged_excluded']} diverged (excluded below)")
+        if not args.npz:
+            _print_rollouts(rollouts)
+        if n > 1:
+            print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
                 print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
     return 0
+
+
+def _simulate_json(r: dict) -> str:
+    """``fosmc simulate --json``: the report with one rollout per line, each written by json's
+    C encoder (indenting every value ran in Python: 1 s of 1.3 at 16,384 rollouts, more than
+    the simulation; BENCHMARKS.md, issue 13). Non-finite numbers become null, as jsonable does
+    (a rollout's record holds only numbers and booleans, so the tokens cannot be in a string)."""
+    rows = ",\n  ".join(json.dumps(x) for x in r["rollouts"])
+    if "NaN" in rows or "Infinity" in rows:
+        rows = re.sub(r"-?Infinity|NaN", "null", rows)
+    rest = json.dumps(jsonable({k: v for k, v in r.items() if k != "rollouts"}), indent=1)
+    return '{\n "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
 
 
 def _print_rollouts(rollouts: list[dict]) -> None:
@@ -201,6 +237,12 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
     s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
+    s.add_argument(
+        "--npz",
+        metavar="FILE",
+        help="write every rollout's metrics as NumPy arrays (one (N, 3) array per metric, diverged, diverged_at, "
+        "plant_index, offset_index, realization_index) and print only the batch summary",
+    )
     s.add_argument(
         "--params",
         metavar="JSON",

@@ -94,6 +94,7 @@ def run_simulate(
     point: int | None = None,
     devices: int | None = None,
     keep_trace: bool = False,
+    records: bool = True,
     log: Log = _quiet,
 ) -> dict[str, Any]:
     """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
@@ -110,7 +111,9 @@ def run_simulate(
 
     Returns ``{"rollouts": [{"plant_index", "offset_index", "realization_index", "metrics":
     {name: (3,)}, "diverged", "diverged_at"}, ...], "summary": batch_summary, "config":
-    resolved config}``: what ``--json`` prints.
+    resolved config}``: what ``--json`` prints. With ``records=False``, ``"arrays"`` instead of
+    ``"rollouts"``: the same fields as NumPy arrays over the rollouts (what ``--npz`` writes;
+    no Python object per rollout).
     """
     cfg = config_of(config)
     devices = jax.local_device_count() if devices is None else devices
@@ -139,10 +142,20 @@ def run_simulate(
     result = jax.block_until_ready(result)
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
 
+    summary = batch_summary(result.metrics, result.diverged)
+    if not records:
+        r = np.arange(n_rollouts)
+        arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+        arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
+                      plant_index=r // (n_offsets * n_real), offset_index=r // n_real % n_offsets,
+                      realization_index=r % n_real)  # fmt: skip
+        out = {"arrays": arrays, "summary": summary, "config": cfg}
+        return dict(out, trace=result.trace) if keep_trace else out
     # one transfer per array, then plain indexing (indexing a device array per rollout cost
-    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13)
-    metrics = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
-    diverged, diverged_at = np.asarray(result.diverged), np.asarray(result.diverged_at)
+    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13), in Python floats at once
+    # (--json's encoder then converts no value)
+    metrics = {name: np.asarray(getattr(result.metrics, name)).tolist() for name in METRIC_NAMES}
+    diverged, diverged_at = np.asarray(result.diverged).tolist(), np.asarray(result.diverged_at).tolist()
     rollouts = []
     for r in range(n_rollouts):
         rollouts.append({
@@ -150,10 +163,10 @@ def run_simulate(
             "offset_index": r // n_real % n_offsets,
             "realization_index": r % n_real,
             "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
-            "diverged": bool(diverged[r]),
-            "diverged_at": float(diverged_at[r]),
+            "diverged": diverged[r],
+            "diverged_at": diverged_at[r],
         })  # fmt: skip
-    out = {"rollouts": rollouts, "summary": batch_summary(result.metrics, result.diverged), "config": cfg}
+    out = {"rollouts": rollouts, "summary": summary, "config": cfg}
     if keep_trace:
         out["trace"] = result.trace
     return out

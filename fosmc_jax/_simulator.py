@@ -485,8 +485,9 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
 
 def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
     """:func:`_linear_batch` with its time loop in the native kernel where that is built;
-    reverse-mode derivatives (``custom_vjp``) differentiate the ``lax.scan`` loop instead."""
-    if not _native.available():
+    reverse-mode derivatives (``custom_vjp``) differentiate the ``lax.scan`` loop instead. The
+    kernel is the CPU's: on a GPU (the default backend) the scan runs."""
+    if jax.default_backend() != "cpu" or not _native.available():
         return _linear_batch(plants, controller, reference, X0s, dt, **options)
     scan = lambda *args: _linear_batch(*args, **options)
     run = jax.custom_vjp(lambda *args: _linear_batch(*args, native=True, **options))

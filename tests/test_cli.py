@@ -49,6 +49,35 @@ seed = 7
     assert d["rollouts"][0]["metrics"]["max_abs_error"][0] < d["rollouts"][1]["metrics"]["max_abs_error"][0]
 
 
+def test_simulate_npz_holds_the_json_values(capsys, tmp_path):
+    text = SHORT + 'precision = "float32"\n[plant]\nuncertainty = "sample"\nsamples = 4\n'
+    both, alone = tmp_path / "both.npz", tmp_path / "alone.npz"
+    code, out, _ = run(capsys, tmp_path, text, "simulate", "--json", "--npz", str(both))
+    assert code == 0
+    records = json.loads(out)["rollouts"]
+    code, out, _ = run(capsys, tmp_path, text, "simulate", "--npz", str(alone))
+    assert code == 0 and "batch of 4" in out and "rollout" not in out.splitlines()[0]  # the summary only
+    a, b = np.load(both), np.load(alone)
+    assert sorted(a) == sorted(b) == sorted([*METRIC_NAMES, "diverged", "diverged_at", "plant_index",
+                                             "offset_index", "realization_index"])  # fmt: skip
+    for k in a:
+        assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
+    assert a["rms_error"].dtype == np.float32 and a["rms_error"].shape == (4, 3)
+    for name in METRIC_NAMES:
+        np.testing.assert_array_equal(a[name], np.asarray([r["metrics"][name] for r in records], np.float32))
+    assert a["plant_index"].tolist() == [r["plant_index"] for r in records] == [0, 1, 2, 3]
+
+
+def test_simulate_json_writes_non_finite_numbers_as_null():
+    from fosmc_jax._cli import _simulate_json
+
+    r = {"rollouts": [{"metrics": {"rms_error": [float("nan"), 1.0, -float("inf")]}, "diverged": True,
+                       "diverged_at": float("inf")}], "summary": {"mean": float("nan")}, "config": {}}  # fmt: skip
+    d = json.loads(_simulate_json(r))
+    assert d["rollouts"][0] == {"metrics": {"rms_error": [None, 1.0, None]}, "diverged": True, "diverged_at": None}
+    assert d["summary"] == {"mean": None} and d["config"] == {}
+
+
 def test_simulate_plot_is_written(capsys, tmp_path):
     png = tmp_path / "fig.png"
     code, _, err = run(capsys, tmp_path, SHORT, "simulate", "--plot", str(png))
