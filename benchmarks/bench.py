@@ -7,7 +7,7 @@
 With gcc, the SIMD anchor (../shared/anchors/simd_kernel/run.sh, a hand-written C kernel of
 the same closed loop) runs in the same process and every linear row is given as a fraction
 of its best thread count; ``fosmc simulate --json`` runs as a user runs it (1 and 2
-devices; steady state from the difference of two batch sizes).
+devices; steady state from the difference of two horizons).
 
 Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
 second (rollouts x steps / wall seconds of a compiled call, best of 3; compile time apart).
@@ -297,21 +297,27 @@ precision = "float32"
 """
 
 
-def cli(small: int, large: int, steps: int, devices: int, output: str = "json") -> dict:
+def cli(samples: int, steps: int, devices: int, output: str = "json", longer: int = 10) -> dict:
     """``fosmc simulate --json`` (``output = "json"``) or ``--npz FILE`` (``"npz"``) as a user
     runs it (a fresh process: start-up, compilation, the run, every rollout's metrics written
     out) on the same work (linear, Euler, float32, set 1, ratio switching; ``uncertainty =
-    "sample"``, one offset), at ``small`` and ``large`` samples: the steady state is
-    (large - small) x steps / (difference of the wall times)."""
+    "sample"``, one offset), ``samples`` rollouts over ``steps`` and ``longer`` x ``steps``
+    steps: the steady state is samples x (longer - 1) x steps / (difference of the wall times).
+    The start-up, the compilation and the output of each rollout are the same in both runs
+    and cancel (a difference of batch sizes, used before, also differed in compilation, and
+    a fresh process's start-up varies by 0.3 s: steady states from 1.4e8 to 4.6e8
+    rollout-steps/s for the same command, where the library runs 3e8; hence the long run);
+    the wall times of both are returned, and the output's cost per rollout is the difference
+    of the --json and --npz rows' walls."""
     import tempfile
 
     fosmc = Path(sys.executable).with_name("fosmc")
     exe = [str(fosmc)] if fosmc.exists() else [sys.executable, "-m", "fosmc_jax"]
     walls, loads = {}, []
     with tempfile.TemporaryDirectory() as tmp:
-        for n in (small, large):
+        for n in (steps, longer * steps):
             cfg = Path(tmp) / f"cli{n}.toml"
-            cfg.write_text(CLI_CONFIG.format(samples=n, t_final=steps * DT, dt=DT))
+            cfg.write_text(CLI_CONFIG.format(samples=samples, t_final=round(n * DT, 10), dt=DT))
             out_args = ["--json"] if output == "json" else ["--npz", str(Path(tmp) / "out.npz")]
             cmd = exe + ["simulate", "--config", str(cfg), *out_args, "--devices", str(devices)]
             env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
@@ -324,13 +330,11 @@ def cli(small: int, large: int, steps: int, devices: int, output: str = "json") 
                     raise RuntimeError(f"{' '.join(cmd)} failed: {out.stderr[-500:]}")
             walls[n] = min(times)
             loads.append(load())
-    # the difference of two fresh processes' wall times; at small sizes it can be within their
-    # noise (start-up, compilation), even negative: then there is no steady state to report
-    dw = walls[large] - walls[small]
-    rs = (large - small) * steps / dw if dw > 0 else float("nan")
+    dw = walls[longer * steps] - walls[steps]
+    rs = samples * (longer - 1) * steps / dw if dw > 0 else float("nan")
     return {"kind": f"fosmc simulate --{output} ({devices} device{'s' if devices > 1 else ''}, steady state)",
-            "plant": "linear", "integrator": "euler", "dtype": "float32", "batch": large, "steps": steps,
-            "wall_s": walls[large], "compile_s": None, "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS["euler"],
+            "plant": "linear", "integrator": "euler", "dtype": "float32", "batch": samples, "steps": steps,
+            "wall_s": walls[steps], "compile_s": None, "rollout_steps_per_s": rs, "flop_per_s": rs * FLOPS["euler"],
             "reps": 2, "load": max(loads), "cli_wall_s": {str(k): v for k, v in walls.items()},
             "command": " ".join(exe[-1:] + cmd[len(exe):])}  # fmt: skip
 
@@ -400,7 +404,7 @@ def main(argv=None):
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
     for output in ("json", "npz"):
         for d in (1, 2):
-            rows.append(cli(head // 4 if q else head, head if q else 4 * head, steps, d, output)), say(rows[-1])
+            rows.append(cli(head if q else 4 * head, steps, d, output)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 
