@@ -30,37 +30,28 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
-                       keep_trace=bool(args.plot), records=bool(args.json or not args.npz), log=_log)  # fmt: skip
+                       keep_trace=bool(args.plot), records=not (args.json or args.npz), log=_log)  # fmt: skip
     cfg, summary = r["config"], r["summary"]
-    rollouts = r.get("rollouts")
-    n = len(rollouts) if rollouts is not None else len(r["arrays"]["diverged"])
+    index = (
+        r["arrays"] if "arrays" in r else {k: [x[k] for x in r["rollouts"]] for k in ("plant_index", "offset_index")}
+    )
+    n = len(index["plant_index"])
     if args.plot:
         from ._plots import plot_rollouts
 
         shown = min(n, 12)
         tr = r.pop("trace")
-        index = (
-            r["arrays"] if rollouts is None else {k: [x[k] for x in rollouts] for k in ("plant_index", "offset_index")}
-        )
-        labels = [f"plant {p}, offset {o}" for p, o in zip(index["plant_index"][:shown], index["offset_index"][:shown])]
+        pairs = zip(index["plant_index"][:shown], index["offset_index"][:shown])
+        labels = [f"plant {p}, offset {o}" for p, o in pairs]
         plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
                       title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
                             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
         _log(f"fosmc: wrote {args.plot}")
     if args.npz:
-        if rollouts is None:
-            arrays = r["arrays"]
-        else:  # --json too: the records are there
-            columns = {name: [x["metrics"][name] for x in rollouts] for name in METRIC_NAMES}
-            for key in ("diverged", "diverged_at", "plant_index", "offset_index", "realization_index"):
-                columns[key] = [x[key] for x in rollouts]
-            real = np.float32 if cfg["sim"]["precision"] == "float32" else np.float64  # the run's, as records=False
-            arrays = {k: np.asarray(v, real if k in METRIC_NAMES or k == "diverged_at" else None)
-                      for k, v in columns.items()}  # fmt: skip
 
         def write(tmp):
             with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to a name
-                np.savez(f, **arrays)
+                np.savez(f, **r["arrays"])
 
         atomic_write(args.npz, write)
         _log(f"fosmc: wrote {args.npz}")
@@ -68,8 +59,8 @@ def cmd_simulate(args) -> int:
         print(_simulate_json(r))
     else:
         if not args.npz:
-            _print_rollouts(rollouts)
-        if n > 1:
+            _print_rollouts(r["rollouts"])
+        if n > 1 or args.npz:  # with --npz the summary is all that is printed
             print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
                 print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
@@ -77,14 +68,23 @@ def cmd_simulate(args) -> int:
 
 
 def _simulate_json(r: dict) -> str:
-    """``fosmc simulate --json``: the report with one rollout per line, each written by json's
-    C encoder (indenting every value ran in Python: 1 s of 1.3 at 16,384 rollouts, more than
-    the simulation; BENCHMARKS.md, issue 13). Non-finite numbers become null, as jsonable does
-    (a rollout's record holds only numbers and booleans, so the tokens cannot be in a string)."""
-    rows = ",\n  ".join(json.dumps(x) for x in r["rollouts"])
+    """``fosmc simulate --json`` from ``run_simulate(records=False)``: its records as
+    ``run_simulate`` makes them, one per line, written by json's C encoder from one ``tolist``
+    per array (records of NumPy rows through ``jsonable`` and an indented dump cost 1 s at
+    16,384 rollouts, more than the simulation; BENCHMARKS.md, issue 13). Non-finite numbers
+    become null, as ``jsonable`` makes them (the records hold only numbers and booleans, so the
+    tokens cannot be in a string)."""
+    a = {k: np.asarray(v).tolist() for k, v in r["arrays"].items()}
+    keys = ("plant_index", "offset_index", "realization_index")
+    records = (
+        {**{k: a[k][i] for k in keys}, "metrics": {name: a[name][i] for name in METRIC_NAMES},
+         "diverged": a["diverged"][i], "diverged_at": a["diverged_at"][i]}
+        for i in range(len(a["diverged"]))
+    )  # fmt: skip
+    rows = ",\n  ".join(json.dumps(x) for x in records)
     if "NaN" in rows or "Infinity" in rows:
         rows = re.sub(r"-?Infinity|NaN", "null", rows)
-    rest = json.dumps(jsonable({k: v for k, v in r.items() if k != "rollouts"}), indent=1)
+    rest = json.dumps(jsonable({k: v for k, v in r.items() if k not in ("arrays", "trace")}), indent=1)
     return '{\n "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
 
 

@@ -112,8 +112,8 @@ def run_simulate(
     Returns ``{"rollouts": [{"plant_index", "offset_index", "realization_index", "metrics":
     {name: (3,)}, "diverged", "diverged_at"}, ...], "summary": batch_summary, "config":
     resolved config}``: what ``--json`` prints. With ``records=False``, ``"arrays"`` instead of
-    ``"rollouts"``: the same fields as NumPy arrays over the rollouts (what ``--npz`` writes;
-    no Python object per rollout).
+    ``"rollouts"``: the same fields as NumPy arrays over the rollouts (what ``--npz`` writes,
+    and ``--json`` prints as records; no Python object per rollout).
     """
     cfg = config_of(config)
     devices = jax.local_device_count() if devices is None else devices
@@ -152,10 +152,9 @@ def run_simulate(
         out = {"arrays": arrays, "summary": summary, "config": cfg}
         return dict(out, trace=result.trace) if keep_trace else out
     # one transfer per array, then plain indexing (indexing a device array per rollout cost
-    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13), in Python floats at once
-    # (--json's encoder then converts no value)
-    metrics = {name: np.asarray(getattr(result.metrics, name)).tolist() for name in METRIC_NAMES}
-    diverged, diverged_at = np.asarray(result.diverged).tolist(), np.asarray(result.diverged_at).tolist()
+    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13)
+    metrics = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+    diverged, diverged_at = np.asarray(result.diverged), np.asarray(result.diverged_at)
     rollouts = []
     for r in range(n_rollouts):
         rollouts.append({
@@ -163,8 +162,8 @@ def run_simulate(
             "offset_index": r // n_real % n_offsets,
             "realization_index": r % n_real,
             "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
-            "diverged": diverged[r],
-            "diverged_at": diverged_at[r],
+            "diverged": bool(diverged[r]),
+            "diverged_at": float(diverged_at[r]),
         })  # fmt: skip
     out = {"rollouts": rollouts, "summary": summary, "config": cfg}
     if keep_trace:

@@ -12,7 +12,7 @@
 //
 // Layouts (T = float or double; rows of N lanes, lane-minor):
 //   ab      (36, N)  rows 0-26: the plant's A rows (3 x 9), 27-35: its B rows (3 x 3)
-//   consts  (102,)   C (27), S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3),
+//   consts  (99,)    C (27), S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3),
 //                    dt, the low-pass gain of chattering_hf, the divergence bound
 //   table   (L, R)   per step: X_d at the stage times (9 each: t; or t, t + dt/2, t + dt for
 //                    RK4), then at the sample t' = (k + 1) dt: X_d (9), Omega (3), rho_ref, t'
@@ -182,7 +182,7 @@ template <typename T, int Rk4, int Sw, int Law>
 void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in,
          T* out, int64_t N) {
   const int64_t W = Simd<T>::W, blocks = N / W;
-  auto one = [=, &c](int64_t i) {
+  auto one = [=](int64_t i) {  // c by value: a helper may outlive the call (it then takes no block)
     Block<T, Rk4, Sw, Law>(c, ab + i * W, table, L, R, in + i * W, out + i * W, N);
   };
   // Blocks are handed out from a shared counter: the calling thread takes its share too and
@@ -214,8 +214,18 @@ void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table,
 template <typename T>
 ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer ab, ffi::AnyBuffer consts, ffi::AnyBuffer table,
                     ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t sw, int32_t law) {
-  const int64_t N = in.dimensions()[1], L = table.dimensions()[0], R = table.dimensions()[1];
-  if (N % Simd<T>::W) return ffi::Error::InvalidArgument("fosmc kernel: the lane count must be a multiple of 16");
+  // every check the Python side already makes, so that a misuse is an error, never a crash
+  const auto type = in.element_type();
+  if (ab.element_type() != type || consts.element_type() != type || table.element_type() != type ||
+      out->element_type() != type)
+    return ffi::Error::InvalidArgument("fosmc kernel: every buffer must have the carry's dtype");
+  const auto dims = in.dimensions(), abd = ab.dimensions(), td = table.dimensions();
+  if (dims.size() != 2 || dims[0] != kRows || abd.size() != 2 || abd[0] != 36 || abd[1] != dims[1] ||
+      td.size() != 2 || td[1] != (rk4 ? 27 : 9) + 14 || out->element_count() != in.element_count() ||
+      consts.element_count() != sizeof(Consts<T>) / sizeof(T))
+    return ffi::Error::InvalidArgument("fosmc kernel: buffer shapes do not match the layout in _kernel.cc");
+  const int64_t N = dims[1], L = td[0], R = td[1];
+  if (N % Simd<T>::W) return ffi::Error::InvalidArgument("fosmc kernel: the lane count must fill whole blocks");
   Consts<T> c;
   std::copy_n(consts.typed_data<T>(), sizeof(Consts<T>) / sizeof(T), reinterpret_cast<T*>(&c));
   const T *a = ab.typed_data<T>(), *tb = table.typed_data<T>(), *i = in.typed_data<T>();

@@ -9,10 +9,11 @@ or without sharding), registered as an XLA FFI target (``jax.ffi``).
 
 It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
 headers come with jaxlib) for this CPU (``-march=native``) and cached under
-``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``), keyed by the source, the flags, jaxlib
-and the CPU. Where no compiler works, or with ``FOSMC_JAX_NATIVE=0``, the fast path runs its
-``lax.scan`` as before, with a one-line warning in the first case. Results equal the scan's to
-rounding (tests/test_performance_paths.py); gradients go through the scan (``custom_vjp`` in
+``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``), keyed by the source, the flags, the
+compiler's version, jaxlib's and the CPU. Where no compiler works, or with
+``FOSMC_JAX_NATIVE=0``, the fast path runs its ``lax.scan`` as before, with a one-line
+warning in the first case. Results equal the scan's to rounding
+(tests/test_performance_paths.py); derivatives are the scan's (``custom_jvp`` in
 ``_simulator``).
 """
 
@@ -31,6 +32,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 from jax import Array
 
@@ -38,7 +40,7 @@ TARGET = "fosmc_advance"
 LANES = 16  # rollouts per SIMD block (kW in _kernel.cc): the batch is padded to a multiple
 ROWS = 47  # carry rows (see _kernel.cc)
 # Steps per kernel call: as many as keep the call's time table within 24 KiB, in the core's
-# L1 cache (256 Euler float32 steps; 512 were 1.4x slower, BENCHMARKS.md), at least 64.
+# L1 cache (267 Euler float32 steps; 512 steps per call ran slower by hand), at least 64.
 TABLE_BYTES = 24 * 1024
 _SOURCE = Path(__file__).with_name("_kernel.cc")
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
@@ -62,25 +64,42 @@ def _compiler() -> str | None:
     return None
 
 
+def _version(cmd: list[str]) -> str:
+    try:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=30).stdout.split("\n")[0]
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
 def _build() -> Path:
-    """The kernel's shared library, compiled once per source, flags, jaxlib and CPU."""
+    """The kernel's shared library, compiled once per source, flags, compiler, jaxlib and CPU."""
     cxx = _compiler()
     if cxx is None:
         raise OSError("no C++ compiler found (set CXX)")
     cmd = [cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}"]
-    key = hashlib.sha256("\n".join([_SOURCE.read_text(), " ".join(cmd), jax.__version__, _cpu()]).encode())
+    key = "\n".join([_SOURCE.read_text(), " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
     cache = Path(os.environ.get("FOSMC_JAX_CACHE", Path.home() / ".cache" / "fosmc_jax"))
-    lib = cache / f"kernel-{key.hexdigest()[:16]}.so"
+    lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
     if not lib.exists():
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
             out = Path(tmp) / lib.name
-            run = subprocess.run([*cmd, str(_SOURCE), "-o", str(out)], capture_output=True, text=True)
+            run = subprocess.run([*cmd, str(_SOURCE), "-o", str(out)], capture_output=True, text=True, timeout=600)
             if run.returncode:
                 errors = [line for line in run.stderr.splitlines() if "error" in line] or [f"exit {run.returncode}"]
                 raise OSError(f"{cxx} failed: {errors[0].strip()}")
             os.replace(out, lib)
     return lib
+
+
+def _load() -> ctypes.CDLL:
+    """The built kernel, loaded; a cached library that does not load is rebuilt once."""
+    path = _build()
+    try:
+        return ctypes.cdll.LoadLibrary(str(path))
+    except OSError:
+        path.unlink(missing_ok=True)
+        return ctypes.cdll.LoadLibrary(str(_build()))
 
 
 @functools.cache
@@ -89,28 +108,27 @@ def available() -> bool:
     if os.environ.get("FOSMC_JAX_NATIVE", "1") == "0":
         return False
     try:
-        lib = ctypes.cdll.LoadLibrary(str(_build()))
-    except (OSError, subprocess.SubprocessError) as e:
+        jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(_load().FosmcAdvance), platform="cpu")
+    except Exception as e:  # any failure leaves the scan loop, which needs none of this
         warnings.warn(f"fosmc_jax: the native kernel is not available ({e}); the fast path runs lax.scan", stacklevel=2)
         return False
-    jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.FosmcAdvance), platform="cpu")
     return True
 
 
 def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: int, *, rk4: bool, switching: str,
             law: str) -> Array:  # fmt: skip
     """``n_steps`` steps of the kernel from step ``k0``: ``carry`` (ROWS, N) and ``ab`` (36, N),
-    N a multiple of LANES, ``consts`` (102,) as in ``_kernel.cc``; ``table(k)`` gives the rows
-    of steps ``k`` (a vector of step indices), (len(k), R). Calls of a few hundred steps (see
-    TABLE_BYTES) in a scan."""
+    N a multiple of LANES, ``consts`` (99,) as in ``_kernel.cc``, all of one dtype;
+    ``table(k)`` gives the rows of steps ``k`` (a vector of step indices), (len(k), R). Calls
+    of a few hundred steps (see TABLE_BYTES) in a scan."""
     call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")
     attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING[switching]), law=np.int32(LAWS[law]))
 
     def chunk(c, k, length):
         return call(ab, consts, table(k + jnp.arange(length)), c, **attrs)
 
-    row_bytes = jax.eval_shape(table, jnp.zeros(1, jnp.int32)).shape[1] * carry.dtype.itemsize
-    steps = max(64, TABLE_BYTES // row_bytes)
+    row = (27 if rk4 else 9) + 14  # X_d at the stage times, then X_d, Omega, rho_ref, t'
+    steps = max(64, TABLE_BYTES // (row * carry.dtype.itemsize))
     chunks, rest = divmod(n_steps, steps)
     if chunks:
         body = lambda c, i: (chunk(c, k0 + i * steps, steps), None)

@@ -319,6 +319,15 @@ class _Batch(NamedTuple):
     diverged_at: Array  # (P, O)
 
 
+def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Array, Array]:
+    """What a controller sample at t needs of the reference alone: X_d (9,), Omega (3,) of
+    (10), and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
+    ref = reference(t)
+    X_d = desired_state(ref)
+    Omega = feedforward(controller.a_rows, controller.b_rows, ref)
+    return X_d, Omega, controller.gamma[1] * safe_norm(X_d) + controller.gamma[2] * safe_norm(Omega)
+
+
 def _linear_batch(
     plants: LinearPlant,
     controller: Controller,
@@ -365,10 +374,7 @@ def _linear_batch(
         return lambda *args: jax.lax.cond(always, fn, fn, *args)
 
     def sample(x, w, t):
-        ref = reference(t)
-        X_d = desired_state(ref)
-        Omega = feedforward(controller.a_rows, controller.b_rows, ref)
-        rho_ref = gamma[1] * safe_norm(X_d) + gamma[2] * safe_norm(Omega)
+        X_d, Omega, rho_ref = _time_terms(controller, reference, t)
         Z = _sub(x, _rows(X_d))
         s = _sub(_mv(C, Z), w)
         rho = gamma[0] * safe_sqrt(functools.reduce(operator.add, (z * z for z in Z))) + rho_ref
@@ -445,37 +451,33 @@ def _linear_batch(
 
 def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **how) -> _Batch:
     """``n_steps`` of ``body`` in :mod:`fosmc_jax._native`'s kernel: the carry packed into
-    rows of lanes (padded to a multiple of its block), the time-only terms in a table."""
-    dtype = dt.dtype
+    rows of lanes (padded to a multiple of its block), the time-only terms in a table; every
+    input in the carry's dtype (the widest of the inputs', as the scan promotes them)."""
     lanes = c.diverged.shape
     n = c.diverged.size
     pad = (-n) % _native.LANES
 
-    def rows(entries):
+    def rows(entries, dtype=None):
         flat = [jnp.broadcast_to(e, lanes).reshape(n) for e in entries]
+        flat = flat if dtype is None else [e.astype(dtype) for e in flat]
         return jnp.pad(jnp.stack(flat), ((0, 0), (0, pad)), mode="edge")
 
     acc = [field for fields in zip(*c.acc) for field in fields]  # field-major, joint-minor
-    carry = rows([*c.x, *c.w, *c.U, *acc, c.diverged.astype(dtype), c.diverged_at])
-    ab = rows([e for row in A + B for e in row])
+    carry = rows([*c.x, *c.w, *c.U, *acc, c.diverged_at])
+    dtype = carry.dtype
+    carry = jnp.concatenate([carry[:45], rows([c.diverged], dtype), carry[45:]])
+    ab = rows([e for row in A + B for e in row], dtype)
+    bound = jnp.minimum(jnp.asarray(bound, dtype), jnp.finfo(dtype).max)  # |x| <= bound also means finite
     consts = jnp.concatenate([jnp.ravel(m).astype(dtype) for m in (controller.C, derived.S, derived.CB_inv, derived.K,
-                              controller.gamma, controller.delta, dt, gain, jnp.asarray(bound, dtype))])  # fmt: skip
-    gamma = controller.gamma
+                              controller.gamma, controller.delta, dt, gain, bound)])  # fmt: skip
     X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
 
     def table(k):
-        t = k.astype(dtype) * dt
+        t = k.astype(dt.dtype) * dt
         stages = [X_d_at(t)] if not how["rk4"] else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)]
-        t1 = (k + 1).astype(dtype) * dt
-
-        def sample(t):
-            ref = reference(t)
-            X_d = desired_state(ref)
-            Omega = feedforward(controller.a_rows, controller.b_rows, ref)
-            rho_ref = gamma[1] * safe_norm(X_d) + gamma[2] * safe_norm(Omega)
-            return jnp.concatenate([X_d, Omega, rho_ref[None], t[None]])
-
-        return jnp.concatenate([*stages, jax.vmap(sample)(t1)], axis=1)
+        t1 = (k + 1).astype(dt.dtype) * dt
+        X_d, Omega, rho_ref = jax.vmap(functools.partial(_time_terms, controller, reference))(t1)
+        return jnp.concatenate([*stages, X_d, Omega, rho_ref[:, None], t1[:, None]], axis=1).astype(dtype)
 
     out = _native.advance(carry, ab, consts, table, c.k, n_steps, **how)[:, :n].reshape((-1, *lanes))
     x, w, U, acc, div, div_at = out[:9], out[9:12], out[12:15], out[15:45], out[45], out[46]
@@ -485,13 +487,14 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
 
 def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
     """:func:`_linear_batch` with its time loop in the native kernel where that is built;
-    reverse-mode derivatives (``custom_vjp``) differentiate the ``lax.scan`` loop instead. The
-    kernel is the CPU's: on a GPU (the default backend) the scan runs."""
+    derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
+    the ``lax.scan`` loop. The kernel is the CPU's: on a GPU (the default backend) the scan
+    runs."""
     if jax.default_backend() != "cpu" or not _native.available():
         return _linear_batch(plants, controller, reference, X0s, dt, **options)
     scan = lambda *args: _linear_batch(*args, **options)
-    run = jax.custom_vjp(lambda *args: _linear_batch(*args, native=True, **options))
-    run.defvjp(lambda *args: jax.vjp(scan, *args), lambda vjp, g: vjp(g))
+    run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=True, **options))
+    run.defjvp(lambda primals, tangents: jax.jvp(scan, primals, tangents))
     return run(plants, controller, reference, X0s, dt)
 
 

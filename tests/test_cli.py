@@ -71,10 +71,14 @@ def test_simulate_npz_holds_the_json_values(capsys, tmp_path):
 def test_simulate_json_writes_non_finite_numbers_as_null():
     from fosmc_jax._cli import _simulate_json
 
-    r = {"rollouts": [{"metrics": {"rms_error": [float("nan"), 1.0, -float("inf")]}, "diverged": True,
-                       "diverged_at": float("inf")}], "summary": {"mean": float("nan")}, "config": {}}  # fmt: skip
-    d = json.loads(_simulate_json(r))
-    assert d["rollouts"][0] == {"metrics": {"rms_error": [None, 1.0, None]}, "diverged": True, "diverged_at": None}
+    arrays = {name: np.ones((1, 3)) for name in METRIC_NAMES}
+    arrays["rms_error"] = np.array([[np.nan, 1.0, -np.inf]])
+    arrays.update(diverged=np.array([True]), diverged_at=np.array([np.inf]), plant_index=np.array([0]),
+                  offset_index=np.array([0]), realization_index=np.array([0]))  # fmt: skip
+    d = json.loads(_simulate_json({"arrays": arrays, "summary": {"mean": float("nan")}, "config": {}}))
+    (record,) = d["rollouts"]
+    assert record["metrics"]["rms_error"] == [None, 1.0, None] and record["metrics"]["chattering"] == [1.0] * 3
+    assert record["diverged"] is True and record["diverged_at"] is None and record["plant_index"] == 0
     assert d["summary"] == {"mean": None} and d["config"] == {}
 
 

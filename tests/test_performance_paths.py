@@ -88,6 +88,38 @@ def test_fast_batch_float32():
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, np.float32(1e-3), **opts), rtol=1e-4)
 
 
+def test_fast_batch_forward_mode_and_mixed_precision():
+    """Forward-mode derivatives through the fast path (the kernel's are the scan's), and plants
+    in float32 with float64 states (the kernel runs in the promoted dtype, as the scan)."""
+    plants, ctrl, ref, X0s = setup(P=2, O=2)
+    opts = dict(n_steps=60, integrator="euler")
+
+    def loss(gamma, fast):
+        r = fj.simulate_batch(plants, ctrl._replace(gamma=gamma), ref, X0s, 1e-3, fast=fast, **opts)
+        return jnp.mean(r.metrics.rms_error)
+
+    np.testing.assert_allclose(jax.jacfwd(loss)(ctrl.gamma, True), jax.grad(loss)(ctrl.gamma, False), rtol=1e-9)
+    plants32 = jax.tree.map(lambda a: a.astype(jnp.float32), plants)
+    mixed = fj.simulate_batch(plants32, ctrl, ref, X0s, 1e-3, **opts)
+    assert mixed.metrics.rms_error.dtype == jnp.float64
+    assert_close(mixed, fj.simulate_batch(plants32, ctrl, ref, X0s, 1e-3, fast=False, **opts))
+
+
+@pytest.mark.skipif(_native._compiler() is None, reason="no C++ compiler: no kernel")
+def test_kernel_refuses_buffers_off_its_layout_with_an_error():
+    """A misuse of the kernel is an error, never a crash of the process."""
+    assert _native.available()
+    carry, ab = jnp.zeros((_native.ROWS, 16)), jnp.zeros((36, 16))
+    table = lambda k: jnp.zeros((k.shape[0], 23))
+    good = jnp.zeros(99)
+    out = _native.advance(carry, ab, good, table, jnp.int32(0), 3, rk4=False, switching="ratio", law="paper")
+    assert out.shape == carry.shape
+    for consts, ab_ in ((jnp.zeros(98), ab), (good, ab.astype(jnp.float32)), (good, ab[:, :8])):
+        with pytest.raises(Exception, match="fosmc kernel"):
+            jax.block_until_ready(_native.advance(carry, ab_, consts, table, jnp.int32(0), 3, rk4=False,
+                                                  switching="ratio", law="paper"))  # fmt: skip
+
+
 def test_scan_loop_equals_vmap_of_simulate():
     """The fast path's ``lax.scan`` loop, which runs where the native kernel cannot be built
     (and under reverse-mode derivatives); the cases above run the kernel where it is."""
