@@ -404,7 +404,7 @@ def main(argv=None):
     rows.append(time_jax(head, np.float32, "euler", steps, devices=2)), say(rows[-1])
     for output in ("json", "npz"):
         for d in (1, 2):
-            rows.append(cli(head if q else 4 * head, steps, d, output)), say(rows[-1])
+            rows.append(cli(4 * head, steps, d, output)), say(rows[-1])
     try:
         import fosmc_jax._arm  # noqa: F401
 
