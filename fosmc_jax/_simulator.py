@@ -286,7 +286,9 @@ def simulate(
 # each. The reference, X_d, Omega and everything derived from the controller depend on t
 # only: computed once per step for the whole batch. Only rows 3, 6, 9 of the plant carry
 # dynamics. Same operations as :func:`simulate`, so the same results to rounding
-# (tests/test_performance_paths.py).
+# (tests/test_performance_paths.py). Where the host has a C++ compiler the time loop runs in
+# fosmc_jax/_kernel.cc instead (:func:`_kernel_advance`), the same operations again; the
+# scan stays for derivatives and for hosts without a compiler.
 
 
 def _rows(a: Array, lead: int = 1) -> Any:
@@ -512,9 +514,9 @@ def simulate_batch(
     a trace (``save_every`` = 0) runs a fast path with the same results to rounding: its time
     loop is one compiled kernel on every core (:mod:`fosmc_jax._native`), or, where that cannot
     be built, a structure-of-arrays ``lax.scan``; anything else runs ``vmap`` of
-    :func:`simulate`. Reverse-mode derivatives of the fast path go through the ``lax.scan``
-    (forward mode is not defined there); it compiles several times slower and runs slower
-    than the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``."""
+    :func:`simulate`. Derivatives of the fast path (forward and reverse mode) are those of
+    the ``lax.scan``; in reverse mode it compiles several times slower and runs slower than
+    the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
     if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
