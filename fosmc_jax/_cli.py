@@ -68,19 +68,13 @@ def cmd_simulate(args) -> int:
 
 
 def _simulate_json(r: dict) -> str:
-    """``fosmc simulate --json`` from ``run_simulate(records=False)``: its records as
-    ``run_simulate`` makes them, one per line, written by json's C encoder from one ``tolist``
+    """``fosmc simulate --json`` from ``run_simulate(records=False)``: its records
+    (``rollout_records``), one per line, written by json's C encoder from one ``tolist``
     per array (records of NumPy rows through ``jsonable`` and an indented dump cost 1 s at
     16,384 rollouts, more than the simulation; BENCHMARKS.md, issue 13). Non-finite numbers
     become null, as ``jsonable`` makes them (the records hold only numbers and booleans, so the
     tokens cannot be in a string)."""
-    a = {k: np.asarray(v).tolist() for k, v in r["arrays"].items()}
-    keys = ("plant_index", "offset_index", "realization_index")
-    records = (
-        {**{k: a[k][i] for k in keys}, "metrics": {name: a[name][i] for name in METRIC_NAMES},
-         "diverged": a["diverged"][i], "diverged_at": a["diverged_at"][i]}
-        for i in range(len(a["diverged"]))
-    )  # fmt: skip
+    records = C.rollout_records({k: v.tolist() for k, v in r["arrays"].items()})
     rows = ",\n  ".join(json.dumps(x) for x in records)
     if "NaN" in rows or "Infinity" in rows:
         rows = re.sub(r"-?Infinity|NaN", "null", rows)

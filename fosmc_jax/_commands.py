@@ -27,7 +27,7 @@ from __future__ import annotations
 import functools
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -142,33 +142,37 @@ def run_simulate(
     result = jax.block_until_ready(result)
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
 
+    # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
+    # rollouts: BENCHMARKS.md, issue 13)
+    r = np.arange(n_rollouts)
+    arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+    arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
+                  plant_index=r // (n_offsets * n_real), offset_index=r // n_real % n_offsets,
+                  realization_index=r % n_real)  # fmt: skip
     summary = batch_summary(result.metrics, result.diverged)
     if not records:
-        r = np.arange(n_rollouts)
-        arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
-        arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
-                      plant_index=r // (n_offsets * n_real), offset_index=r // n_real % n_offsets,
-                      realization_index=r % n_real)  # fmt: skip
         out = {"arrays": arrays, "summary": summary, "config": cfg}
         return dict(out, trace=result.trace) if keep_trace else out
-    # one transfer per array, then plain indexing (indexing a device array per rollout cost
-    # 27 of 45 s at 16,384 rollouts: BENCHMARKS.md, issue 13)
-    metrics = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
-    diverged, diverged_at = np.asarray(result.diverged), np.asarray(result.diverged_at)
-    rollouts = []
-    for r in range(n_rollouts):
-        rollouts.append({
-            "plant_index": r // (n_offsets * n_real),
-            "offset_index": r // n_real % n_offsets,
-            "realization_index": r % n_real,
-            "metrics": {name: metrics[name][r] for name in METRIC_NAMES},
-            "diverged": bool(diverged[r]),
-            "diverged_at": float(diverged_at[r]),
-        })  # fmt: skip
+    rollouts = list(rollout_records(arrays))
     out = {"rollouts": rollouts, "summary": summary, "config": cfg}
     if keep_trace:
         out["trace"] = result.trace
     return out
+
+
+def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
+    """``run_simulate``'s records, one per rollout, from its ``arrays`` (NumPy arrays, or their
+    ``tolist()``, as ``--json`` passes them to json's encoder): indices, ``metrics`` rows,
+    ``diverged`` and ``diverged_at``."""
+    for i in range(len(arrays["diverged"])):
+        yield {
+            "plant_index": int(arrays["plant_index"][i]),
+            "offset_index": int(arrays["offset_index"][i]),
+            "realization_index": int(arrays["realization_index"][i]),
+            "metrics": {name: arrays[name][i] for name in METRIC_NAMES},
+            "diverged": bool(arrays["diverged"][i]),
+            "diverged_at": float(arrays["diverged_at"][i]),
+        }
 
 
 # ---------------------------------------------------------------------------- bounds

@@ -441,8 +441,7 @@ def run(
 
     seed = settings.seed * 1_000_003
     if state.get("stage") != "polish":
-        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, deadline, "local",
-                                 lambda r, z_, m_: save(r, z_, m_))  # fmt: skip
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, deadline, "local", save)
     n_train = len(z)
     idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
     zp, mp, p_run = z, m, 0

@@ -130,6 +130,7 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
       s[j] = cz - nw[j];
       const T d = c.delta[j];
       V sw;  // the switching function f(s)
+      // Sw and Law: positions in fosmc_jax._controller.SWITCHING and LAWS
       if constexpr (Sw == 0) sw = s[j] > 0 ? zero + 1 : (s[j] < 0 ? zero - 1 : s[j]);  // sign
       if constexpr (Sw == 1) sw = s[j] / (S::Abs(s[j]) + d);                           // ratio (28)
       if constexpr (Sw == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);       // sat

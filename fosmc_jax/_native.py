@@ -36,6 +36,8 @@ import jaxlib
 import numpy as np
 from jax import Array
 
+from ._controller import LAWS, SWITCHING
+
 TARGET = "fosmc_advance"
 LANES = 16  # rollouts per SIMD block (kW in _kernel.cc): the batch is padded to a multiple
 ROWS = 47  # carry rows (see _kernel.cc)
@@ -44,8 +46,6 @@ ROWS = 47  # carry rows (see _kernel.cc)
 TABLE_BYTES = 24 * 1024
 _SOURCE = Path(__file__).with_name("_kernel.cc")
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
-SWITCHING = {"sign": 0, "ratio": 1, "sat": 2, "tanh": 3}
-LAWS = {"paper": 0, "equivalent": 1}
 
 
 def _cpu() -> str:
@@ -122,7 +122,8 @@ def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: i
     ``table(k)`` gives the rows of steps ``k`` (a vector of step indices), (len(k), R). Calls
     of a few hundred steps (see TABLE_BYTES) in a scan."""
     call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")
-    attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING[switching]), law=np.int32(LAWS[law]))
+    # the kernel's codes are the positions in these tuples (its Sw and Law template arguments)
+    attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING.index(switching)), law=np.int32(LAWS.index(law)))
 
     def chunk(c, k, length):
         return call(ab, consts, table(k + jnp.arange(length)), c, **attrs)
