@@ -6,8 +6,8 @@
 
 With gcc, the SIMD anchor (../shared/anchors/simd_kernel/run.sh, a hand-written C kernel of
 the same closed loop) runs in the same process and every linear row is given as a fraction
-of its best thread count; ``fosmc simulate --json`` runs as a user runs it (1 and 2
-devices; steady state from the difference of two horizons).
+of its best thread count; ``fosmc simulate --json`` and ``--npz`` run as a user runs them
+(1 and 2 devices; steady state from the difference of two horizons).
 
 Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
 second (rollouts x steps / wall seconds of a compiled call, best of 3; compile time apart).
@@ -305,8 +305,9 @@ def cli(samples: int, steps: int, devices: int, output: str = "json", longer: in
     steps: the steady state is samples x (longer - 1) x steps / (difference of the wall times).
     The start-up, the compilation and the output of each rollout are the same in both runs
     and cancel (a difference of batch sizes, used before, also differed in compilation, and
-    a fresh process's start-up varies by 0.3 s: steady states from 1.4e8 to 4.6e8
-    rollout-steps/s for the same command, where the library runs 3e8; hence the long run);
+    a fresh process's start-up varies by more than the simulation between the sizes: steady
+    states from 1.4e8 to 4.6e8 rollout-steps/s for the same command at 995ff94, where the
+    library runs 3e8; hence the long run);
     the wall times of both are returned, and the output's cost per rollout is the difference
     of the --json and --npz rows' walls."""
     import tempfile
