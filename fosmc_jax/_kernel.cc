@@ -18,22 +18,15 @@
 //                    RK4), then at the sample t' = (k + 1) dt: X_d (9), Omega (3), rho_ref, t'
 //   carry   (47, N)  x (9), w (3), U (3), the accumulator's 10 fields x 3 joints (field-major,
 //                    as fosmc_jax._metrics.Accumulator), diverged (0 / 1), diverged_at
-#include <algorithm>
-#include <atomic>
-#include <cmath>
-#include <cstdint>
-#include <cstring>
 #include <limits>
-#include <memory>
-#include <thread>
 
-#include "xla/ffi/api/ffi.h"
+#include "_kernel.h"
 
 namespace ffi = xla::ffi;
 
 namespace {
 
-constexpr int kBytes = 64;  // one block: a 64-byte SIMD vector (16 float or 8 double rollouts)
+using fosmc::Simd;
 constexpr int kRows = 47;
 enum { kX = 0, kWi = 9, kU = 12, kAcc = 15, kDiv = 45, kDivAt = 46 };
 enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
@@ -41,26 +34,6 @@ enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSatur
 template <typename T>
 struct Consts {
   T C[27], S[27], CBi[9], K[27], gamma[3], delta[3], dt, gain, bound;
-};
-
-// A block's rollouts as one GCC vector: each variable below holds one quantity of every
-// rollout of the block, each operator acts lane by lane, and a comparison gives a lane mask.
-template <typename T>
-struct Simd {
-  typedef T V __attribute__((vector_size(kBytes)));
-  static constexpr int W = kBytes / sizeof(T);
-  static V Load(const T* p) { V v; std::memcpy(&v, p, sizeof v); return v; }
-  static void Store(T* p, V v) { std::memcpy(p, &v, sizeof v); }
-  template <typename F>
-  static V Map(V x, F f) {
-    V r;
-    for (int l = 0; l < W; l++) r[l] = f(x[l]);
-    return r;
-  }
-  static V Abs(V x) { return Map(x, [](T a) { return std::fabs(a); }); }
-  static V Sqrt(V x) { return Map(x, [](T a) { return std::sqrt(a); }); }
-  static V Max(V a, V b) { return a < b ? b : a; }  // jnp.maximum on finite values
-  static V Min(V a, V b) { return b < a ? b : a; }
 };
 
 template <typename T, int Rk4, int Sw, int Law>
@@ -177,39 +150,13 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
   for (int r = 0; r < kRows; r++) S::Store(out + r * N, st[r]);
 }
 
-std::atomic<int64_t> g_busy{0};  // threads running blocks, over every call in the process
-
 template <typename T, int Rk4, int Sw, int Law>
 void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in,
          T* out, int64_t N) {
-  const int64_t W = Simd<T>::W, blocks = N / W;
-  auto one = [=](int64_t i) {  // c by value: a helper may outlive the call (it then takes no block)
+  const int64_t W = Simd<T>::W;
+  fosmc::RunBlocks(pool, N / W, [=](int64_t i) {  // c by value: see RunBlocks
     Block<T, Rk4, Sw, Law>(c, ab + i * W, table, L, R, in + i * W, out + i * W, N);
-  };
-  // Blocks are handed out from a shared counter: the calling thread takes its share too and
-  // waits only for blocks already taken, so the call finishes even if no pool thread is free.
-  // A helper that starts when every pool thread is already at work in some call (several
-  // devices running their shards at once) leaves at once instead of oversubscribing the cores.
-  struct Shared {
-    std::atomic<int64_t> next{0}, done{0};
-  };
-  auto shared = std::make_shared<Shared>();
-  auto work = [shared, one, blocks] {
-    for (int64_t i; (i = shared->next.fetch_add(1)) < blocks;) {
-      one(i);
-      shared->done.fetch_add(1, std::memory_order_release);
-    }
-  };
-  const int64_t threads = pool.num_threads(), helpers = std::min(threads, blocks) - 1;
-  for (int64_t h = 0; h < helpers; h++)
-    pool.Schedule([work, threads] {
-      if (g_busy.fetch_add(1) < threads) work();
-      g_busy.fetch_sub(1);
-    });
-  g_busy.fetch_add(1);
-  work();
-  g_busy.fetch_sub(1);
-  while (shared->done.load(std::memory_order_acquire) < blocks) std::this_thread::yield();
+  });
 }
 
 template <typename T>

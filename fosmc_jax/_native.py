@@ -39,12 +39,15 @@ from jax import Array
 from ._controller import LAWS, SWITCHING
 
 TARGET = "fosmc_advance"
+ARM_TARGET = "fosmc_arm_advance"
 LANES = 16  # rollouts per SIMD block (kW in _kernel.cc): the batch is padded to a multiple
 ROWS = 47  # carry rows (see _kernel.cc)
 # Steps per kernel call: as many as keep the call's time table within 24 KiB, in the core's
 # L1 cache (267 Euler float32 steps; 512 steps per call ran slower by hand), at least 64.
 TABLE_BYTES = 24 * 1024
-_SOURCE = Path(__file__).with_name("_kernel.cc")
+_HERE = Path(__file__).parent
+_SOURCES = [_HERE / "_kernel.cc", _HERE / "_arm_kernel.cc"]  # one library; both include _kernel.h
+_HEADER = _HERE / "_kernel.h"
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
 
 
@@ -77,14 +80,15 @@ def _build() -> Path:
     if cxx is None:
         raise OSError("no C++ compiler found (set CXX)")
     cmd = [cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}"]
-    key = "\n".join([_SOURCE.read_text(), " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
+    text = [path.read_text() for path in (*_SOURCES, _HEADER)]
+    key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
     cache = Path(os.environ.get("FOSMC_JAX_CACHE", Path.home() / ".cache" / "fosmc_jax"))
     lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
     if not lib.exists():
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
             out = Path(tmp) / lib.name
-            run = subprocess.run([*cmd, str(_SOURCE), "-o", str(out)], capture_output=True, text=True, timeout=600)
+            run = subprocess.run([*cmd, *map(str, _SOURCES), "-o", str(out)], capture_output=True, text=True, timeout=600)
             if run.returncode:
                 errors = [line for line in run.stderr.splitlines() if "error" in line] or [f"exit {run.returncode}"]
                 raise OSError(f"{cxx} failed: {errors[0].strip()}")
@@ -108,7 +112,9 @@ def available() -> bool:
     if os.environ.get("FOSMC_JAX_NATIVE", "1") == "0":
         return False
     try:
-        jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(_load().FosmcAdvance), platform="cpu")
+        lib = _load()
+        jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.FosmcAdvance), platform="cpu")
+        jax.ffi.register_ffi_target(ARM_TARGET, jax.ffi.pycapsule(lib.FosmcArmAdvance), platform="cpu")
     except Exception as e:  # any failure leaves the scan loop, which needs none of this
         warnings.warn(f"fosmc_jax: the native kernel is not available ({e}); the fast path runs lax.scan", stacklevel=2)
         return False

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _metrics, _native
+from . import _arm_native, _metrics, _native
 from ._controller import FOSMC, Controller, derive, safe_norm, safe_sqrt, switch
 from ._linear_plant import LinearPlant
 from ._reference import desired_state, feedforward
@@ -119,6 +119,27 @@ def _sliding_variable(state, dtype) -> Array:
     while not hasattr(state, "s") and hasattr(state, "law"):
         state = state.law
     return state.s if hasattr(state, "s") else jnp.full(3, jnp.nan, dtype)
+
+
+def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
+    """The carry at t = 0: the plant's state from X0, the controller's first sample, the
+    metrics' first sample; flagged diverged (at 0) where any of it is not finite."""
+    dtype = X0.dtype
+    plant_state = plant.init(X0)
+    X = plant.observe(plant_state)
+    r = reference(jnp.zeros((), dtype))
+    ctrl_state = ctrl.init(X, r, key)
+    U, ctrl_state = ctrl.update(ctrl_state, X, r, jnp.zeros((), dtype))
+    bad = ~_finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
+    return _Carry(
+        jnp.zeros((), jnp.int32),
+        plant_state,
+        ctrl_state,
+        U,
+        _metrics.start(X[0::3] - r[0], U, getattr(ctrl, "u_max", None)),
+        bad,
+        jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
+    )
 
 
 _STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every")
@@ -228,21 +249,7 @@ def simulate(
         periods, rest = divmod(steps, m)
         return _scan_steps(held, _scan_steps(period, c, periods), rest)
 
-    plant_state = plant.init(X0)
-    X = plant.observe(plant_state)
-    r = reference(jnp.zeros((), dtype))
-    ctrl_state = ctrl.init(X, r, key)
-    U, ctrl_state = ctrl.update(ctrl_state, X, r, jnp.zeros((), dtype))
-    bad = ~_finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
-    carry = _Carry(
-        jnp.zeros((), jnp.int32),
-        plant_state,
-        ctrl_state,
-        U,
-        _metrics.start(X[theta] - r[0], U, u_max),
-        bad,
-        jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
-    )
+    carry = start(plant, ctrl, reference, X0, key, divergence_bound)
 
     def snapshot(c: _Carry):
         return c.k, plant.observe(c.plant_state), c.U, _sliding_variable(c.ctrl_state, dtype)
@@ -526,7 +533,25 @@ def simulate_batch(
     key = options.pop("key", None)
     if keys is None:
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
-    one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, **options)
-    batched = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))
-    result = batched(plants, X0s, keys)
-    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
+
+    def vmap_path(plants, ctrl, reference, X0s, dt):
+        one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, **options)
+        batched = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))
+        result = batched(plants, X0s, keys)
+        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
+
+    options.setdefault("integrator", "rk4")
+    arm_fast = fast and keys.shape[0] == 1 and not options.get("save_every")
+    if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
+        return _arm_native.simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **_native_options(options))
+    return vmap_path(plants, ctrl, reference, X0s, dt)
+
+
+def _native_options(options: dict) -> dict:
+    """simulate's options that the arm's kernel reads, with simulate's defaults."""
+    return dict(
+        n_steps=options["n_steps"],
+        integrator=options["integrator"],
+        divergence_bound=options.get("divergence_bound", 1e6),
+        chattering_cutoff=options.get("chattering_cutoff", _metrics.CHATTERING_CUTOFF),
+    )
