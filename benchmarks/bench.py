@@ -9,6 +9,17 @@ the same closed loop) runs in the same process and every linear row is given as 
 of its best thread count; ``fosmc simulate --json`` and ``--npz`` run as a user runs them
 (1 and 2 devices; steady state from the difference of two horizons).
 
+The arm table (arm_table): the arm's closed loop through simulate_batch in all four integrator x
+precision cells (Euler, RK4 x float32, float64; batches 1,024 and 4,096, quick: 1,024; 1,000
+steps, the arm anchor's frozen horizon) and the realistic preset's digital loop through the
+config path, each on both cores (a process unpinned, 1 device) and on one core (a process pinned
+to CPU 0 before JAX is imported), median of several rounds, compilation apart. Where
+../shared/anchors/arm_kernel is present (not in a user's clone: then one line says it is
+skipped), its kernel.c is built from its frozen/ headers without the package and run in the same
+run on the same inputs (1 thread and every core), and its mean rms error of joint 1 is checked
+against the package's: equal to 1e-4 (float32) or 1e-9 (float64) relative, or the row says
+MISMATCH (not the same work).
+
 Writes benchmarks/results/bench[-quick].json, .md and .png. Figure of merit: rollout-steps per
 second (rollouts x steps / wall seconds of a compiled call, best of 3; compile time apart).
 The CPU is shown as two devices (``use_host_devices(2)``) for the 1- vs 2-device figures;
@@ -40,6 +51,10 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+if __name__ == "__main__" and "--pin-child" in sys.argv[1:]:
+    # the arm table's one-core column (arm_package): this process on CPU 0 before JAX is
+    # imported, so that no thread of it (XLA's pools included) can run on another core
+    os.sched_setaffinity(0, {0})
 from fosmc_jax._io import write_text  # noqa: E402
 from fosmc_jax._plots import save_figure  # noqa: E402
 from fosmc_jax._sharding import simulate_sharded, use_host_devices  # noqa: E402
@@ -284,6 +299,265 @@ def anchor(batch: int, steps: int) -> list[dict]:
             for t, v in sorted(best.items())]  # fmt: skip
 
 
+SHARED = Path(__file__).resolve().parents[2] / "shared"  # <repo>/../shared: absent from a user's clone
+ARM_ANCHOR = SHARED / "anchors" / "arm_kernel"
+#: The arm anchor's frozen headers (frozen/<integrator>_<dtype>.h) fix its horizon at 1,000 steps.
+ARM_STEPS = 1000
+ARM_CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fschedule-insns", "-fsched-pressure", "-fopenmp"]
+#: Largest relative difference of the package's and the anchor's mean rms error of joint 1.
+ARM_RMS_TOL = {"float32": 1e-4, "float64": 1e-9}
+PRESET = Path(fj.__file__).resolve().parent / "presets" / "realistic_arm.toml"
+
+
+def split(batch: int) -> tuple[int, int]:
+    """problem()'s P plants x O initial offsets of a batch."""
+    P = int(2 ** np.ceil(np.log2(batch) / 2))
+    return P, batch // P
+
+
+def read_case(path, batch: int, dtype):
+    """An arm anchor case file: P payloads, then O initial states of 9 numbers, raw ``dtype``."""
+    P, O = split(batch)
+    a = np.fromfile(path, np.dtype(dtype))
+    if a.size != P + 9 * O:
+        raise ValueError(f"{path}: {a.size} numbers, expected {P} payloads + {O} x 9 initial states")
+    return a[:P], a[P:].reshape(O, 9)
+
+
+def realistic(batch: int, dtype, steps: int):
+    """The realistic preset (fosmc_jax/presets/realistic_arm.toml: DigitalLoop around the
+    DiscreteFOSMC, 2,621,440-count encoders, differenced rates, one sample of delay, 24 V, RK4,
+    dt = 1e-4, a sample every 10 steps) through the config path as ``run_simulate`` takes it
+    (``_config.load``, ``resolve``, ``build``), its batch enlarged to P payloads in [0, 10] kg
+    x O initial offsets (problem()'s P, O and offsets), ``steps`` steps, in ``dtype``.
+    Returns (positional arguments, dynamic keyword arguments, static options) of simulate_batch."""
+    from fosmc_jax import _config
+
+    P, O = split(batch)
+    cfg = _config.load(PRESET)
+    cfg["plant"]["payloads"] = np.linspace(0.0, 10.0, P).tolist()
+    offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (O, 9)) * (O > 1)
+    cfg["sim"].update(t_final=steps * DT, precision=np.dtype(dtype).name, initial_offset=offsets.tolist())
+    prob = _config.build(_config.resolve(cfg))
+    assert prob.options["n_steps"] == steps and prob.X0s.shape[0] * P == batch
+    static = {k: v for k, v in prob.options.items() if k in _simulator._STATIC}
+    dynamic = {k: v for k, v in prob.options.items() if k not in static}
+    return prob.args, dict(dynamic, keys=prob.keys), static
+
+
+def arm_cell_inputs(cell: dict):
+    """(positional arguments, dynamic keyword arguments, static options) of simulate_batch for
+    one cell of the arm table: the ideal loop on problem(batch, dtype, arm=True), or on the
+    anchor's case file where ``cell["case"]`` names one; or the realistic preset's digital loop."""
+    dtype = np.dtype(cell["dtype"]).type
+    if cell["loop"] == "digital":
+        return realistic(cell["batch"], dtype, cell["steps"])
+    plants, ctrl, ref, X0s, dt = problem(cell["batch"], dtype, arm=True)
+    if cell.get("case"):
+        from fosmc_jax._arm import arm_sweep
+
+        payloads, x0 = read_case(cell["case"], cell["batch"], dtype)
+        plants, X0s = arm_sweep(jnp.asarray(payloads)), jnp.asarray(x0)
+    return (plants, ctrl, ref, X0s, dt), {}, dict(n_steps=cell["steps"], integrator=cell["integrator"])
+
+
+def arm_child(spec_path: str) -> None:
+    """The package's side of the arm table, in a child process of arm_package (pinned to CPU 0
+    by ``--pin-child`` before JAX was imported, or not): per cell, compile (timed), a warm call,
+    then ``rounds`` timed rounds of as many calls as last ``round_s``; the rows go to
+    ``spec["out"]`` as JSON."""
+    import statistics
+
+    spec = json.loads(Path(spec_path).read_text())
+    # the pinned child loads the unpinned child's compilations: the same programs, compiled once
+    jax.config.update("jax_compilation_cache_dir", spec["cache"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    cpus = sorted(os.sched_getaffinity(0))
+    rows = []
+    for cell in spec["cells"]:
+        args, dynamic, static = arm_cell_inputs(cell)
+        t0 = time.perf_counter()
+        compiled = fj.simulate_batch.lower(*args, **dynamic, **static).compile()
+        compile_s = time.perf_counter() - t0
+        call = lambda: jax.block_until_ready(compiled(*args, **dynamic))  # noqa: B023
+        t0 = time.perf_counter()
+        call()  # warm, and the number of calls per round: a round lasts spec["round_s"] at least
+        calls = max(1, int(np.ceil(spec["round_s"] / (time.perf_counter() - t0))))
+        rates, loads = [], []
+        for _ in range(spec["rounds"]):
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                r = call()
+            rates.append(calls * cell["batch"] * cell["steps"] / (time.perf_counter() - t0))
+            loads.append(load())
+        rms = np.asarray(r.metrics.rms_error, np.float64)
+        rows.append({"rollout_steps_per_s": statistics.median(rates), "min": min(rates), "max": max(rates),
+                     "samples": rates, "calls_per_round": calls, "compile_s": compile_s, "load": [min(loads), max(loads)],
+                     "cpus": cpus,
+                     "rms_error_joint1": float(np.mean(rms[:, 0])), "diverged": int(np.sum(np.asarray(r.diverged)))})  # fmt: skip
+        print(f"  arm {cell['loop']:7s} {cell['integrator']:5s} {cell['dtype']:7s} batch {cell['batch']:5d} "
+              f"{cell['steps']} steps, CPUs {cpus}: {rows[-1]['rollout_steps_per_s']:.3e} rollout-steps/s "
+              f"(compile {compile_s:.1f} s)  load {loads[0]}-{loads[-1]}", flush=True)  # fmt: skip
+    Path(spec["out"]).write_text(json.dumps(rows))
+
+
+def arm_package(cells: list[dict], pinned: bool, rounds: int, round_s: float, tmp: str) -> list[dict]:
+    """Time ``cells`` in a fresh process of this script: unpinned (both cores, 1 device), or
+    pinned to CPU 0 before JAX is imported (one core really: XLA's thread pool cannot use the
+    second). The two share a persistent compilation cache in ``tmp``: run unpinned first."""
+    name = "pinned" if pinned else "unpinned"
+    spec = Path(tmp) / f"arm-{name}.json"
+    out = Path(tmp) / f"arm-{name}-rows.json"
+    spec.write_text(json.dumps({"cells": cells, "rounds": rounds, "round_s": round_s, "cache": str(Path(tmp) / "xla-cache"),
+                                "out": str(out)}))  # fmt: skip
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--arm-child", str(spec)] + (
+        ["--pin-child"] if pinned else []
+    )
+    print(f"arm table: package, {'one core (child pinned to CPU 0)' if pinned else 'both cores (unpinned child)'}",
+          flush=True)  # fmt: skip
+    subprocess.run(cmd, check=True)
+    return json.loads(out.read_text())
+
+
+def build_arm_anchor(tmp: str) -> tuple[dict, str]:
+    """The arm anchor (../shared/anchors/arm_kernel/kernel.c) built from its frozen headers, no
+    package involved: {(integrator, dtype): executable}, and what was done (or why not)."""
+    import shutil
+
+    if not (ARM_ANCHOR / "kernel.c").exists():
+        return {}, f"skipped: {ARM_ANCHOR} not found (it lives in ../shared beside the repository; a clone has none)"
+    if shutil.which("gcc") is None:
+        return {}, "skipped: gcc not found"
+    exes = {}
+    for integrator in ("euler", "rk4"):
+        for dtype in ("float32", "float64"):
+            d = Path(tmp) / f"arm-{integrator}-{dtype}"
+            d.mkdir()
+            shutil.copy(ARM_ANCHOR / "frozen" / f"{integrator}_{dtype}.h", d / "data.h")
+            exe = d / "kernel"
+            cmd = ["gcc", *ARM_CFLAGS, f"-I{d}", str(ARM_ANCHOR / "kernel.c"), "-o", str(exe), "-lm"]
+            out = subprocess.run(cmd, capture_output=True, text=True)
+            if out.returncode:
+                return {}, f"skipped: {' '.join(cmd)} failed: {out.stderr.strip()[-300:]}"
+            exes[(integrator, dtype)] = exe
+    gcc = subprocess.run(["gcc", "--version"], capture_output=True, text=True).stdout.split("\n")[0]
+    return exes, f"built from {ARM_ANCHOR}/frozen/ with gcc {' '.join(ARM_CFLAGS)} ({gcc})"
+
+
+def arm_anchor_case(batch: int, dtype: str, tmp: str) -> tuple[str, str]:
+    """(case file, where it comes from): frozen/case_<batch>_<dtype>.bin where it exists (1,024),
+    else written here from problem(batch, dtype, arm=True): its payloads and initial states, the
+    layout gen_data.py's ``case`` writes."""
+    frozen = ARM_ANCHOR / "frozen" / f"case_{batch}_{dtype}.bin"
+    if frozen.exists():
+        return str(frozen), f"frozen/{frozen.name}"
+    plants, _, _, X0s, _ = problem(batch, np.dtype(dtype).type, arm=True)
+    path = Path(tmp) / f"case_{batch}_{dtype}.bin"
+    np.concatenate([np.asarray(plants.payload), np.asarray(X0s).ravel()]).astype(dtype).tofile(path)
+    return str(path), f"problem({batch}) written as a case file"
+
+
+def arm_anchor_run(exe: Path, batch: int, dtype: str, case: str, threads: int, tmp: str) -> tuple[float, float]:
+    """One run of the anchor (its 3 in-process repetitions): (the best rollout-steps/s, the mean
+    rms error of joint 1 over the batch from its full-precision output file; the line it prints
+    has 6 digits)."""
+    import re
+
+    P, O = split(batch)
+    out_bin = Path(tmp) / "arm-out.bin"
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads), OMP_PROC_BIND="close")
+    out = subprocess.run([str(exe), str(P), str(O), case, "3", str(out_bin)], capture_output=True, text=True,
+                         env=env, check=True).stdout  # fmt: skip
+    rate = max(float(m) for m in re.findall(r": ([0-9.e+]+) rollout-steps/s", out))
+    printed = float(re.findall(r"mean rms error joint 1 ([0-9.e+-]+) rad", out)[-1])
+    rms = float(np.mean(np.fromfile(out_bin, np.dtype(dtype)).reshape(batch, 41)[:, 15].astype(np.float64)))
+    assert abs(rms - printed) <= 1e-5 * abs(printed), (rms, printed)  # column 15: rms_error of joint 1
+    return rate, rms
+
+
+def arm_table(quick: bool) -> dict:
+    """The arm's closed loop in all four integrator x precision cells (batches 1,024 and 4,096;
+    quick: 1,024) and the realistic preset's digital loop (RK4, both precisions, 1,024), each
+    on both cores and on one core really pinned; beside it the arm anchor in the same run where
+    ../shared is present, with its mean rms error of joint 1 against the package's."""
+    import statistics
+    import tempfile
+
+    from fosmc_jax import _config
+
+    preset_integrator = _config.load(PRESET)["sim"]["integrator"]
+    batches = (1024,) if quick else (1024, 4096)
+    rounds, round_s = (3, 0.2) if quick else (5, 0.5)
+    n = os.cpu_count()
+    with tempfile.TemporaryDirectory() as tmp:
+        exes, anchor_status = build_arm_anchor(tmp)
+        print(f"arm anchor: {anchor_status}", flush=True)
+        cells, sources = [], []
+        for integrator in ("euler", "rk4"):
+            for dtype in ("float32", "float64"):
+                for batch in batches:
+                    case, source = arm_anchor_case(batch, dtype, tmp) if exes else (None, f"problem({batch})")
+                    cells.append({"loop": "ideal", "integrator": integrator, "dtype": dtype, "batch": batch,
+                                  "steps": ARM_STEPS, "case": case})  # fmt: skip
+                    sources.append(source)
+        for dtype in ("float64", "float32"):
+            cells.append({"loop": "digital", "integrator": preset_integrator, "dtype": dtype, "batch": 1024,
+                          "steps": 500 if quick else 4000, "case": None})  # fmt: skip
+            sources.append(f"{PRESET.name}, {split(1024)[0]} payloads in [0, 10] kg x {split(1024)[1]} offsets")
+        both = arm_package(cells, False, rounds, round_s, tmp)
+        one = arm_package(cells, True, rounds, round_s, tmp)
+        rows = []
+        for cell, source, a, b in zip(cells, sources, both, one):
+            row = {k: v for k, v in cell.items() if k != "case"}
+            row.update(inputs=source, rounds=rounds, calls_per_round=[a["calls_per_round"], b["calls_per_round"]],
+                       package_all=a["rollout_steps_per_s"], package_all_min=a["min"],
+                       package_1core=b["rollout_steps_per_s"], package_1core_min=b["min"], compile_s=a["compile_s"],
+                       compile_1core_s=b["compile_s"], load_all=a["load"], load_1core=b["load"],
+                       pinned_cpus=b["cpus"], rms_error_joint1=a["rms_error_joint1"], diverged=a["diverged"],
+                       same_result_1core=a["rms_error_joint1"] == b["rms_error_joint1"])  # fmt: skip
+            exe = exes.get((cell["integrator"], cell["dtype"])) if cell["loop"] == "ideal" else None
+            if exe is not None:
+                rates = {t: [] for t in sorted({1, n})}
+                loads = []
+                try:
+                    for _ in range(rounds):
+                        for t in rates:
+                            rate, rms = arm_anchor_run(exe, cell["batch"], cell["dtype"], cell["case"], t, tmp)
+                            rates[t].append(rate)
+                        loads.append(load())
+                except (subprocess.CalledProcessError, ValueError, IndexError, AssertionError) as e:
+                    print(f"arm anchor: {cell['integrator']} {cell['dtype']} batch {cell['batch']} failed: {e!r}")
+                    exe, row["anchor_failed"] = None, repr(e)
+            if exe is not None:
+                rel = abs(row["rms_error_joint1"] - rms) / abs(rms)
+                row.update(anchor_threads=n, anchor_1=statistics.median(rates[1]), anchor_n=statistics.median(rates[n]),
+                           anchor_1_min=min(rates[1]), anchor_n_min=min(rates[n]), anchor_load=[min(loads), max(loads)],
+                           anchor_rms_error_joint1=rms, rms_rel_diff=rel,
+                           rms_match=bool(rel <= ARM_RMS_TOL[cell["dtype"]]))  # fmt: skip
+                row["anchor_n_over_package_all"] = row["anchor_n"] / row["package_all"]
+                row["anchor_1_over_package_1core"] = row["anchor_1"] / row["package_1core"]
+            rows.append(row)
+            line = (
+                f"arm {row['loop']:7s} {row['integrator']:5s} {row['dtype']:7s} batch {row['batch']:5d}: package "
+                f"{row['package_all']:.3e} (both cores), {row['package_1core']:.3e} (1 core) rollout-steps/s"
+            )
+            if "anchor_n" in row:
+                line += (f"; anchor {row['anchor_n']:.3e} ({n} threads), {row['anchor_1']:.3e} (1 thread): "
+                         f"{row['anchor_n_over_package_all']:.1f}x, {row['anchor_1_over_package_1core']:.1f}x; "
+                         f"rms joint 1 {row['rms_error_joint1']:.10g} vs anchor {row['anchor_rms_error_joint1']:.10g} "
+                         f"(rel {rel:.1e}{'' if row['rms_match'] else ', MISMATCH: not the same work'})")  # fmt: skip
+            print(line + f"  load {row['load_all']}/{row['load_1core']}", flush=True)
+    return {
+        "rows": rows,
+        "anchor": anchor_status,
+        "rounds": rounds,
+        "round_s": round_s,
+        "threads": n,
+        "FOSMC_JAX_NATIVE": os.environ.get("FOSMC_JAX_NATIVE"),
+    }
+
+
 CLI_CONFIG = """[plant]
 uncertainty = "sample"
 samples = {samples}
@@ -363,7 +637,11 @@ def main(argv=None):
                     "plant at the same batches, the NumPy arm and the arm's gradient (benchmarks/results/bench-arm.*)")  # fmt: skip
     ap.add_argument("--long-steps", type=int, help="one extra Euler float32 point at the head batch "
                     "with this many steps, to confirm the per-step throughput (default 40,000 full, none quick)")  # fmt: skip
+    ap.add_argument("--arm-child", help=argparse.SUPPRESS)  # arm_package's child process: a spec file
+    ap.add_argument("--pin-child", action="store_true", help=argparse.SUPPRESS)  # that child pinned (top of file)
     args = ap.parse_args(argv)
+    if args.arm_child:
+        return arm_child(args.arm_child)
     q = args.quick
     steps = args.steps or (2000 if q else 4000)
     batches = args.batches or ((1, 64, 1024) if q else (1, 64, 1024, 4096, 16384))
@@ -385,6 +663,7 @@ def main(argv=None):
         rows.append(arm_baseline(64, np.float32, 1000)), say(rows[-1])
         info["arm_gradient"] = arm_gradient(2, 2000, 64, steps)
         print("arm gradient", info["arm_gradient"], flush=True)
+        info["arm_table"] = arm_table(q)
         info["rows"], info["gradient"], info["diffrax"] = rows, None, "not benchmarked (--arm-only)"
         return finish(info, Path(args.out) / "bench-arm", 1024, t_start, uptime)
     for dtype in (np.float32, np.float64):
@@ -413,6 +692,7 @@ def main(argv=None):
         for batch in (1, 64) if q else (1, 64, 1024):
             rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
         rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
+        info["arm_table"] = arm_table(q)
     except ImportError:
         print("arm: fosmc_jax._arm not available, skipped")
     base_steps = 100 if q else 1000
@@ -517,6 +797,8 @@ def markdown(info, head):
             lines.append(f"Digital loop, m = {m}, batch 1,024, linear, Euler, float32: "
                          f"{ideal[0]['rollout_steps_per_s'] / d[0]['rollout_steps_per_s']:.2f}x the ideal loop's "
                          f"time per simulation step (vmap path, {ideal[0]['rollout_steps_per_s']:.3g} rollout-steps/s).")  # fmt: skip
+    if info.get("arm_table"):
+        lines += arm_markdown(info["arm_table"])
     if info.get("arm_gradient"):
         a = info["arm_gradient"]
         lines.append(f"Arm tuning step: value-and-grad, {a['batch']} payloads x {a['steps']} steps, Euler, float32: "
@@ -534,6 +816,40 @@ def markdown(info, head):
                  + ".")  # fmt: skip
     lines.append(f"diffrax: {info['diffrax']}.")
     return "\n".join(lines) + "\n"
+
+
+def arm_markdown(t: dict) -> list[str]:
+    """The arm table (arm_table's result) as Markdown lines."""
+    n = t["threads"]
+    lines = ["", f"Arm closed loop, simulate_batch: median (min) rollout-steps/s over {t['rounds']} rounds of "
+             f"{t['round_s']} s or more (as many compiled calls as that takes) after a warm call, compilation apart"
+             + ("" if t.get("FOSMC_JAX_NATIVE") is None else f" (FOSMC_JAX_NATIVE={t['FOSMC_JAX_NATIVE']})")
+             + ". Ideal loop: the FOSMC with "
+             "ratio switching, Table 1 set 1, dt = 1e-4, problem(batch, dtype, arm=True); digital: the realistic "
+             "preset through the config path. Both cores: one process, unpinned, 1 device; 1 core: a process "
+             "pinned to CPU 0 before JAX is imported (it loads the first's compilations from a shared cache). "
+             f"Arm anchor (../shared/anchors/arm_kernel/kernel.c, {n} threads and 1, best of its 3 repetitions per "
+             f"round): {t['anchor']}. rms: the mean rms error of joint 1 over the batch, package / anchor "
+             "(relative difference; a mismatch beyond 1e-4 in float32 or 1e-9 in float64 means not the same work).",
+             "",
+             f"| loop | integrator | dtype | batch | steps | inputs | package both cores | package 1 core | compile s | "
+             f"anchor {n} threads | anchor 1 thread | anchor {n} thr / package both cores | anchor 1 thr / package "
+             "1 core | rms joint 1 (package / anchor) | load (both cores, 1 core, anchor) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in t["rows"]:
+        cell = lambda k: f"{r[k]:.3g} ({r[k + '_min']:.3g})" if k in r else "n/a"  # noqa: B023
+        if "anchor_n" in r:
+            ratios = f"{r['anchor_n_over_package_all']:.1f}x | {r['anchor_1_over_package_1core']:.1f}x"
+            rms = (f"{r['rms_error_joint1']:.8g} / {r['anchor_rms_error_joint1']:.8g} ({r['rms_rel_diff']:.1e}"
+                   + ("" if r["rms_match"] else ", **MISMATCH**") + ")")  # fmt: skip
+        else:
+            ratios, rms = "n/a | n/a", f"{r['rms_error_joint1']:.8g} / n/a"
+        loads = ", ".join(f"{r[k][0]}-{r[k][1]}" for k in ("load_all", "load_1core", "anchor_load") if k in r)
+        lines.append(f"| {r['loop']} | {r['integrator']} | {r['dtype']} | {r['batch']} | {r['steps']} | {r['inputs']} | "
+                     f"{cell('package_all')} | {cell('package_1core')} | {r['compile_s']:.1f} | {cell('anchor_n')} | "
+                     f"{cell('anchor_1')} | {ratios} | {rms} | {loads} |")  # fmt: skip
+    lines.append("")
+    return lines
 
 
 def plot(info, path):

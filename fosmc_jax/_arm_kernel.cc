@@ -3,38 +3,42 @@
 //
 // It advances L steps of fosmc_jax._simulator.simulate for N independent rollouts ("lanes") of
 // the 3-DOF arm (fosmc_jax._arm: the closed form M, C q', G of ``_inertia`` / ``_coriolis``,
-// the adjugate solve, BLDC motors L i' = u - R i - Kb q') under the FOSMC ((14), (23) or the
-// equivalent law, switching (28), sign, sat or tanh) in one of two loops:
-//   ideal    (Digital = 0): fosmc_jax.FOSMC, the control from the exact state at every step and
-//                           the integral w of (14) integrated with the plant;
-//   digital  (Digital = 1): fosmc_jax.DigitalLoop around fosmc_jax.DiscreteFOSMC, the control
-//                           every m-th step from the encoder's quantized angles and measured or
-//                           differenced rates, a delay line of d samples and the voltage limit.
+// the adjugate solve, BLDC motors L i' = u - R i - Kb q') in one of two loops:
+//   ideal    (Digital = 0): the law from the exact state at every step, its state integrated
+//                           with the plant: fosmc_jax.FOSMC ((14), (23) or the equivalent law,
+//                           switching (28), sign, sat or tanh), fosmc_jax.SMC or
+//                           fosmc_jax.ContinuousSuperTwisting;
+//   digital  (Digital = 1): fosmc_jax.DigitalLoop around fosmc_jax.DiscreteFOSMC, SMC or
+//                           SuperTwisting: the law every m-th step from the encoder's quantized
+//                           angles and measured or differenced rates, a delay line of d samples
+//                           and the voltage limit.
 // Euler or RK4, float or double, the divergence guard and every running metric of
 // fosmc_jax._metrics. The operations are those of the JAX functions named beside them, in the
 // same order (no FMA: -ffp-contract=off), except that the accelerations of a state, computed
 // when it is observed, are kept for the next step's first stage (the same state: the same
-// numbers). tests/test_arm_native.py holds this copy to the JAX model: every formula at random
-// states, and whole rollouts against vmap(simulate).
+// numbers), and that SMC's and super-twisting's solves with CB are products with (CB)^-1.
+// tests/test_arm_native.py holds this copy to the JAX model at random states, arms and gains,
+// and over whole rollouts of every loop and law against vmap(simulate).
 //
-// Every parameter is per lane (the arm's, the controller's, the loop's), so a batch may mix
-// payloads, arms and candidate controllers (the tuner's chunks are one call). What depends on
-// time only comes in a table computed by JAX, so any reference works.
+// Every parameter is per lane (the arm's, the law's, the loop's), so a batch may mix payloads,
+// arms and candidate controllers (the tuner's chunks are one call). What depends on time only
+// comes in a table computed by JAX, so any reference works.
 //
 // Layouts (T = float or double; rows of N lanes, lane-minor):
 //   lanes   (139, N)  the arm (35: payload, d2, d3, l2, l3, c2, c3, m2, m3, I1, I2 (3), I3 (3),
-//                     Jm (3), F (3), g, R (3), L (3), Kt (3), Kb (3)), the controller (C (27),
-//                     S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3)), the loop
-//                     (the encoder's step 2 pi / counts (3; 0: none), u_max (3; inf: none), the
-//                     loop's period T (the estimator's) and the law's (DiscreteFOSMC.period))
+//                     Jm (3), F (3), g, R (3), L (3), Kt (3), Kb (3)), the law (96: see Law),
+//                     the loop (the encoder's step 2 pi / counts (3; 0: none), u_max (3; inf:
+//                     none), the loop's period T (the estimator's)) and the law's period
 //   consts  (3,)      dt, the low-pass gain of chattering_hf, the divergence bound
 //   table   (L, R)    per step k: X_d at the integrator's stage times (ideal loop only: t_k; or
 //                     t_k, t_k + dt/2, t_k + dt for RK4; 9 each), then at t' = (k + 1) dt: X_d
-//                     (9), Omega (3), ||X_d||, ||Omega||, t', and 1 where t' is a sample, else 0
-//   carry   (56 + 3d, N)  q (3), q' (3), i (3), q'' (3), w (3), U (3), the estimator's memory
-//                     (theta (3), theta' (3)), the accumulator's 10 fields x 3 joints
-//                     (field-major, as fosmc_jax._metrics.Accumulator), diverged (0 / 1),
-//                     diverged_at, the delay line (d x 3, oldest first)
+//                     (9), Omega (3), ||X_d||, ||Omega||, t', 1 where t' is a sample (else 0),
+//                     the reference's third derivatives (3)
+//   carry   (56 + 3d, N)  q (3), q' (3), i (3), q'' (3), the law's state (the FOSMC's w,
+//                     super-twisting's v) (3), U (3), the estimator's memory (theta (3),
+//                     theta' (3)), the accumulator's 10 fields x 3 joints (field-major, as
+//                     fosmc_jax._metrics.Accumulator), diverged (0 / 1), diverged_at, the delay
+//                     line (d x 3, oldest first)
 #include <limits>
 
 #include "_kernel.h"
@@ -44,7 +48,7 @@ namespace ffi = xla::ffi;
 namespace {
 
 using fosmc::Simd;
-constexpr int kLaneRows = 139, kCarryRows = 56, kSampleCols = 16;
+constexpr int kLaneRows = 139, kCarryRows = 56, kSampleCols = 19;
 enum { kQ = 0, kDq = 3, kCur = 6, kAcc = 9, kW = 12, kU = 15, kMemTh = 18, kMemDth = 21, kMet = 24, kDiv = 54,
        kDivAt = 55, kPending = 56 };
 enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
@@ -62,7 +66,7 @@ struct Lane {
 template <typename T>
 struct How {
   T dt, gain, bound;
-  int sw, law, difference, delay;
+  int kind, sw, law, difference, delay;
 };
 
 // sin and cos of x (|x| < 2^20), both at once, no branches: Cody-Waite reduction by pi/2, then
@@ -183,36 +187,86 @@ inline void Mv39(const V<T>* m, const V<T>* v, V<T>* out) {
   }
 }
 
-// The FOSMC law at a sample from Z = Y - X_d: s = C Z - w (14), U = Omega - (CB)^-1 rho f(s) (23)
-// (+ K Z for the equivalent law), rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + gamma_3 ||Omega||
-// (fosmc_jax._controller.control_law); ``smp`` is the table's sample block.
+// Sign, as jnp.sign (0 at 0, NaN stays)
 template <typename T>
-inline void Law(const Lane<T>& p, const How<T>& h, const V<T> Z[9], const V<T> w[3], const T* smp, V<T> U[3],
-                V<T> s[3]) {
+inline V<T> Sign(V<T> x) {
+  const V<T> zero = {};
+  return x > 0 ? zero + 1 : (x < 0 ? zero - 1 : x);
+}
+
+// The law at a sample from the measurement Y and Z = Y - X_d, with ``w`` the law's state (the
+// FOSMC's integral, super-twisting's v); ``smp`` is the table's sample block. Gives U, s and the
+// state after the sample (the sampled laws' sums; the ideal loop integrates its state instead).
+//   FOSMC (h.kind 0): s = C Z - w (14), U = Omega - (CB)^-1 rho f(s) (23) (+ K Z for the
+//     equivalent law), rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + gamma_3 ||Omega||
+//     (fosmc_jax._controller.control_law); DiscreteFOSMC: w + T S Z.
+//   SMC (1) and super-twisting (2) (fosmc_jax._smc): s = C Z, U_eq = (CB)^-1 (C X_d' - C X'(Y)),
+//     X'(Y) the nominal model's rates; U = U_eq - (CB)^-1 k sat(s / phi), or
+//     U = U_eq - (CB)^-1 (k1 |s|^(1/2) sign(s) - v) and v - T k2 sign(s).
+// Lanes: C, then S (FOSMC) or the nominal rows a_rows (SMC, super-twisting), (CB)^-1, gamma
+// (FOSMC) or k, k1, delta (FOSMC) or phi, k2, and the law's period.
+template <typename T, int Digital>
+inline void Law(const Lane<T>& p, const How<T>& h, const V<T> Y[9], const V<T> Z[9], const V<T> w[3], const T* smp,
+                V<T> U[3], V<T> s[3], V<T> nw[3]) {
   using W = V<T>;
   using S = Simd<T>;
   const W zero = {};
-  W zz = Z[0] * Z[0];
-  for (int i = 1; i < 9; i++) zz += Z[i] * Z[i];
-  const W rho = p.gamma[0] * (zz > 0 ? S::Sqrt(zz) : zero) + p.gamma[1] * smp[12] + p.gamma[2] * smp[13];
-  W cz[3], f[3];
+  W f[3], cz[3];
   Mv39<T>(p.C, Z, cz);
-  for (int j = 0; j < 3; j++) {
-    s[j] = cz[j] - w[j];
-    const W d = p.delta[j];
-    W sw;  // the switching function: h.sw is its position in fosmc_jax._controller.SWITCHING
-    if (h.sw == 0) sw = s[j] > 0 ? zero + 1 : (s[j] < 0 ? zero - 1 : s[j]);
-    else if (h.sw == 1) sw = s[j] / (S::Abs(s[j]) + d);
-    else if (h.sw == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);
-    else sw = S::Map(s[j] / d, [](T a) { return std::tanh(a); });
-    f[j] = rho * sw;
+  if (h.kind == 0) {
+    W zz = Z[0] * Z[0];
+    for (int i = 1; i < 9; i++) zz += Z[i] * Z[i];
+    const W rho = p.gamma[0] * (zz > 0 ? S::Sqrt(zz) : zero) + p.gamma[1] * smp[12] + p.gamma[2] * smp[13];
+    for (int j = 0; j < 3; j++) {
+      s[j] = cz[j] - w[j];
+      const W d = p.delta[j];
+      W sw;  // the switching function: h.sw is its position in fosmc_jax._controller.SWITCHING
+      if (h.sw == 0) sw = Sign<T>(s[j]);
+      else if (h.sw == 1) sw = s[j] / (S::Abs(s[j]) + d);
+      else if (h.sw == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);
+      else sw = S::Map(s[j] / d, [](T a) { return std::tanh(a); });
+      f[j] = rho * sw;
+    }
+    W kz[3];
+    if (h.law == 1) Mv39<T>(p.K, Z, kz);
+    for (int j = 0; j < 3; j++) {
+      U[j] = smp[9 + j] - (p.CBi[3 * j] * f[0] + p.CBi[3 * j + 1] * f[1] + p.CBi[3 * j + 2] * f[2]);
+      if (h.law == 1) U[j] = U[j] + kz[j];
+    }
+    if constexpr (Digital) {
+      W sz[3];
+      Mv39<T>(p.S, Z, sz);
+      for (int j = 0; j < 3; j++) nw[j] = w[j] + p.T_law * sz[j];
+    } else {
+      for (int j = 0; j < 3; j++) nw[j] = w[j];
+    }
+    return;
   }
-  W kz[3];
-  if (h.law == 1) Mv39<T>(p.K, Z, kz);
+  // fosmc_jax._smc._surface: C X_d' - C X'(Y), X'(Y) = (Y2, Y3, a_rows Y, ...) per joint
+  W jerk[3], rates[9], e[3], ueq[3];
+  Mv39<T>(p.S, Y, jerk);
+  for (int j = 0; j < 3; j++) rates[3 * j] = Y[3 * j + 1], rates[3 * j + 1] = Y[3 * j + 2], rates[3 * j + 2] = jerk[j];
+  const T xd1[9] = {smp[1], smp[2], smp[16], smp[4], smp[5], smp[17], smp[7], smp[8], smp[18]};  // X_d'
+  W cr[3];
+  Mv39<T>(p.C, rates, cr);
   for (int j = 0; j < 3; j++) {
-    U[j] = smp[9 + j] - (p.CBi[3 * j] * f[0] + p.CBi[3 * j + 1] * f[1] + p.CBi[3 * j + 2] * f[2]);
-    if (h.law == 1) U[j] = U[j] + kz[j];
+    W cd = p.C[9 * j] * xd1[0];
+    for (int i = 1; i < 9; i++) cd += p.C[9 * j + i] * xd1[i];
+    e[j] = cd - cr[j];
   }
+  for (int j = 0; j < 3; j++) {
+    s[j] = cz[j];
+    ueq[j] = p.CBi[3 * j] * e[0] + p.CBi[3 * j + 1] * e[1] + p.CBi[3 * j + 2] * e[2];
+    if (h.kind == 1) {
+      f[j] = p.gamma[j] * S::Min(S::Max(s[j] / p.delta[j], zero - 1), zero + 1);
+      nw[j] = w[j];
+    } else {
+      const W a = S::Abs(s[j]);
+      f[j] = p.gamma[j] * ((a > 0 ? S::Sqrt(a) : zero) * Sign<T>(s[j])) - w[j];
+      nw[j] = w[j] - p.T_law * p.delta[j] * Sign<T>(s[j]);
+    }
+  }
+  for (int j = 0; j < 3; j++) U[j] = ueq[j] - (p.CBi[3 * j] * f[0] + p.CBi[3 * j + 1] * f[1] + p.CBi[3 * j + 2] * f[2]);
 }
 
 template <typename T, int Rk4, int Digital>
@@ -228,14 +282,21 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
   const T dt = h.dt, half = h.dt / 2, big = std::numeric_limits<T>::max();
   const W zero = {};
   const int stages = Digital ? 0 : (Rk4 ? 3 : 1);
-  // d/dt of (q, q', i) and, in the ideal loop, of w: fosmc_jax._arm.Arm.derivative and
-  // FOSMC.derivative (w' = S (X - X_d(t)), X = (q, q', q'') per joint)
+  // d/dt of (q, q', i) and, in the ideal loop, of the law's state: fosmc_jax._arm.Arm.derivative,
+  // FOSMC.derivative (w' = S (X - X_d(t)), X = (q, q', q'') per joint), ContinuousSuperTwisting's
+  // (v' = -k2 sign(C (X - X_d(t)))); SMC has none (0)
   auto field = [&](const W* q, const W* dq, const W* cur, const W* acc, const W* U, const T* xd, W* dcur, W* dw) {
     for (int j = 0; j < 3; j++) dcur[j] = (U[j] - p.R[j] * cur[j] - p.Kb[j] * dq[j]) / p.L[j];
     if constexpr (!Digital) {
       W z[9];
       for (int j = 0; j < 3; j++) z[3 * j] = q[j] - xd[3 * j], z[3 * j + 1] = dq[j] - xd[3 * j + 1], z[3 * j + 2] = acc[j] - xd[3 * j + 2];
-      Mv39<T>(p.S, z, dw);
+      if (h.kind == 0) Mv39<T>(p.S, z, dw);
+      if (h.kind == 1)
+        for (int j = 0; j < 3; j++) dw[j] = zero;
+      if (h.kind == 2) {
+        Mv39<T>(p.C, z, dw);
+        for (int j = 0; j < 3; j++) dw[j] = -p.delta[j] * Sign<T>(dw[j]);
+      }
     }
   };
   for (int64_t k = 0; k < L; k++) {
@@ -286,14 +347,15 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
     W nmth[3], nmdth[3], npend[3 * 8];
     const bool sampled = smp[15] != 0;
     if constexpr (!Digital) {
-      // FOSMC.update at t' from the exact state
-      W Z[9], s[3];
-      for (int j = 0; j < 3; j++) Z[3 * j] = nq[j] - smp[3 * j], Z[3 * j + 1] = ndq[j] - smp[3 * j + 1], Z[3 * j + 2] = nacc[j] - smp[3 * j + 2];
-      Law<T>(p, h, Z, nw, smp, nU, s);
+      // the law at t' from the exact state X = (q, q', q'')
+      W X[9], Z[9], s[3], kept[3];
+      for (int j = 0; j < 3; j++) X[3 * j] = nq[j], X[3 * j + 1] = ndq[j], X[3 * j + 2] = nacc[j];
+      for (int i = 0; i < 9; i++) Z[i] = X[i] - smp[i];
+      Law<T, 0>(p, h, X, Z, nw, smp, nU, s, kept);
       for (int j = 0; j < 3; j++) ok &= (S::Abs(nw[j]) <= big) & (S::Abs(nU[j]) <= big) & (S::Abs(s[j]) <= big);
     } else if (sampled) {
-      // DigitalLoop.update: measure (quantize, differences), DiscreteFOSMC.update, delay, saturate
-      W Y[9], Z[9], s[3], Ul[3], Sz[3];
+      // DigitalLoop.update: measure (quantize, differences), the law, delay, saturate
+      W Y[9], Z[9], s[3], Ul[3];
       for (int j = 0; j < 3; j++) {
         const W qe = p.q[j];  // fosmc_jax._loop.quantize, with its straight-through form
         const W rounded = qe > 0 ? qe * S::Map(nq[j] / qe, [](T a) { return std::nearbyint(a); }) : nq[j];
@@ -304,9 +366,7 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
         Y[3 * j] = th, Y[3 * j + 1] = dth, Y[3 * j + 2] = ddth;
       }
       for (int i = 0; i < 9; i++) Z[i] = Y[i] - smp[i];
-      Law<T>(p, h, Z, w, smp, Ul, s);
-      Mv39<T>(p.S, Z, Sz);
-      for (int j = 0; j < 3; j++) nw[j] = w[j] + p.T_law * Sz[j];
+      Law<T, 1>(p, h, Y, Z, w, smp, Ul, s, nw);
       const W* applied = Ul;
       if (h.delay) {
         for (int i = 0; i < 3 * (h.delay - 1); i++) npend[i] = st[kPending + 3 + i];
@@ -363,8 +423,8 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
 
 template <typename T>
 ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer consts, ffi::AnyBuffer table,
-                    ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t digital, int32_t sw,
-                    int32_t law, int32_t difference, int32_t delay) {
+                    ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t digital, int32_t kind,
+                    int32_t sw, int32_t law, int32_t difference, int32_t delay) {
   // every check the Python side already makes, so that a misuse is an error, never a crash
   const auto type = in.element_type();
   if (lanes.element_type() != type || consts.element_type() != type || table.element_type() != type ||
@@ -372,7 +432,7 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer c
     return ffi::Error::InvalidArgument("fosmc arm kernel: every buffer must have the carry's dtype");
   const auto dims = in.dimensions(), ld = lanes.dimensions(), td = table.dimensions();
   const int64_t stages = digital ? 0 : (rk4 ? 3 : 1);
-  if (delay < 0 || delay > 8 || sw < 0 || sw > 3 || law < 0 || law > 1)
+  if (delay < 0 || delay > 8 || kind < 0 || kind > 2 || sw < 0 || sw > 3 || law < 0 || law > 1)
     return ffi::Error::InvalidArgument("fosmc arm kernel: switching, law or delay out of range");
   if (dims.size() != 2 || dims[0] != kCarryRows + 3 * delay || ld.size() != 2 || ld[0] != kLaneRows ||
       ld[1] != dims[1] || td.size() != 2 || td[1] != 9 * stages + kSampleCols ||
@@ -381,7 +441,7 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer c
   const int64_t N = dims[1], L = td[0], R = td[1], rows = dims[0], Wd = Simd<T>::W;
   if (N % Wd) return ffi::Error::InvalidArgument("fosmc arm kernel: the lane count must fill whole blocks");
   const T* c = consts.typed_data<T>();
-  const How<T> h{c[0], c[1], c[2], sw, law, difference, delay};
+  const How<T> h{c[0], c[1], c[2], kind, sw, law, difference, delay};
   const T *lp = lanes.typed_data<T>(), *tb = table.typed_data<T>(), *ip = in.typed_data<T>();
   T* op = out->typed_data<T>();
   auto run = [&](auto block) {
@@ -393,13 +453,13 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer c
 }
 
 ffi::Error Advance(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer consts, ffi::AnyBuffer table,
-                   ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t digital, int32_t sw,
-                   int32_t law, int32_t difference, int32_t delay) {
+                   ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out, int32_t rk4, int32_t digital, int32_t kind,
+                   int32_t sw, int32_t law, int32_t difference, int32_t delay) {
   switch (in.element_type()) {
     case ffi::DataType::F32:
-      return Dispatch<float>(pool, lanes, consts, table, in, out, rk4, digital, sw, law, difference, delay);
+      return Dispatch<float>(pool, lanes, consts, table, in, out, rk4, digital, kind, sw, law, difference, delay);
     case ffi::DataType::F64:
-      return Dispatch<double>(pool, lanes, consts, table, in, out, rk4, digital, sw, law, difference, delay);
+      return Dispatch<double>(pool, lanes, consts, table, in, out, rk4, digital, kind, sw, law, difference, delay);
     default:
       return ffi::Error::InvalidArgument("fosmc arm kernel: float32 or float64 only");
   }
@@ -417,6 +477,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcArmAdvance, Advance,
                                   .Ret<ffi::AnyBuffer>()  // carry out
                                   .Attr<int32_t>("rk4")
                                   .Attr<int32_t>("digital")
+                                  .Attr<int32_t>("kind")
                                   .Attr<int32_t>("switching")
                                   .Attr<int32_t>("law")
                                   .Attr<int32_t>("difference")

@@ -36,8 +36,10 @@ from jax import Array
 from . import _metrics, _native
 from ._arm import Arm, cast_params
 from ._controller import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, safe_norm
+from ._design import input_matrix_product
 from ._loop import DigitalLoop
 from ._reference import desired_state, feedforward
+from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting
 
 LANE_ROWS = 139  # see _arm_kernel.cc
 CARRY_ROWS = 56
@@ -46,41 +48,66 @@ MAX_DELAY = 8
 TABLE_BYTES = 24 * 1024
 
 
+# The laws the kernel runs, by its code (h.kind in _arm_kernel.cc): in the ideal loop, and sampled
+# in a DigitalLoop
+IDEAL = {FOSMC: 0, SMC: 1, ContinuousSuperTwisting: 2}
+SAMPLED = {DiscreteFOSMC: 0, SMC: 1, SuperTwisting: 2}
+
+
 def supports(plants, ctrl, integrator: str) -> bool:
-    """Whether the kernel runs this batch: arms, the ideal FOSMC or the digital loop around the
-    DiscreteFOSMC without noise, on a CPU where the kernel is built."""
+    """Whether the kernel runs this batch: arms under the FOSMC, SMC or super-twisting, in the
+    ideal loop or in a DigitalLoop without noise, on a CPU where the kernel is built."""
     if not isinstance(plants, Arm) or integrator not in ("euler", "rk4"):
         return False
     if type(ctrl) is DigitalLoop:
-        ok = type(ctrl.law) is DiscreteFOSMC and ctrl.sensors.noise_std is None and ctrl.delay <= MAX_DELAY
+        ok = type(ctrl.law) in SAMPLED and ctrl.sensors.noise_std is None and ctrl.delay <= MAX_DELAY
     else:
-        ok = type(ctrl) is FOSMC
+        ok = type(ctrl) in IDEAL
     return ok and jax.default_backend() == "cpu" and _native.available()
 
 
-def _fosmc_of(ctrl):
-    return ctrl.law if type(ctrl) is DigitalLoop else ctrl
+def _law_of(ctrl):
+    """The law inside the loop: the FOSMC or DiscreteFOSMC, SMC or SuperTwisting."""
+    return ctrl.law if type(ctrl) in (DigitalLoop, ContinuousSuperTwisting) else ctrl
+
+
+def _surface_of(law):
+    """(C, a_rows, b_rows) of any of the laws."""
+    q = law.params if isinstance(law, (FOSMC, DiscreteFOSMC)) else law.surface
+    return q.C, q.a_rows, q.b_rows
+
+
+def _law_rows(law, dtype) -> Array:
+    """The law's lane rows of _arm_kernel.cc (96), then its period (0 in the ideal loop)."""
+    if isinstance(law, (FOSMC, DiscreteFOSMC)):
+        c, d = law.params, derive(law.params)
+        rows = (c.C, d.S, d.CB_inv, d.K, c.gamma, c.delta)
+    else:
+        C, a_rows, b_rows = _surface_of(law)
+        CB_inv = jnp.linalg.inv(input_matrix_product(C, b_rows))
+        gains = (law.k, law.phi) if type(law) is SMC else (law.k1, law.k2)
+        rows = (C, a_rows, CB_inv, jnp.zeros(27), *gains)
+    period = getattr(law, "period", 0.0)
+    return jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in (*rows, period)])
 
 
 def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
-    """(139, P O): the arm's parameters (each plant O times: plant-major), then the controller's
-    and the loop's, as in _arm_kernel.cc."""
+    """(139, P O): the arm's parameters (each plant O times: plant-major), then the law's and the
+    loop's, as in _arm_kernel.cc."""
     p = cast_params(plants.params, dtype)
     arm = [plants.payload, p.d2, p.d3, p.l2, p.l3, p.c2, p.c3, p.m2, p.m3, p.I1, p.I2, p.I3, p.Jm, p.F, p.g,
            p.R, p.L, p.Kt, p.Kb]  # fmt: skip
     P = plants.payload.shape[0]
     arm = jnp.concatenate([jnp.asarray(a, dtype).reshape(P, -1) for a in arm], axis=1)  # (P, 35)
-    fosmc = _fosmc_of(ctrl)
-    c = fosmc.params
-    d = derive(c)
     if type(ctrl) is DigitalLoop:
         counts = ctrl.sensors.counts
         on = counts > 0
         step = jnp.where(on, 2 * jnp.pi / jnp.where(on, counts, 1), 0)  # as fosmc_jax._loop.quantize
-        loop = [jnp.broadcast_to(step, (3,)), jnp.broadcast_to(ctrl.u_max, (3,)), ctrl.period, fosmc.period]
+        loop = [jnp.broadcast_to(step, (3,)), jnp.broadcast_to(ctrl.u_max, (3,)), ctrl.period]
     else:
-        loop = [jnp.zeros(3), jnp.full(3, jnp.inf), 0.0, 0.0]
-    rest = jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in (c.C, d.S, d.CB_inv, d.K, c.gamma, c.delta, *loop)])
+        loop = [jnp.zeros(3), jnp.full(3, jnp.inf), 0.0]
+    law = _law_rows(_law_of(ctrl), dtype)
+    rest = jnp.concatenate([law[:-1], *(jnp.ravel(jnp.asarray(x, dtype)) for x in loop), law[-1:]])
     lanes = jnp.concatenate([jnp.repeat(arm, O, axis=0), jnp.broadcast_to(rest, (P * O, rest.shape[0]))], axis=1)
     return lanes.T
 
@@ -93,10 +120,11 @@ def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
     N = acc3.shape[0]
     dtype = acc3.dtype
     col = lambda x: jnp.asarray(x, dtype).reshape(N, -1)
+    w = law.w if hasattr(law, "w") else law.v if hasattr(law, "v") else jnp.zeros((N, 3), dtype)  # SMC: none
     memory = [cs.memory.theta, cs.memory.dtheta] if digital else [jnp.zeros((N, 6), dtype)]
     a = carry.acc
     metrics = [jnp.broadcast_to(col(a.count), (N, 3))] + [col(f) for f in a[1:]]
-    parts = [*ps.theta, *ps.dtheta, *ps.current, acc3, law.w, carry.U, *memory, *metrics, carry.diverged,
+    parts = [*ps.theta, *ps.dtheta, *ps.current, acc3, w, carry.U, *memory, *metrics, carry.diverged,
              carry.diverged_at]  # fmt: skip
     if digital and delay:
         parts.append(cs.pending)
@@ -104,8 +132,9 @@ def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
 
 
 def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> Array:
-    """The time-only terms of steps ``k`` (a vector), (len(k), 9 stages + 16): X_d at the stage
-    times, then at t' = (k + 1) dt X_d, Omega (10), ||X_d||, ||Omega||, t' and the sample flag."""
+    """The time-only terms of steps ``k`` (a vector), (len(k), 9 stages + 19): X_d at the stage
+    times, then at t' = (k + 1) dt X_d, Omega (10), ||X_d||, ||Omega||, t', the sample flag and
+    the reference's third derivatives."""
     X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
     t = k.astype(dt.dtype) * dt
     cols = [X_d_at(t)] if stages == 1 else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)] if stages == 3 else []
@@ -115,7 +144,7 @@ def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> A
     Omega = jax.vmap(functools.partial(feedforward, a_rows, b_rows))(refs)
     norms = [jax.vmap(safe_norm)(X_d)[:, None], jax.vmap(safe_norm)(Omega)[:, None]]
     flag = ((k + 1) % m == 0).astype(dt.dtype)[:, None]
-    return jnp.concatenate([*cols, X_d, Omega, *norms, t1[:, None], flag], axis=1)
+    return jnp.concatenate([*cols, X_d, Omega, *norms, t1[:, None], flag, refs[:, 3]], axis=1)
 
 
 def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
@@ -136,7 +165,7 @@ def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, dig
         table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=how["m"])
         return call(lanes, consts, table.astype(dtype), c, **{a: v for a, v in attrs.items() if a != "m"})
 
-    steps = max(64, TABLE_BYTES // ((9 * stages + 16) * dtype.itemsize))
+    steps = max(64, TABLE_BYTES // ((9 * stages + 19) * dtype.itemsize))
     chunks, rest = divmod(n_steps, steps)
     if chunks:
         carry = jax.lax.scan(lambda c, i: (chunk(c, i * steps, steps), None), carry, jnp.arange(chunks))[0]
@@ -181,11 +210,14 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
         jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
     )
     delay = ctrl.delay if digital else 0
-    fosmc = _fosmc_of(ctrl)
-    how = dict(switching=SWITCHING.index(fosmc.switching), law=LAWS.index(fosmc.law), delay=delay,
-               difference=digital and ctrl.sensors.derivatives == "difference", m=ctrl.sample_steps if digital else 1)  # fmt: skip
+    law = _law_of(ctrl)
+    fosmc = isinstance(law, (FOSMC, DiscreteFOSMC))
+    how = dict(kind=(SAMPLED if digital else IDEAL)[type(law if digital else ctrl)], delay=delay,
+               switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
+               difference=digital and ctrl.sensors.derivatives == "difference",
+               m=ctrl.sample_steps if digital else 1)  # fmt: skip
     gain = _metrics.lowpass_gain(dt, jnp.asarray(chattering_cutoff, dtype))
-    shared = (reference, fosmc.params.a_rows, fosmc.params.b_rows, dt, gain, bound)
+    shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
     advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
     out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
     fields = out[24:54].reshape(10, 3, N)
@@ -195,7 +227,7 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     return Result(metrics, out[54] != 0, out[55], None)
 
 
-def simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **options) -> "Result":  # noqa: F821
+def simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **options) -> Result:  # noqa: F821
     """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold); derivatives are
     those of ``vmap_path(plants, ctrl, reference, X0s, dt)``, the ``vmap`` of ``simulate``."""
     native = {k: options[k] for k in ("n_steps", "integrator", "divergence_bound", "chattering_cutoff")}

@@ -88,7 +88,8 @@ def _build() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
             out = Path(tmp) / lib.name
-            run = subprocess.run([*cmd, *map(str, _SOURCES), "-o", str(out)], capture_output=True, text=True, timeout=600)
+            sources = [str(path) for path in _SOURCES]
+            run = subprocess.run([*cmd, *sources, "-o", str(out)], capture_output=True, text=True, timeout=600)
             if run.returncode:
                 errors = [line for line in run.stderr.splitlines() if "error" in line] or [f"exit {run.returncode}"]
                 raise OSError(f"{cxx} failed: {errors[0].strip()}")
