@@ -5,6 +5,7 @@ Dynamical System", for a 3-DOF direct-drive arm."""
 from . import _paper as paper
 from . import _tuning as tuning
 from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
+from ._cache import use_compilation_cache
 from ._certify import Certificate, certify
 from ._commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
 from ._config import ConfigError
@@ -66,6 +67,7 @@ __all__ = [
     "third_order_rows",
     "tuning",
     "use_all_cores",
+    "use_compilation_cache",
     "use_host_devices",
     "CHATTERING_CUTOFF",
     "SMC",

@@ -73,6 +73,11 @@ struct How {
 // the fdlibm (double) or Cephes (float) kernels, as ../shared/anchors/arm_kernel/kernel.c.
 template <typename T>
 inline void SinCos(V<T> x, V<T>* s, V<T>* c) {
+#ifdef FOSMC_LIBM_SINCOS  // an ablation (benchmarks/arm_levers.py): libm's, lane by lane
+  *s = Simd<T>::Map(x, [](T a) { return std::sin(a); });
+  *c = Simd<T>::Map(x, [](T a) { return std::cos(a); });
+  return;
+#endif
   using I = std::conditional_t<sizeof(T) == 8, int64_t, int32_t>;
   typedef I M __attribute__((vector_size(fosmc::kBytes)));
   constexpr int shift = sizeof(T) * 8 - 2;
@@ -306,6 +311,11 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
     W nq[3], ndq[3], ncur[3], nw[3], nacc[3], nU[3], dc[3], dw[3];
     // the integrator step from t_k with U held (fosmc_jax._simulator._euler / _rk4); acc are the
     // accelerations of this state, computed when it was observed
+#ifdef FOSMC_NO_REUSE  // an ablation (benchmarks/arm_levers.py): the accelerations recomputed
+    W acc0[3];
+    Accelerations<T>(p, q, dq, cur, acc0);
+    acc = acc0;
+#endif
     field(q, dq, cur, acc, U, row, dc, dw);
     if constexpr (!Rk4) {
       for (int j = 0; j < 3; j++) {

@@ -307,6 +307,7 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
+    from ._cache import use_compilation_cache
     from ._sharding import use_all_cores, use_host_devices  # before the first JAX operation
 
     if getattr(args, "devices", None) is None:
@@ -321,6 +322,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fosmc: error: --devices: {e}", file=sys.stderr)
             return 2
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
+    use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
     try:
         return args.func(args)
     except _config.ConfigError as e:

@@ -36,6 +36,7 @@ import jaxlib
 import numpy as np
 from jax import Array
 
+from ._cache import cache_dir
 from ._controller import LAWS, SWITCHING
 
 TARGET = "fosmc_advance"
@@ -79,10 +80,11 @@ def _build() -> Path:
     cxx = _compiler()
     if cxx is None:
         raise OSError("no C++ compiler found (set CXX)")
-    cmd = [cxx, *_FLAGS, f"-I{jax.ffi.include_dir()}"]
+    # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (benchmarks/arm_levers.py's ablations); in the cache key
+    cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}"]
     text = [path.read_text() for path in (*_SOURCES, _HEADER)]
     key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
-    cache = Path(os.environ.get("FOSMC_JAX_CACHE", Path.home() / ".cache" / "fosmc_jax"))
+    cache = cache_dir()
     lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
     if not lib.exists():
         cache.mkdir(parents=True, exist_ok=True)
