@@ -90,13 +90,25 @@ def _build() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
             out = Path(tmp) / lib.name
-            sources = [str(path) for path in _SOURCES]
-            run = subprocess.run([*cmd, *sources, "-o", str(out)], capture_output=True, text=True, timeout=600)
-            if run.returncode:
-                errors = [line for line in run.stderr.splitlines() if "error" in line] or [f"exit {run.returncode}"]
-                raise OSError(f"{cxx} failed: {errors[0].strip()}")
+            # each source compiled in its own process (the two kernels at once on two cores), then linked
+            objects = [Path(tmp) / f"{path.stem}.o" for path in _SOURCES]
+            jobs = [subprocess.Popen([*cmd, "-c", str(src), "-o", str(obj)], stderr=subprocess.PIPE, text=True)
+                    for src, obj in zip(_SOURCES, objects)]  # fmt: skip
+            errors = [job.communicate(timeout=600)[1] for job in jobs]
+            for job, err in zip(jobs, errors):
+                _check(cxx, job.returncode, err)
+            link = subprocess.run(
+                [*cmd, *map(str, objects), "-o", str(out)], capture_output=True, text=True, timeout=600
+            )
+            _check(cxx, link.returncode, link.stderr)
             os.replace(out, lib)
     return lib
+
+
+def _check(cxx: str, returncode: int, stderr: str) -> None:
+    if returncode:
+        errors = [line for line in stderr.splitlines() if "error" in line] or [f"exit {returncode}"]
+        raise OSError(f"{cxx} failed: {errors[0].strip()}")
 
 
 def _load() -> ctypes.CDLL:

@@ -517,13 +517,16 @@ def simulate_batch(
     plant, offset, realization order, shape (P*O*R, ...). ``options`` are :func:`simulate`'s
     keyword arguments (``key`` too, when ``keys`` is None).
 
-    With ``fast`` (static), a batch of :class:`LinearPlant` under the ideal-loop FOSMC without
-    a trace (``save_every`` = 0) runs a fast path with the same results to rounding: its time
-    loop is one compiled kernel on every core (:mod:`fosmc_jax._native`), or, where that cannot
-    be built, a structure-of-arrays ``lax.scan``; anything else runs ``vmap`` of
+    With ``fast`` (static), two batches without a trace (``save_every`` = 0) run a fast path
+    with the same results to rounding: :class:`LinearPlant` under the ideal-loop FOSMC (its
+    time loop one compiled kernel on every core, :mod:`fosmc_jax._native`, or, where that
+    cannot be built, a structure-of-arrays ``lax.scan``), and :class:`fosmc_jax.Arm` under the
+    FOSMC, SMC or super-twisting in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`
+    (:mod:`fosmc_jax._arm_native`, where the kernel is built); anything else runs ``vmap`` of
     :func:`simulate`. Derivatives of the fast path (forward and reverse mode) are those of
     the ``lax.scan``; in reverse mode it compiles several times slower and runs slower than
-    the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``."""
+    the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``. The arm's
+    derivatives are the ``vmap`` path's."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
     if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
