@@ -29,7 +29,7 @@
 //                     Jm (3), F (3), g, R (3), L (3), Kt (3), Kb (3)), the law (96: see Law),
 //                     the loop (the encoder's step 2 pi / counts (3; 0: none), u_max (3; inf:
 //                     none), the loop's period T (the estimator's)) and the law's period
-//   consts  (3,)      dt, the low-pass gain of chattering_hf, the divergence bound
+//   consts  (4,)      dt, the low-pass's decay and weight over a step (chattering_hf), the bound
 //   table   (L, R)    per step k: X_d at the integrator's stage times (ideal loop only: t_k; or
 //                     t_k, t_k + dt/2, t_k + dt for RK4; 9 each), then at t' = (k + 1) dt: X_d
 //                     (9), Omega (3), ||X_d||, ||Omega||, t', 1 where t' is a sample (else 0),
@@ -65,7 +65,7 @@ struct Lane {
 
 template <typename T>
 struct How {
-  T dt, gain, bound;
+  T dt, decay, hf_weight, bound;
   int kind, sw, law, difference, delay;
 };
 
@@ -400,7 +400,7 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
     for (int j = 0; j < 3; j++) {
       // fosmc_jax._metrics.add
       W* a = st + kMet + j;  // the field f of joint j: a[3 * f]
-      const W e = nq[j] - smp[3 * j], u = nU[j], low = a[3 * kULow] + h.gain * (u - a[3 * kULow]);
+      const W e = nq[j] - smp[3 * j], u = nU[j], r = U[j] - a[3 * kULow];
       const W fresh[10] = {a[3 * kCount] + 1,
                            a[3 * kSumE2] + e * e,
                            S::Max(a[3 * kMaxE], S::Abs(e)),
@@ -408,8 +408,8 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
                            a[3 * kTV] + S::Abs(u - U[j]),
                            a[3 * kSumU2] + u * u,
                            S::Max(a[3 * kMaxU], S::Abs(u)),
-                           low,
-                           a[3 * kSumHf2] + (u - low) * (u - low),
+                           U[j] - r * h.decay,
+                           a[3 * kSumHf2] + r * r * h.hf_weight,
                            a[3 * kSaturated] + (S::Abs(u) >= p.u_max[j] ? zero + 1 : zero)};
       for (int g = 0; g < 10; g++) a[3 * g] = keep ? a[3 * g] : fresh[g];
     }
@@ -446,12 +446,12 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer c
     return ffi::Error::InvalidArgument("fosmc arm kernel: switching, law or delay out of range");
   if (dims.size() != 2 || dims[0] != kCarryRows + 3 * delay || ld.size() != 2 || ld[0] != kLaneRows ||
       ld[1] != dims[1] || td.size() != 2 || td[1] != 9 * stages + kSampleCols ||
-      out->element_count() != in.element_count() || consts.element_count() != 3)
+      out->element_count() != in.element_count() || consts.element_count() != 4)
     return ffi::Error::InvalidArgument("fosmc arm kernel: buffer shapes do not match the layout in _arm_kernel.cc");
   const int64_t N = dims[1], L = td[0], R = td[1], rows = dims[0], Wd = Simd<T>::W;
   if (N % Wd) return ffi::Error::InvalidArgument("fosmc arm kernel: the lane count must fill whole blocks");
   const T* c = consts.typed_data<T>();
-  const How<T> h{c[0], c[1], c[2], kind, sw, law, difference, delay};
+  const How<T> h{c[0], c[1], c[2], c[3], kind, sw, law, difference, delay};
   const T *lp = lanes.typed_data<T>(), *tb = table.typed_data<T>(), *ip = in.typed_data<T>();
   T* op = out->typed_data<T>();
   auto run = [&](auto block) {

@@ -149,14 +149,14 @@ def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> A
 
 def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
     """``n_steps`` steps of the kernel: ``carry`` (R, N) and ``lanes`` (139, N) with any N (padded
-    here to whole blocks), ``shared`` = (reference, a_rows, b_rows, dt, gain, bound). Calls of a
-    few hundred steps (see TABLE_BYTES) in a scan."""
+    here to whole blocks), ``shared`` = (reference, a_rows, b_rows, dt, the low-pass's (decay,
+    weight), bound). Calls of a few hundred steps (see TABLE_BYTES) in a scan."""
     reference, a_rows, b_rows, dt, gain, bound = shared
     dtype = carry.dtype
     N = carry.shape[1]
     pad = (-N) % (_native.LANES if dtype == jnp.float32 else _native.LANES // 2)
     carry, lanes = (jnp.pad(x, ((0, 0), (0, pad)), mode="edge") for x in (carry, lanes))
-    consts = jnp.stack([dt, gain, jnp.minimum(bound, jnp.finfo(dtype).max)]).astype(dtype)
+    consts = jnp.stack([dt, *gain, jnp.minimum(bound, jnp.finfo(dtype).max)]).astype(dtype)
     stages = 0 if digital else 3 if rk4 else 1
     call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct(carry.shape, dtype), vmap_method="sequential")
     attrs = {name: np.int32(v) for name, v in dict(how, rk4=rk4, digital=digital).items()}
@@ -216,7 +216,7 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
                switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
                difference=digital and ctrl.sensors.derivatives == "difference",
                m=ctrl.sample_steps if digital else 1)  # fmt: skip
-    gain = _metrics.lowpass_gain(dt, jnp.asarray(chattering_cutoff, dtype))
+    gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
     shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
     advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
     out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)

@@ -12,8 +12,9 @@
 //
 // Layouts (T = float or double; rows of N lanes, lane-minor):
 //   ab      (36, N)  rows 0-26: the plant's A rows (3 x 9), 27-35: its B rows (3 x 3)
-//   consts  (99,)    C (27), S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3),
-//                    dt, the low-pass gain of chattering_hf, the divergence bound
+//   consts  (100,)   C (27), S = C(A + BK) (27), (CB)^-1 (9), K (27), gamma (3), delta (3),
+//                    dt, the low-pass's decay and weight over a step (chattering_hf), the
+//                    divergence bound
 //   table   (L, R)   per step: X_d at the stage times (9 each: t; or t, t + dt/2, t + dt for
 //                    RK4), then at the sample t' = (k + 1) dt: X_d (9), Omega (3), rho_ref, t'
 //   carry   (47, N)  x (9), w (3), U (3), the accumulator's 10 fields x 3 joints (field-major,
@@ -33,7 +34,7 @@ enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSatur
 
 template <typename T>
 struct Consts {
-  T C[27], S[27], CBi[9], K[27], gamma[3], delta[3], dt, gain, bound;
+  T C[27], S[27], CBi[9], K[27], gamma[3], delta[3], dt, decay, hf_weight, bound;
 };
 
 template <typename T, int Rk4, int Sw, int Law>
@@ -132,7 +133,7 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
     for (int j = 0; j < 3; j++) {
       // fosmc_jax._metrics.add (no actuator limit: ``saturated`` stays)
       V* a = st + kAcc + j;  // the field f of joint j: a[3 * f]
-      const V e = nx[3 * j] - sample[3 * j], u = nU[j], low = a[3 * kULow] + c.gain * (u - a[3 * kULow]);
+      const V e = nx[3 * j] - sample[3 * j], u = nU[j], r = st[kU + j] - a[3 * kULow];
       const V fresh[9] = {a[3 * kCount] + 1,
                           a[3 * kSumE2] + e * e,
                           S::Max(a[3 * kMaxE], S::Abs(e)),
@@ -140,8 +141,8 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
                           a[3 * kTV] + S::Abs(u - st[kU + j]),
                           a[3 * kSumU2] + u * u,
                           S::Max(a[3 * kMaxU], S::Abs(u)),
-                          low,
-                          a[3 * kSumHf2] + (u - low) * (u - low)};
+                          st[kU + j] - r * c.decay,
+                          a[3 * kSumHf2] + r * r * c.hf_weight};
       for (int g = 0; g < 9; g++) a[3 * g] = keep ? a[3 * g] : fresh[g];
       st[kWi + j] = keep ? st[kWi + j] : nw[j];
       st[kU + j] = keep ? st[kU + j] : u;

@@ -139,7 +139,7 @@ def available() -> bool:
 def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: int, *, rk4: bool, switching: str,
             law: str) -> Array:  # fmt: skip
     """``n_steps`` steps of the kernel from step ``k0``: ``carry`` (ROWS, N) and ``ab`` (36, N),
-    N a multiple of LANES, ``consts`` (99,) as in ``_kernel.cc``, all of one dtype;
+    N a multiple of LANES, ``consts`` (100,) as in ``_kernel.cc``, all of one dtype;
     ``table(k)`` gives the rows of steps ``k`` (a vector of step indices), (len(k), R). Calls
     of a few hundred steps (see TABLE_BYTES) in a scan."""
     call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")

@@ -205,7 +205,7 @@ def simulate(
     flows = hasattr(ctrl, "derivative")
     dtype = X0.dtype
     dt = jnp.asarray(dt, dtype)
-    a = _metrics.lowpass_gain(dt, jnp.asarray(chattering_cutoff, dtype))
+    a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
     theta = slice(0, 9, 3)
     stepper = _STEPPERS[integrator]
 
@@ -362,7 +362,7 @@ def _linear_batch(
     dtype = X0s.dtype
     dt = jnp.asarray(dt, dtype)
     P, O = plants.a_rows.shape[0], X0s.shape[0]
-    gain = _metrics.lowpass_gain(dt, jnp.asarray(chattering_cutoff, dtype))
+    gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
     derived = derive(controller)
     C, S, CB_inv, K = (_rows(m, 2) for m in (controller.C, derived.S, derived.CB_inv, derived.K))
     # Every batch vector has the shape ``lanes``, (P, O), or (P,) when O = 1: a trailing axis
@@ -478,7 +478,7 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
     ab = rows([e for row in A + B for e in row], dtype)
     bound = jnp.minimum(jnp.asarray(bound, dtype), jnp.finfo(dtype).max)  # |x| <= bound also means finite
     consts = jnp.concatenate([jnp.ravel(m).astype(dtype) for m in (controller.C, derived.S, derived.CB_inv, derived.K,
-                              controller.gamma, controller.delta, dt, gain, bound)])  # fmt: skip
+                              controller.gamma, controller.delta, dt, *gain, bound)])  # fmt: skip
     X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
 
     def table(k):

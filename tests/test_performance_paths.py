@@ -111,10 +111,10 @@ def test_kernel_refuses_buffers_off_its_layout_with_an_error():
     assert _native.available()
     carry, ab = jnp.zeros((_native.ROWS, 16)), jnp.zeros((36, 16))
     table = lambda k: jnp.zeros((k.shape[0], 23))
-    good = jnp.zeros(99)
+    good = jnp.zeros(100)
     out = _native.advance(carry, ab, good, table, jnp.int32(0), 3, rk4=False, switching="ratio", law="paper")
     assert out.shape == carry.shape
-    for consts, ab_ in ((jnp.zeros(98), ab), (good, ab.astype(jnp.float32)), (good, ab[:, :8])):
+    for consts, ab_ in ((jnp.zeros(99), ab), (good, ab.astype(jnp.float32)), (good, ab[:, :8])):
         with pytest.raises(Exception, match="fosmc kernel"):
             jax.block_until_ready(_native.advance(carry, ab_, consts, table, jnp.int32(0), 3, rk4=False,
                                                   switching="ratio", law="paper"))  # fmt: skip

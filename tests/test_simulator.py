@@ -114,18 +114,22 @@ def np_metrics(X, X_d, U, t_final, dt=None):
         "chattering": np.sum(np.abs(np.diff(U, axis=0)), axis=0) / t_final,
         "control_rms": np.sqrt(np.mean(U**2, axis=0)),
         "max_abs_control": np.max(np.abs(U), axis=0),
-        "chattering_hf": np.sqrt(np.mean((U - np_lowpass(U, dt)) ** 2, axis=0)),
+        "chattering_hf": np_chattering_hf(U, dt, t_final),
         "saturation_fraction": np.zeros(U.shape[1]),
     }
 
 
-def np_lowpass(U, dt, cutoff=10.0):
-    """First-order low-pass of the rows of U, exact for piecewise-constant input, ubar_0 = u_0."""
-    a = 1 - np.exp(-2 * np.pi * cutoff * dt)
-    out = [U[0]]
-    for u in U[1:]:
-        out.append(out[-1] + a * (u - out[-1]))
-    return np.array(out)
+def np_chattering_hf(U, dt, t_final, cutoff=10.0):
+    """sqrt(1/t_final int (u - ubar)^2 dt) for u held at U[k] over [k dt, (k + 1) dt), k < len(U) - 1,
+    and its first-order low-pass from ubar(0) = U[0], integrated in closed form step by step
+    (tests/test_metrics.py checks the closed form against numerical integration)."""
+    w = 2 * np.pi * cutoff
+    decay, weight = np.exp(-w * dt), (1 - np.exp(-2 * w * dt)) / (2 * w)
+    low, total = U[0].copy(), np.zeros(U.shape[1])
+    for u in U[:-1]:
+        r = u - low
+        total, low = total + r * r * weight, u - r * decay
+    return np.sqrt(total / t_final)
 
 
 # ------------------------------------------------------------------ helpers
