@@ -66,15 +66,19 @@ def rollouts(problem) -> int:
     return n * (1 if problem.keys is None else problem.keys.shape[0])
 
 
-def front_cost(cfg: dict, chunk: int, chunks: int, seed: int = 0) -> dict:
-    """``fosmc front``'s chunk evaluation: compile time and warm cost per candidate."""
+def front_cost(cfg: dict, chunk: int, chunks: int, seed: int = 0, which: str = "train") -> dict:
+    """``fosmc front``'s chunk evaluation: compile time and warm cost per candidate, on the
+    training problem its search stages evaluate (``which = "train"``; since issue 22 a digital
+    loop's trains with one step per controller sample) or on the plain problem (``[sim]``, on
+    which every result is re-evaluated)."""
     import jax
 
     from fosmc_jax import _config
     from fosmc_jax import _front as F
     from fosmc_jax import _tuning as T
 
-    _, train, p0 = _config.tuning_problems(cfg)
+    plain, train, p0 = _config.tuning_problems(cfg)
+    train = plain if which == "plain" else train
     space = T.space_of(p0)
     params = F.from_factors(p0, F.global_factors(chunk * (chunks + 1), seed, F.Settings().grid_share, space))
     times, loads = [], []
@@ -88,7 +92,8 @@ def front_cost(cfg: dict, chunk: int, chunks: int, seed: int = 0) -> dict:
               f"load {loads[-1]}", flush=True)  # fmt: skip
     warm = statistics.median(times[1:])
     n = rollouts(train)
-    return {"chunk": chunk, "chunks": chunks, "devices": jax.local_device_count(), "rollouts_per_candidate": n,
+    return {"problem": which, "dt": float(train.dt), "chunk": chunk, "chunks": chunks,
+            "devices": jax.local_device_count(), "rollouts_per_candidate": n,
             "n_steps": train.options["n_steps"], "integrator": train.options["integrator"],
             "precision": str(train.dt.dtype), "first_chunk_s": times[0], "compile_s": times[0] - warm,
             "chunk_s": warm, "chunk_s_all": times[1:], "ms_per_candidate": 1e3 * warm / chunk,
@@ -150,7 +155,10 @@ def child(args) -> None:
     jax.config.update("jax_enable_x64", True)
     cfg = config(args.config, args.t_final)
     t0 = time.perf_counter()
-    result = front_cost(cfg, args.chunk, args.chunks) if args.child == "front" else tune_cost(cfg, args.grads)
+    if args.child == "front":
+        result = front_cost(cfg, args.chunk, args.chunks, which=args.problem)
+    else:
+        result = tune_cost(cfg, args.grads)
     result.update(wall_s=time.perf_counter() - t0, native_env=os.environ.get("FOSMC_JAX_NATIVE"), jax=jax.__version__)
     Path(args.child_out).write_text(json.dumps(result))
 
@@ -175,6 +183,8 @@ def measure(what: str, native: str | None, args, tmp: str) -> dict:
         str(args.chunks),
         "--grads",
         str(args.grads),
+        "--problem",
+        args.problem,
     ]
     if args.t_final:
         cmd += ["--t-final", str(args.t_final)]
@@ -190,8 +200,8 @@ def table(info: dict) -> str:
     rows = []
     if "front" in info["what"]:
         f = res[labels[0]]["front"]
-        rows.append((f"front: ms per candidate (chunks of {f['chunk']}, {f['devices']} devices, "
-                     f"{f['rollouts_per_candidate']} rollouts x {f['n_steps']} steps)",
+        rows.append((f"front: ms per candidate ({f['problem']} problem, chunks of {f['chunk']}, {f['devices']} "
+                     f"devices, {f['rollouts_per_candidate']} rollouts x {f['n_steps']} steps of {f['dt']:g} s)",
                      [res[k]["front"]["ms_per_candidate"] for k in labels], "{:.1f}"))  # fmt: skip
         rows.append(("front: compile s", [res[k]["front"]["compile_s"] for k in labels], "{:.1f}"))
         rows.append(("front: load (per chunk)", [f"{min(res[k]['front']['loads'])}-{max(res[k]['front']['loads'])}"
@@ -222,6 +232,12 @@ def main(argv=None):
     ap.add_argument("--grads", type=int, default=2, help="warm value-and-grad calls timed per mode (default 2)")
     ap.add_argument("--what", default="front,tune", help="front, tune or both (default front,tune)")
     ap.add_argument("--t-final", type=float, help="replace [sim] t_final (a short trial)")
+    ap.add_argument(
+        "--problem",
+        choices=("train", "plain"),
+        default="train",
+        help="the front's problem timed: its training problem (default) or the plain one ([sim])",
+    )
     ap.add_argument("--out", help="write the results as JSON")
     ap.add_argument("--child", choices=("front", "tune"), help=argparse.SUPPRESS)
     ap.add_argument("--child-out", help=argparse.SUPPRESS)
