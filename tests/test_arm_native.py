@@ -97,7 +97,8 @@ def test_ideal_loop_rollouts_equal_vmap_of_simulate(integrator, switching, law):
     assert_close(fast, slow)
 
 
-@pytest.mark.parametrize("integrator", ["euler", pytest.param("rk4", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
 def test_float32_within_1e_4(integrator):
     dt32 = np.float32
     plants = arm_sweep(jnp.linspace(0.0, 10.0, 2, dtype=dt32))
@@ -230,7 +231,8 @@ def test_vmapped_candidates_fold_into_the_lanes():
         assert_close(jax.tree.map(lambda x, i=i: x[i], by_ref), one)
 
 
-@pytest.mark.parametrize("forward", [False, pytest.param(True, marks=pytest.mark.slow)])
+@pytest.mark.slow  # three reverse- and forward-mode compilations of the vmap path (~15 s)
+@pytest.mark.parametrize("forward", [False, True])
 def test_derivatives_are_those_of_the_vmap_path(forward):
     """Forward and reverse mode through the kernel's batch are the vmap path's derivatives."""
     plants, X0s, ref = arm_sweep(jnp.array([0.0, 10.0])), offsets(1), cycloid()
