@@ -41,8 +41,10 @@ from ._loop import DigitalLoop
 from ._reference import desired_state, feedforward
 from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting
 
-LANE_ROWS = 139  # see _arm_kernel.cc
-CARRY_ROWS = 56
+# The layouts of _arm_kernel.cc: lane rows, and where the carry's rows hold the accumulator's
+# fields (10 x 3, field-major), the divergence flag and its time; the delay line after them.
+LANE_ROWS = 139
+METRICS, DIVERGED, DIVERGED_AT, CARRY_ROWS = slice(24, 54), 54, 55, 56
 MAX_DELAY = 8
 # Steps per kernel call: as many as keep the call's time table within 24 KiB (the core's L1).
 TABLE_BYTES = 24 * 1024
@@ -109,6 +111,7 @@ def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
     law = _law_rows(_law_of(ctrl), dtype)
     rest = jnp.concatenate([law[:-1], *(jnp.ravel(jnp.asarray(x, dtype)) for x in loop), law[-1:]])
     lanes = jnp.concatenate([jnp.repeat(arm, O, axis=0), jnp.broadcast_to(rest, (P * O, rest.shape[0]))], axis=1)
+    assert lanes.shape[1] == LANE_ROWS, lanes.shape
     return lanes.T
 
 
@@ -128,7 +131,9 @@ def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
              carry.diverged_at]  # fmt: skip
     if digital and delay:
         parts.append(cs.pending)
-    return jnp.concatenate([col(x) for x in parts], axis=1).T
+    rows = jnp.concatenate([col(x) for x in parts], axis=1).T
+    assert rows.shape[0] == CARRY_ROWS + 3 * delay, rows.shape
+    return rows
 
 
 def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> Array:
@@ -220,11 +225,11 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
     advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
     out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
-    fields = out[24:54].reshape(10, 3, N)
+    fields = out[METRICS].reshape(10, 3, N)
     acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))
     acc = acc._replace(count=acc.count[:, :1])
     metrics = _metrics.finish(acc, n_steps * dt)
-    return Result(metrics, out[54] != 0, out[55], None)
+    return Result(metrics, out[DIVERGED] != 0, out[DIVERGED_AT], None)
 
 
 def simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **options) -> Result:  # noqa: F821
