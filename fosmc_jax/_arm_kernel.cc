@@ -81,44 +81,37 @@ inline void SinCos(V<T> x, V<T>* s, V<T>* c) {
   using I = std::conditional_t<sizeof(T) == 8, int64_t, int32_t>;
   typedef I M __attribute__((vector_size(fosmc::kBytes)));
   constexpr int shift = sizeof(T) * 8 - 2;
-  V<T> jf, ps, pc, r;
+  T magic, two_pi, p1, p2, p3;  // 1.5 2^(mantissa bits), 2 / pi, pi / 2 in three parts
   if constexpr (sizeof(T) == 8) {
-    const T magic = 0x1.8p52, two_pi = 0x1.45f306dc9c883p-1;
-    const T p1 = 1.57079632673412561417e+00, p2 = 6.07710050630396597660e-11, p3 = 2.02226624871116645580e-21;
-    jf = x * two_pi + magic;
-    const M j = (M)jf;
-    jf -= magic;
-    r = x - jf * p1;
-    r -= jf * p2;
-    r -= jf * p3;
-    const V<T> z = r * r;
+    magic = 0x1.8p52, two_pi = 0x1.45f306dc9c883p-1;
+    p1 = 1.57079632673412561417e+00, p2 = 6.07710050630396597660e-11, p3 = 2.02226624871116645580e-21;
+  } else {
+    magic = 0x1.8p23f, two_pi = 0x1.45f306p-1f;
+    p1 = 1.5703125f, p2 = 4.837512969970703125e-4f, p3 = 7.54978995489188216e-8f;
+  }
+  V<T> jf = x * two_pi + magic;  // j = round(x 2 / pi) in the low mantissa bits
+  const M j = (M)jf;
+  jf -= magic;
+  V<T> r = x - jf * p1;
+  r -= jf * p2;
+  r -= jf * p3;
+  const V<T> z = r * r;
+  V<T> ps, pc;  // sin r and cos r, |r| <= pi / 4
+  if constexpr (sizeof(T) == 8) {  // fdlibm's __kernel_sin, __kernel_cos
     ps = r + z * r * (-1.66666666666666324348e-01 + z * (8.33333333332248946124e-03 + z * (-1.98412698298579493134e-04 +
          z * (2.75573137070700676789e-06 + z * (-2.50507602534068634195e-08 + z * 1.58969099521155010221e-10)))));
     const V<T> qq = z * (4.16666666666666019037e-02 + z * (-1.38888888888741095749e-03 + z * (2.48015872894767294178e-05 +
                     z * (-2.75573143513906633035e-07 + z * (2.08757232129817482790e-09 + z * -1.13596475577881948265e-11)))));
     const V<T> hz = 0.5 * z, w = 1.0 - hz;
     pc = w + (((1.0 - w) - hz) + z * qq);
-    const M swap = -(j & 1);
-    const V<T> sn = swap ? pc : ps, cn = swap ? ps : pc;
-    *s = (V<T>)((M)sn ^ ((j & 2) << shift));
-    *c = (V<T>)((M)cn ^ (((j + 1) & 2) << shift));
-  } else {
-    const T magic = 0x1.8p23f, two_pi = 0x1.45f306p-1f;
-    const T p1 = 1.5703125f, p2 = 4.837512969970703125e-4f, p3 = 7.54978995489188216e-8f;
-    jf = x * two_pi + magic;
-    const M j = (M)jf;
-    jf -= magic;
-    r = x - jf * p1;
-    r -= jf * p2;
-    r -= jf * p3;
-    const V<T> z = r * r;
+  } else {  // Cephes' sinf, cosf
     ps = ((-1.9515295891e-4f * z + 8.3321608736e-3f) * z - 1.6666654611e-1f) * z * r + r;
     pc = ((2.443315711809948e-5f * z - 1.388731625493765e-3f) * z + 4.166664568298827e-2f) * z * z - 0.5f * z + 1.0f;
-    const M swap = -(j & 1);
-    const V<T> sn = swap ? pc : ps, cn = swap ? ps : pc;
-    *s = (V<T>)((M)sn ^ ((j & 2) << shift));
-    *c = (V<T>)((M)cn ^ (((j + 1) & 2) << shift));
   }
+  const M swap = -(j & 1);  // odd quadrant: sin <-> cos; then the quadrant's signs
+  const V<T> sn = swap ? pc : ps, cn = swap ? ps : pc;
+  *s = (V<T>)((M)sn ^ ((j & 2) << shift));
+  *c = (V<T>)((M)cn ^ (((j + 1) & 2) << shift));
 }
 
 // theta'' = M^-1 (Kt i - C q' - G - F q'): fosmc_jax._arm._accelerations (_inertia, _coriolis,
