@@ -1,4 +1,5 @@
-"""The fast path's time loop in one compiled kernel (``_kernel.cc``), called from XLA.
+"""The fast paths' time loops in compiled kernels (``_kernel.cc``: linear plants; ``_arm_kernel.cc``:
+the arm, called by :mod:`fosmc_jax._arm_native`; both on ``_kernel.h``), called from XLA.
 
 XLA:CPU runs every step of a ``lax.scan`` as a few dozen separate kernels, each a pass over the
 batch in memory; the loop body of :func:`fosmc_jax._simulator._linear_batch` costs about 0.7 us
@@ -9,12 +10,13 @@ or without sharding), registered as an XLA FFI target (``jax.ffi``).
 
 It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
 headers come with jaxlib) for this CPU (``-march=native``) and cached under
-``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``), keyed by the source, the flags, the
+``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``, :func:`fosmc_jax._cache.cache_dir`), as one
+library (the sources compiled in parallel), keyed by the sources, the flags, the
 compiler's version, jaxlib's and the CPU. Where no compiler works, or with
-``FOSMC_JAX_NATIVE=0``, the fast path runs its ``lax.scan`` as before, with a one-line
-warning in the first case. Results equal the scan's to rounding
-(tests/test_performance_paths.py); derivatives are the scan's (``custom_jvp`` in
-``_simulator``).
+``FOSMC_JAX_NATIVE=0``, the linear fast path runs its ``lax.scan`` and the arm ``vmap`` of
+``simulate``, as before, with a one-line warning in the first case. Results equal those paths'
+to rounding (tests/test_performance_paths.py, tests/test_arm_native.py), and so do derivatives,
+which are theirs (``custom_jvp``).
 """
 
 from __future__ import annotations
