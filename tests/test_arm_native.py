@@ -84,7 +84,8 @@ def test_random_states_arms_and_gains(integrator, switching, law):
 
 @pytest.mark.parametrize(
     "integrator, switching, law",
-    [("euler", "sign", "paper"), pytest.param("rk4", "sat", "equivalent", marks=pytest.mark.slow),
+    [pytest.param("euler", "sign", "paper", marks=pytest.mark.slow),
+     pytest.param("rk4", "sat", "equivalent", marks=pytest.mark.slow),
      pytest.param("rk4", "tanh", "paper", marks=pytest.mark.slow),
      pytest.param("euler", "ratio", "equivalent", marks=pytest.mark.slow)],
 )  # fmt: skip
