@@ -37,8 +37,8 @@ struct Consts {
   T C[27], S[27], CBi[9], K[27], gamma[3], delta[3], dt, decay, hf_weight, bound;
 };
 
-template <typename T, int Rk4, int Sw, int Law>
-void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in, T* out, int64_t N) {
+template <typename T, int Rk4>
+void Block(const Consts<T>& c, int sw_code, int law_code, const T* ab, const T* table, int64_t L, int64_t R, const T* in, T* out, int64_t N) {
   using S = Simd<T>;
   using V = typename S::V;
   V st[kRows], A[27], B[9];
@@ -104,18 +104,19 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
       s[j] = cz - nw[j];
       const T d = c.delta[j];
       V sw;  // the switching function f(s)
-      // Sw and Law: positions in fosmc_jax._controller.SWITCHING and LAWS
-      if constexpr (Sw == 0) sw = s[j] > 0 ? zero + 1 : (s[j] < 0 ? zero - 1 : s[j]);  // sign
-      if constexpr (Sw == 1) sw = s[j] / (S::Abs(s[j]) + d);                           // ratio (28)
-      if constexpr (Sw == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);       // sat
-      if constexpr (Sw == 3) sw = S::Map(s[j] / d, [](T a) { return std::tanh(a); });
+      // the codes are positions in fosmc_jax._controller.SWITCHING and LAWS (one per call: a
+      // branch every lane takes alike, as in _arm_kernel.cc; templates on them made 32 copies)
+      if (sw_code == 0) sw = s[j] > 0 ? zero + 1 : (s[j] < 0 ? zero - 1 : s[j]);  // sign
+      else if (sw_code == 1) sw = s[j] / (S::Abs(s[j]) + d);                       // ratio (28)
+      else if (sw_code == 2) sw = S::Min(S::Max(s[j] / d, zero - 1), zero + 1);   // sat
+      else sw = S::Map(s[j] / d, [](T a) { return std::tanh(a); });
       f[j] = rho * sw;
     }
     for (int j = 0; j < 3; j++) {
       V q = c.CBi[3 * j] * f[0] + c.CBi[3 * j + 1] * f[1];
       q += c.CBi[3 * j + 2] * f[2];
       nU[j] = sample[9 + j] - q;
-      if constexpr (Law == 1) {
+      if (law_code == 1) {
         V kz = c.K[9 * j] * Z[0];
         for (int i = 1; i < 9; i++) kz += c.K[9 * j + i] * Z[i];
         nU[j] = nU[j] + kz;
@@ -151,13 +152,14 @@ void Block(const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R
   for (int r = 0; r < kRows; r++) S::Store(out + r * N, st[r]);
 }
 
-template <typename T, int Rk4, int Sw, int Law>
-void Run(ffi::ThreadPool& pool, const Consts<T>& c, const T* ab, const T* table, int64_t L, int64_t R, const T* in,
-         T* out, int64_t N) {
+template <typename T, int Rk4>
+ffi::Error Run(ffi::ThreadPool& pool, const Consts<T>& c, int sw, int law, const T* ab, const T* table, int64_t L,
+               int64_t R, const T* in, T* out, int64_t N) {
   const int64_t W = Simd<T>::W;
   fosmc::RunBlocks(pool, N / W, [=](int64_t i) {  // c by value: see RunBlocks
-    Block<T, Rk4, Sw, Law>(c, ab + i * W, table, L, R, in + i * W, out + i * W, N);
+    Block<T, Rk4>(c, sw, law, ab + i * W, table, L, R, in + i * W, out + i * W, N);
   });
+  return ffi::Error::Success();
 }
 
 template <typename T>
@@ -179,16 +181,10 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer ab, ffi::AnyBuffer cons
   std::copy_n(consts.typed_data<T>(), sizeof(Consts<T>) / sizeof(T), reinterpret_cast<T*>(&c));
   const T *a = ab.typed_data<T>(), *tb = table.typed_data<T>(), *i = in.typed_data<T>();
   T* o = out->typed_data<T>();
-#define FOSMC_CASE(RK, SW, LAW) \
-  if (rk4 == RK && sw == SW && law == LAW) return Run<T, RK, SW, LAW>(pool, c, a, tb, L, R, i, o, N), ffi::Error::Success();
-#define FOSMC_LAWS(RK, SW) FOSMC_CASE(RK, SW, 0) FOSMC_CASE(RK, SW, 1)
-#define FOSMC_SWS(RK) FOSMC_LAWS(RK, 0) FOSMC_LAWS(RK, 1) FOSMC_LAWS(RK, 2) FOSMC_LAWS(RK, 3)
-  FOSMC_SWS(0)
-  FOSMC_SWS(1)
-#undef FOSMC_SWS
-#undef FOSMC_LAWS
-#undef FOSMC_CASE
-  return ffi::Error::InvalidArgument("fosmc kernel: unknown integrator, switching or law");
+  if (sw < 0 || sw > 3 || law < 0 || law > 1) return ffi::Error::InvalidArgument("fosmc kernel: unknown switching or law");
+  if (rk4 == 0) return Run<T, 0>(pool, c, sw, law, a, tb, L, R, i, o, N);
+  if (rk4 == 1) return Run<T, 1>(pool, c, sw, law, a, tb, L, R, i, o, N);
+  return ffi::Error::InvalidArgument("fosmc kernel: unknown integrator");
 }
 
 ffi::Error Advance(ffi::ThreadPool pool, ffi::AnyBuffer ab, ffi::AnyBuffer consts, ffi::AnyBuffer table,
