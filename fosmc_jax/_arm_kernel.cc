@@ -48,7 +48,7 @@ namespace ffi = xla::ffi;
 namespace {
 
 using fosmc::Simd;
-constexpr int kLaneRows = 139, kCarryRows = 56, kSampleCols = 19;
+constexpr int kLaneRows = 139, kCarryRows = 56, kSampleCols = 19, kMaxDelay = 8;
 enum { kQ = 0, kDq = 3, kCur = 6, kAcc = 9, kW = 12, kU = 15, kMemTh = 18, kMemDth = 21, kMet = 24, kDiv = 54,
        kDivAt = 55, kPending = 56 };
 enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
@@ -275,7 +275,7 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
   Lane<T> p;
   static_assert(sizeof(Lane<T>) == kLaneRows * sizeof(W), "the lane rows' image");
   for (int r = 0; r < kLaneRows; r++) reinterpret_cast<W*>(&p)[r] = S::Load(lanes + r * N);
-  W st[kCarryRows + 3 * 8];
+  W st[kCarryRows + 3 * kMaxDelay];
   for (int64_t r = 0; r < rows; r++) st[r] = S::Load(in + r * N);
   const T dt = h.dt, half = h.dt / 2, big = std::numeric_limits<T>::max();
   const W zero = {};
@@ -347,7 +347,7 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
     for (int j = 0; j < 3; j++)
       ok &= (S::Abs(nq[j]) <= h.bound) & (S::Abs(ndq[j]) <= h.bound) & (S::Abs(nacc[j]) <= h.bound) &
             (S::Abs(ncur[j]) <= big);
-    W nmth[3], nmdth[3], npend[3 * 8];
+    W nmth[3], nmdth[3], npend[3 * kMaxDelay];
     const bool sampled = smp[15] != 0;
     if constexpr (!Digital) {
       // the law at t' from the exact state X = (q, q', q'')
@@ -435,7 +435,7 @@ ffi::Error Dispatch(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer c
     return ffi::Error::InvalidArgument("fosmc arm kernel: every buffer must have the carry's dtype");
   const auto dims = in.dimensions(), ld = lanes.dimensions(), td = table.dimensions();
   const int64_t stages = digital ? 0 : (rk4 ? 3 : 1);
-  if (delay < 0 || delay > 8 || kind < 0 || kind > 2 || sw < 0 || sw > 3 || law < 0 || law > 1)
+  if (delay < 0 || delay > kMaxDelay || kind < 0 || kind > 2 || sw < 0 || sw > 3 || law < 0 || law > 1)
     return ffi::Error::InvalidArgument("fosmc arm kernel: switching, law or delay out of range");
   if (dims.size() != 2 || dims[0] != kCarryRows + 3 * delay || ld.size() != 2 || ld[0] != kLaneRows ||
       ld[1] != dims[1] || td.size() != 2 || td[1] != 9 * stages + kSampleCols ||

@@ -35,10 +35,10 @@ from jax import Array
 
 from . import _metrics, _native
 from ._arm import Arm, cast_params
-from ._controller import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, safe_norm
+from ._controller import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, reference_terms
 from ._design import input_matrix_product
 from ._loop import DigitalLoop
-from ._reference import desired_state, feedforward
+from ._reference import desired_state
 from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting
 
 # The layouts of _arm_kernel.cc: lane rows, and where the carry's rows hold the accumulator's
@@ -145,11 +145,9 @@ def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> A
     cols = [X_d_at(t)] if stages == 1 else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)] if stages == 3 else []
     t1 = (k + 1).astype(dt.dtype) * dt
     refs = jax.vmap(reference)(t1)
-    X_d = jax.vmap(desired_state)(refs)
-    Omega = jax.vmap(functools.partial(feedforward, a_rows, b_rows))(refs)
-    norms = [jax.vmap(safe_norm)(X_d)[:, None], jax.vmap(safe_norm)(Omega)[:, None]]
-    flag = ((k + 1) % m == 0).astype(dt.dtype)[:, None]
-    return jnp.concatenate([*cols, X_d, Omega, *norms, t1[:, None], flag, refs[:, 3]], axis=1)
+    X_d, Omega, norm_X_d, norm_Omega = jax.vmap(functools.partial(reference_terms, a_rows, b_rows))(refs)
+    flag = ((k + 1) % m == 0).astype(dt.dtype)
+    return jnp.concatenate([*cols, X_d, Omega, jnp.stack([norm_X_d, norm_Omega, t1, flag], 1), refs[:, 3]], axis=1)
 
 
 def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
@@ -164,11 +162,12 @@ def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, dig
     consts = jnp.stack([dt, *gain, jnp.minimum(bound, jnp.finfo(dtype).max)]).astype(dtype)
     stages = 0 if digital else 3 if rk4 else 1
     call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct(carry.shape, dtype), vmap_method="sequential")
-    attrs = {name: np.int32(v) for name, v in dict(how, rk4=rk4, digital=digital).items()}
+    m = how["m"]  # the sample period in steps: the table's flag; the rest are the kernel's attributes
+    attrs = {name: np.int32(v) for name, v in dict(how, rk4=rk4, digital=digital).items() if name != "m"}
 
     def chunk(c, k0, length):
-        table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=how["m"])
-        return call(lanes, consts, table.astype(dtype), c, **{a: v for a, v in attrs.items() if a != "m"})
+        table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=m)
+        return call(lanes, consts, table.astype(dtype), c, **attrs)
 
     steps = max(64, TABLE_BYTES // ((9 * stages + 19) * dtype.itemsize))
     chunks, rest = divmod(n_steps, steps)

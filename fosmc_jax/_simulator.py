@@ -36,9 +36,9 @@ import jax.numpy as jnp
 from jax import Array
 
 from . import _arm_native, _metrics, _native
-from ._controller import FOSMC, Controller, derive, safe_norm, safe_sqrt, switch
+from ._controller import FOSMC, Controller, derive, reference_terms, safe_sqrt, switch
 from ._linear_plant import LinearPlant
-from ._reference import desired_state, feedforward
+from ._reference import desired_state
 
 INTEGRATORS = ("euler", "rk4")
 
@@ -329,12 +329,9 @@ class _Batch(NamedTuple):
 
 
 def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Array, Array]:
-    """What a controller sample at t needs of the reference alone: X_d (9,), Omega (3,) of
-    (10), and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
-    ref = reference(t)
-    X_d = desired_state(ref)
-    Omega = feedforward(controller.a_rows, controller.b_rows, ref)
-    return X_d, Omega, controller.gamma[1] * safe_norm(X_d) + controller.gamma[2] * safe_norm(Omega)
+    """X_d (9,), Omega (3,) and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
+    X_d, Omega, norm_X_d, norm_Omega = reference_terms(controller.a_rows, controller.b_rows, reference(t))
+    return X_d, Omega, controller.gamma[1] * norm_X_d + controller.gamma[2] * norm_Omega
 
 
 def _linear_batch(
