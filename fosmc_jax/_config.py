@@ -124,6 +124,7 @@ def defaults() -> dict[str, Any]:
             "mode": "auto",
             "checkpoint_every": 10,
             "remat_steps": 100,
+            "gradient_window": 0.02,
             "train_dt": 0.0,
             "train_t_final": 0.0,
             "keep_gamma_bound": False,
@@ -325,6 +326,7 @@ SCHEMA: dict[str, Any] = {
         "mode": _choice(MODES),
         "checkpoint_every": _integer("a non-negative integer", lambda n: n >= 0),
         "remat_steps": _integer("a non-negative integer", lambda n: n >= 0),
+        "gradient_window": _number("a non-negative number (s; 0: the whole horizon)", lambda x: x >= 0),
         "train_dt": _number("a non-negative number (s; 0: automatic)", lambda x: x >= 0),
         "train_t_final": _number("a non-negative number (s; 0: sim.t_final)", lambda x: x >= 0),
         "keep_gamma_bound": _boolean,
@@ -628,7 +630,10 @@ def tuning_problems(cfg: dict):
         return _tuning.Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
 
     plain = problem(cfg)
-    remat = {"checkpoint_every": cfg["tune"]["remat_steps"]}
+    # the gradient follows the loop over windows of tune.gradient_window (truncate_every): over
+    # the whole horizon it grows exponentially on switching, quantized loops (tuning/results/truncation.md)
+    window = int(round(cfg["tune"]["gradient_window"] / train_cfg["sim"]["dt"]))
+    remat = {"checkpoint_every": cfg["tune"]["remat_steps"], "truncate_every": window}
     # no surrogate: the same simulation (the same make and keys tell fosmc_jax._front so)
     train = problem(train_cfg, **remat) if train_cfg != cfg else plain._replace(options=dict(plain.options, **remat))
     p0 = space.values(*(getattr(plain.base, name) for name in space.names))

@@ -62,6 +62,10 @@ class Result(NamedTuple):
     trace: Trace | None
 
 
+#: The carries' fields through which a state's derivative flows to the next step (``truncate_every``).
+_DYNAMIC = ("plant_state", "ctrl_state", "U")
+
+
 class _Carry(NamedTuple):
     k: Array
     plant_state: Any
@@ -100,6 +104,24 @@ def _guard(diverged, diverged_at, ok, t, old, fresh):
 def _scan_steps(body, carry, steps: int, unroll: int = 1):
     """``steps`` iterations of the scan ``body`` (none when 0), ``unroll`` per loop trip."""
     return carry if steps == 0 else jax.lax.scan(body, carry, None, length=steps, unroll=min(unroll, steps))[0]
+
+
+def _in_blocks(advance, carry, n_steps: int, detach, checkpoint_every: int = 0, truncate_every: int = 0):
+    """``advance(carry, steps)`` over ``n_steps``, in blocks where the options ask for them.
+
+    ``truncate_every``: blocks of that many steps, the dynamic state ``detach``-ed (its
+    gradient stopped, the metric sums kept) at each block's start: the gradient flows
+    through the closed loop over at most one block (truncated backpropagation through time;
+    values unchanged). ``checkpoint_every``: blocks of that many steps (or the truncation's
+    blocks) rematerialised with ``jax.checkpoint``."""
+    block = truncate_every or checkpoint_every
+    if not block or block >= n_steps:
+        return advance(carry, n_steps)
+    cut = detach if truncate_every else (lambda c: c)
+    run = lambda c, _: (advance(cut(c), block), None)
+    blocks, rest = divmod(n_steps, block)
+    carry = jax.lax.scan(jax.checkpoint(run) if checkpoint_every else run, carry, None, length=blocks)[0]
+    return advance(cut(carry), rest)
 
 
 def _finite_and_bounded(tree, X, bound) -> Array:
@@ -142,7 +164,7 @@ def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
     )
 
 
-_STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every")
+_STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
@@ -159,6 +181,7 @@ def simulate(
     law: str = "paper",
     save_every: int = 0,
     checkpoint_every: int = 0,
+    truncate_every: int = 0,
     divergence_bound: float = 1e6,
     key: Array | None = None,
     chattering_cutoff: float = _metrics.CHATTERING_CUTOFF,
@@ -188,6 +211,12 @@ def simulate(
         (rounded up to a multiple of m) with ``jax.checkpoint``, so memory grows with
         n / checkpoint_every + checkpoint_every instead of n; 0 stores every step. Ignored
         when ``save_every`` is set. Static.
+      truncate_every: truncated backpropagation through time: derivatives follow the closed
+        loop over blocks of this many steps (rounded up to a multiple of m) only, the state's
+        dependence on earlier blocks cut (the metric sums keep theirs), so that a gradient
+        stays finite and informative where the full-horizon one grows exponentially (a
+        switching, quantized loop); values are unchanged; 0: the full horizon. Ignored when
+        ``save_every`` is set. Static.
       divergence_bound: a rollout with some |X_i| above it is frozen and flagged.
       key: PRNG key handed to ``controller.init`` (sensor noise); default ``PRNGKey(0)``.
       chattering_cutoff: cutoff (Hz) of the ``chattering_hf`` metric's low-pass filter.
@@ -270,14 +299,10 @@ def simulate(
         ts = ks.astype(dtype) * dt
         X_ds = jax.vmap(lambda t: desired_state(reference(t)))(ts)
         trace = Trace(ts, Xs, X_ds, Us, ss)
-    elif checkpoint_every:
-        block_steps = -(-checkpoint_every // m) * m
-        blocks, rest = divmod(n_steps, block_steps)
-        remat = jax.checkpoint(lambda c, _: (advance(c, block_steps), None))
-        carry = jax.lax.scan(remat, carry, None, length=blocks)[0]
-        carry = advance(carry, rest)
     else:
-        carry = advance(carry, n_steps)
+        whole = lambda steps: -(-steps // m) * m
+        detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in _DYNAMIC})
+        carry = _in_blocks(advance, carry, n_steps, detach, whole(checkpoint_every), whole(truncate_every))
 
     metrics = _metrics.finish(carry.acc, n_steps * dt)
     return Result(metrics, carry.diverged, carry.diverged_at, trace)
@@ -346,6 +371,7 @@ def _linear_batch(
     switching: str = "ratio",
     law: str = "paper",
     checkpoint_every: int = 0,
+    truncate_every: int = 0,
     divergence_bound: float = 1e6,
     chattering_cutoff: float = _metrics.CHATTERING_CUTOFF,
     native: bool = False,
@@ -440,13 +466,9 @@ def _linear_batch(
     if native:
         carry = _kernel_advance(carry, n_steps, A, B, controller, derived, reference, dt, gain, divergence_bound,
                                 rk4=integrator == "rk4", switching=switching, law=law)  # fmt: skip
-    elif checkpoint_every:
-        blocks, rest = divmod(n_steps, checkpoint_every)
-        remat = jax.checkpoint(lambda c, _: (advance(c, checkpoint_every), None))
-        carry = jax.lax.scan(remat, carry, None, length=blocks)[0]
-        carry = advance(carry, rest)
     else:
-        carry = advance(carry, n_steps)
+        detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in ("x", "w", "U")})
+        carry = _in_blocks(advance, carry, n_steps, detach, checkpoint_every, truncate_every)
 
     acc = jax.tree.map(lambda *joints: jnp.stack(joints, axis=-1), *carry.acc)
     acc = acc._replace(count=carry.acc[0].count[..., None])
