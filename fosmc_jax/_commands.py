@@ -460,6 +460,7 @@ def run_front(
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
+    started: float | None = None,
     log: Log = _quiet,
 ) -> dict[str, Any]:
     """``fosmc front``: the Pareto front of mean ``rms_error`` against mean
@@ -470,7 +471,9 @@ def run_front(
     parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
     the local rounds, default from the budget. ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
-    nothing written); ``resume`` continues from its checkpoint.
+    nothing written); ``resume`` continues from its checkpoint. The budget counts from
+    ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
+    this call).
 
     Returns what ``front.json`` holds: ``{"axes", "points": [{params, metrics, held_out,
     diverged}], "stages", "references", "held_out_batch", "config"}``, ``params`` by the
@@ -497,4 +500,4 @@ def run_front(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0)
-    return F.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), log=log)
+    return F.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)

@@ -124,7 +124,7 @@ def defaults() -> dict[str, Any]:
             "mode": "auto",
             "checkpoint_every": 10,
             "remat_steps": 100,
-            "gradient_window": 0.02,
+            "gradient_window": 0.0,
             "train_dt": 0.0,
             "train_t_final": 0.0,
             "keep_gamma_bound": False,

@@ -27,13 +27,17 @@ Every evaluation is a vmapped chunk split over the local devices. The front is t
 non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of
 plain metrics: without a training surrogate (``[tune] train_t_final``, ``train_dt``) the
 training metrics are the plain ones; with one, only the plain metrics of stage 4 count.
-The stage sizes are set once from the budget and the measured cost of one chunk (or given:
-then no CMA-ES or plain rounds unless ``cma``, ``polish``), and stored in the checkpoint, so
-a resumed run ends where an uninterrupted one does (a run killed inside the CMA-ES stage
-resumes at its start). When the sizes come from the budget, every stage also stops once its
-share of the budget is spent (a cheap problem's rounds cost more than its chunks, a loaded
-machine's chunks more than the probe's), and ``stages`` records what ran; a resumed run
-then runs the sizes the first run planned, without its deadlines, which it cannot know.
+With sizes from the budget (``candidates`` or ``steps`` not given) every stage runs until its
+share of the search time is spent: one chunk is timed first (compiled, then warm; its
+candidates join the global stage), which sizes the global stage; CMA-ES, the local rounds and
+the plain rounds then run until their deadlines, their steps shrinking with the stage's time
+spent, and the last stage ends where the final evaluations of the front it has found (the
+plain re-evaluation, the caller's held-out evaluation) still fit before the run's deadline.
+The deadlines are stored in the checkpoint as offsets from the run's start, and a resumed run
+sets its start back by the time already spent, so it ends when the uninterrupted run would
+have. With given sizes (``candidates`` and ``steps``; no CMA-ES or plain rounds unless
+``cma``, ``polish``) nothing depends on time: a resumed run ends where an uninterrupted one
+does (a run killed inside the CMA-ES stage resumes at its start).
 """
 
 from __future__ import annotations
@@ -93,19 +97,21 @@ class Settings(NamedTuple):
 
 def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Mask of the points not dominated in (x, y), both minimised (NaN points never kept;
-    equal points kept together). One sort and one sweep: in (x, y) order a point is dominated
-    exactly when some earlier point that differs from it has y <= its y."""
+    equal points kept together). One sort, no Python loop: in (x, y) order a point is
+    dominated exactly when some earlier point that differs from it has y <= its y, i.e. the
+    first of each run of equal points is kept when its y is below every earlier y, and the
+    rest of the run with it."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     keep = np.zeros(x.shape, bool)
     idx = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    if not idx.size:
+        return keep
     idx = idx[np.lexsort((y[idx], x[idx]))]
-    best = np.inf  # lowest y among the earlier points unequal to the current one
-    group_y, group_best = np.nan, np.inf  # the current run of equal points, and best before it
-    for i in idx:
-        if (x[i], y[i]) != group_y:
-            group_y, group_best = (x[i], y[i]), best
-        keep[i] = not group_best <= y[i]
-        best = min(best, y[i])
+    xs, ys = x[idx], y[idx]
+    first = np.concatenate([[True], (xs[1:] != xs[:-1]) | (ys[1:] != ys[:-1])])  # a run of equal points starts
+    earlier = np.concatenate([[np.inf], np.minimum.accumulate(ys)[:-1]])  # lowest y before each point
+    run = np.cumsum(first) - 1
+    keep[idx] = (ys < earlier)[first][run]
     return keep
 
 
@@ -198,20 +204,27 @@ def sample_candidates(p0: T.Params, n: int, seed: int) -> T.Params:
 
 
 def evaluate_many(problem: T.Problem, params: T.Params, chunk: int, log: Callable[[str], None] = print,
-                  what: str = "evaluating") -> dict[str, np.ndarray]:  # fmt: skip
+                  what: str = "evaluating", deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
-    {metric: (n, 3)} and ``diverged`` (n,) counts, in vmapped chunks of ``chunk``."""
+    {metric: (n, 3)} and ``diverged`` (n,) counts, in vmapped chunks of ``chunk``; with a
+    ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
+    passes (one at least)."""
     n = jax.tree.leaves(params)[0].shape[0]
     run, devices = _chunk_evaluator(problem)
     padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
-    parts, start = [], time.perf_counter()
+    parts, start, shown = [], time.perf_counter(), -np.inf
     for i in range(0, n, chunk):
+        if parts and deadline is not None and time.perf_counter() > deadline:
+            break
         part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
         size = jax.tree.leaves(part)[0].shape[0]
         if size < padded:  # pad to the compiled size
             part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
         parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
-        log(f"front: {what} {min(i + chunk, n)}/{n}  {time.perf_counter() - start:7.1f} s")
+        now = time.perf_counter()
+        if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
+            log(f"front: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
+            shown = now
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -284,18 +297,6 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
 
 
-def stage_sizes(settings: Settings, search_s: float, chunk_s: float, final_chunks: int = 0,
-                other_chunks: float = 0) -> tuple[int, int]:  # fmt: skip
-    """(global candidates, local rounds) for ``search_s`` seconds of search at ``chunk_s`` per
-    chunk: the global stage gets ``global_share`` of the chunks, the local rounds the rest but
-    ``final_chunks`` (a plain re-evaluation) and ``other_chunks`` (the other stages); given
-    sizes are kept."""
-    chunks = max(0, int(search_s / chunk_s)) - final_chunks
-    n = settings.candidates or max(1, round(settings.global_share * chunks)) * settings.chunk
-    rounds = settings.steps or max(1, int(chunks - other_chunks) - n // settings.chunk)
-    return n, rounds
-
-
 def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings: Settings, generations: int,
               deadline: float | None, log: Callable[[str], None]) -> tuple[np.ndarray, dict, int]:  # fmt: skip
     """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
@@ -313,12 +314,12 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
     opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1, "verbose": -9,
                       "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo)}  # fmt: skip
     runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
-    t0 = time.perf_counter()
+    t0 = shown = time.perf_counter()
     for g in range(generations):
         live = [k for k, es in enumerate(runs) if not es.stop()]
         if not live or (deadline is not None and time.perf_counter() > deadline):
             why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
-            log(f"front: CMA-ES stopped after {g} of {generations} generations: {why}")
+            log(f"front: CMA-ES stopped after {g} generations: {why}")
             return z, m, g
         X = [np.asarray(runs[k].ask()) for k in live]
         mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
@@ -328,9 +329,27 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
         for k, x, fk in zip(live, X, f):
             runs[k].tell(list(x), list(fk))
         z, m = np.concatenate([z, *X]), {k: np.concatenate([m[k], mr[k]]) for k in m}
-        log(f"front: CMA-ES generation {g + 1}/{generations}  best {np.round(f.min(axis=1), 3).tolist()}  "
-            f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+        if deadline is None or time.perf_counter() - shown > 1.0:  # with a deadline, about once a second
+            shown = time.perf_counter()
+            total = f"/{generations}" if deadline is None else f" ({deadline - shown:.1f} s left)"
+            log(f"front: CMA-ES generation {g + 1}{total}  best {np.round(f.min(axis=1), 3).tolist()}  "
+                f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
     return z, m, generations
+
+
+class _Clock:
+    """Stage deadlines of a run whose sizes come from the budget, as offsets (s) from its start
+    (so that a resumed run keeps them: its start is set back by the time already spent); with
+    given sizes, no deadlines."""
+
+    def __init__(self, start: float, ends: dict[str, float] | None):
+        self.start, self.ends = start, ends
+
+    def end(self, stage: str) -> float | None:
+        return None if self.ends is None else self.start + self.ends[stage]
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
 
 
 def run(
@@ -341,15 +360,17 @@ def run(
     *,
     checkpoint: Path | None = None,
     resume: bool = False,
-    reserve: tuple[float, float] = (0.0, 0.0),
+    deadline: float | None = None,
+    reserve_per_point: float = 0.0,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Find the front (see module docstring). ``reserve`` = (compilations, share of the budget)
-    of time left out of it for what follows (the held-out evaluation, whose cost grows with
-    the front: 88 s of a 900 s budget in tuning/README.md's 15-minute study). Returns {"points":
-    [...], "stages": {...}} with every point's parameters, plain mean metrics and diverged
-    count; non-dominated only, sorted by chattering. The search space is that of ``p0``'s
-    controller kind (:func:`fosmc_jax._tuning.space_of`)."""
+    """Find the front (see module docstring). With sizes from the budget (``settings.candidates``
+    or ``settings.steps`` 0) the run returns by ``deadline`` (a ``time.perf_counter()`` value;
+    None: ``settings.budget`` from now), leaving ``reserve_per_point`` seconds per front point
+    for what follows (the caller's held-out evaluation). Returns {"points": [...], "stages":
+    {...}} with every point's parameters, plain mean metrics and diverged count; non-dominated
+    only, sorted by chattering. The search space is that of ``p0``'s controller kind
+    (:func:`fosmc_jax._tuning.space_of`)."""
     t0 = time.perf_counter()
     space = T.space_of(p0)
     state: dict[str, Any] = {}
@@ -357,54 +378,66 @@ def run(
         state, leaves = T._load(checkpoint)
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     surrogate = not _same_simulation(train, plain)
-    n_cand, rounds = (state["candidates"], state["steps"]) if state else (settings.candidates, settings.steps)
-    polish = state.get("polish", settings.polish) if surrogate else 0
+    timed = not (settings.candidates and settings.steps)
+    n_cand = state.get("candidates", settings.candidates)
+    rounds, polish = state.get("steps", settings.steps), state.get("polish", settings.polish if surrogate else 0)
     generations = state.get("cma_generations", settings.cma)
-    deadline = polish_deadline = cma_deadline = None  # with sizes from the budget, stages also stop when it is spent
-    if not state and not (n_cand and rounds):  # from the budget: time one chunk (compiled, then warm)
-        probe = from_factors(p0, global_factors(settings.chunk, settings.seed + 1, space=space))
+    clock = _Clock(t0 - state.get("elapsed", 0.0), state.get("ends"))
+    plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
+    z0 = np.zeros((0, space.dim))
+    m0: dict[str, np.ndarray] = {}
+    if timed and not state:  # the stages' deadlines: time one chunk (compiled, then warm), kept as candidates
+        z0 = global_factors(settings.chunk, settings.seed + 1, space=space)
         t = time.perf_counter()
-        evaluate_many(train, probe, settings.chunk, log=lambda _: None)
+        evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
         compile_s = time.perf_counter() - t
         t = time.perf_counter()
-        evaluate_many(train, probe, settings.chunk, log=lambda _: None)
+        m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
         chunk_s = time.perf_counter() - t
-        compile_s -= chunk_s
-        ratio = plain.options["n_steps"] / train.options["n_steps"]  # plain / training cost of a chunk
-        plain_compile = ratio * compile_s if surrogate else 0.0  # the plain re-evaluation compiles first
-        search_s = settings.budget - (time.perf_counter() - t0) - reserve[0] * compile_s - reserve[1] * settings.budget
-        search_s = max(0.0, search_s - plain_compile)
-        final = int(np.ceil(8 * ratio)) if surrogate else 0  # chunk-times of the plain re-evaluation
-        if surrogate and not settings.polish:
-            polish = int(settings.polish_share * search_s / (ratio * chunk_s))
-        if not settings.cma:
-            generations = int(settings.cma_share * search_s / (chunk_s * settings.cma_starts))
-        polish_s = polish * ratio * chunk_s
-        n_cand, rounds = stage_sizes(settings._replace(candidates=n_cand, steps=rounds), search_s, chunk_s, final,
-                                     polish_s / chunk_s + generations * settings.cma_starts)  # fmt: skip
-        if not settings.steps:
-            end = time.perf_counter() + search_s
-            polish_deadline = end + plain_compile
-            deadline = end - polish_s - final * chunk_s
-            cma_deadline = deadline - rounds * chunk_s
-        log(f"front: one chunk of {settings.chunk} costs {chunk_s:.2f} s (compilation {compile_s:.1f} s): "
-            f"{n_cand} global candidates, {generations} CMA-ES generations of {settings.cma_starts} runs, {rounds} "
-            f"local rounds, {polish} plain rounds")  # fmt: skip
+        if surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
+            for _ in range(2):
+                t = time.perf_counter()
+                evaluate_many(plain, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+            plain_point_s = (time.perf_counter() - t) / settings.chunk
+        end = settings.budget if deadline is None else deadline - t0
+        # the search's time, less the final evaluations of a front of a few hundred points
+        search = max(0.0, end - clock.elapsed() - 300 * (reserve_per_point + plain_point_s))
+        now = clock.elapsed()
+        ends = {"global": now + settings.global_share * search}
+        ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
+        ends["local"] = now + (1 - (settings.polish_share if surrogate else 0.0)) * search
+        ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
+        clock = _Clock(clock.start, ends)
+        n_cand = n_cand or max(1, int(settings.global_share * search / chunk_s)) * settings.chunk
+        generations = generations or 10**9
+        rounds, polish = rounds or 10**9, polish or (10**9 if surrogate else 0)
+        log(f"front: one chunk of {settings.chunk} costs {chunk_s:.3f} s (compilation {compile_s - chunk_s:.1f} s): "
+            f"{search:.0f} s of search: {n_cand} global candidates, then CMA-ES, local rounds"
+            f"{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
+
+    def finish_by(stage: str, n_points: int, per_point: float) -> float | None:
+        """The deadline of the last stage: the run's end less the final evaluations of its front."""
+        end = clock.end(stage)
+        return None if end is None else end - n_points * (reserve_per_point + per_point)
 
     if "round" in state:
         keys = state["keys"]
         z, m = leaves[0], dict(zip(keys, leaves[1 : 1 + len(keys)]))
         r0 = state["round"]
     else:
-        z = global_factors(n_cand, settings.seed, settings.grid_share, space)
-        m = evaluate_many(train, from_factors(p0, z), settings.chunk, log=log, what="global stage")
+        zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
+        mg = evaluate_many(train, from_factors(p0, zg), settings.chunk, log=log, what="global stage",
+                           deadline=None if settings.candidates else clock.end("global"))  # fmt: skip
+        zg = zg[: len(mg["diverged"])]
+        z, m = np.concatenate([zg, z0]), {k: np.concatenate([mg[k], m0[k]]) if m0 else mg[k] for k in mg}
         r0 = 0
+    n_global = state.get("global_end", len(z))  # the global stage's evaluations (the probe's among them)
 
     def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
         if checkpoint is not None:
             stage = "polish" if plain_state else "local" if r else "cma" if cma_done else "global"
-            header = {"stage": stage, "round": r,
-                      "candidates": n_cand, "steps": rounds, "polish": polish, "keys": list(m),
+            header = {"stage": stage, "round": r, "elapsed": clock.elapsed(), "ends": clock.ends,
+                      "candidates": n_cand, "global_end": n_global, "steps": rounds, "polish": polish, "keys": list(m),
                       "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma}  # fmt: skip
             if plain_state:
                 header["polish_round"] = plain_state[0]
@@ -412,36 +445,62 @@ def run(
             T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
 
     cma_done = state.get("cma_done", False)
-    n_cma = state.get("cma_end", n_cand)  # evaluations up to the end of the CMA-ES stage
+    n_cma = state.get("cma_end", n_global)  # evaluations up to the end of the CMA-ES stage
     if r0 == 0:
         if not cma_done:
             save(0, z, m)
             log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
         if generations and not cma_done:  # a kill inside this stage resumes at its start
-            z, m, generations = cma_stage(train, p0, z, m, settings, generations, cma_deadline, log)
+            z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log)
             cma_done, n_cma = True, len(z)
             save(0, z, m)
 
     def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
-        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m); returns (z, m, rounds run)."""
-        s0, s1 = sigma
+        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
+        (None: no deadline) passes, sigma from sigma[0] to sigma[1] over the rounds or, with a
+        deadline, over the stage's time; returns (z, m, rounds run). Parents are drawn from the
+        front, kept as the rounds go (the non-dominated set of everything evaluated)."""
+        (s0, s1), begin, shown = sigma, time.perf_counter(), -np.inf
+        front = np.flatnonzero(nondominated(*_axes(m)))
+        zs, ms = [z], [m]
         for r in range(r0, n):
-            if deadline is not None and time.perf_counter() > deadline:  # chunks cost more than the probe's
-                log(f"front: budget spent after {r} of {n} {what} rounds")
-                return z, m, r
-            sig = s0 * (s1 / s0) ** (r / max(1, n - 1))
-            zr = local_factors(z, m, settings.chunk, settings.points, sig, seed + r, space)
+            now, end = time.perf_counter(), None if deadline is None else deadline(len(front))
+            if end is not None and now > end:
+                log(f"front: {what} rounds: {r} run, the stage's time is spent")
+                n = r
+                break
+            progress = r / max(1, n - 1) if end is None else (now - begin) / max(end - begin, 1e-9)
+            sig = s0 * (s1 / s0) ** min(progress, 1.0)
+            fz, fm = zs_front(zs, ms, front)
+            zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, space)
             mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
-            z, m = np.concatenate([z, zr]), {k: np.concatenate([m[k], mr[k]]) for k in m}
-            log(f"front: {what} round {r + 1}/{n}  sigma {sig:.4f}  {int(nondominated(*_axes(m)).sum())} "
-                f"non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+            zs.append(zr)
+            ms.append(mr)
+            # the new front: of the old front and the round's children (a dominated point stays dominated)
+            both = np.concatenate([front, sum(len(x) for x in zs[:-1]) + np.arange(len(zr))])
+            fz, fm = zs_front(zs, ms, both)
+            front = both[nondominated(*_axes(fm))]
+            if end is None or time.perf_counter() - shown > 1.0:
+                shown = time.perf_counter()
+                total = f"/{n}" if end is None else f" ({end - shown:.1f} s left)"
+                log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(front)} non-dominated  "
+                    f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
             if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n):
+                z, m = np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}
+                zs, ms = [z], [m]
                 save_at(r + 1, z, m)
-        return z, m, n
+        return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
+
+    def zs_front(zs, ms, idx):
+        """The points ``idx`` of the concatenation of the chunks (zs, ms)."""
+        z = np.concatenate(zs)[idx]
+        return z, {k: np.concatenate([x[k] for x in ms])[idx] for k in ms[0]}
 
     seed = settings.seed * 1_000_003
     if state.get("stage") != "polish":
-        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, deadline, "local", save)
+        local_end = None if clock.ends is None else (
+            (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n, 0.0)))  # fmt: skip
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local", save)
     n_train = len(z)
     idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
     zp, mp, p_run = z, m, 0
@@ -455,19 +514,22 @@ def run(
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
             save(rounds, z, m, (0, zp, mp))
         save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
+        plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n, 0.0))
         zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
-                                   polish_deadline, "plain", save_plain)  # fmt: skip
+                                   plain_end, "plain", save_plain)  # fmt: skip
         idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
+    if generations >= 10**9:  # the CMA-ES stage never started (a spent budget)
+        generations = 0
     e, c = _axes(mp)
     keep = np.flatnonzero(nondominated(e, c))
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     params = from_factors(p0, zp[keep])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
-    stages = {"candidates": n_cand, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
+    stages = {"candidates": n_global, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
               "cma_generations": generations,
               "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
-              "from_cma": int(np.sum((idx[keep] >= n_cand) & (idx[keep] < n_cma))),
+              "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
               "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
     return {"axes": list(AXES), "points": points, "stages": stages}
@@ -505,40 +567,56 @@ def held_out_config(cfg: dict) -> dict:
     return _config.resolve(held)
 
 
-def references(cfg: dict, chunk: int) -> dict[str, dict]:
+def references(cfg: dict, chunk: int, plain: T.Problem | None = None) -> dict[str, dict]:
     """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
     sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
-    batch."""
+    batch; Table 1's through ``plain`` (the config's plain problem, its evaluator compiled
+    once for the study) when the config's kind is the FOSMC."""
     out = {}
     for label, switching, sets in (("Table 1", cfg["controller"]["switching"], (0, 1, 2)), ("SGN", "sign", (0,))):
         c = copy.deepcopy(cfg)
         c["controller"].update(switching=switching, kind="fosmc")
-        plain, _, p0 = _config.tuning_problems(c)
+        if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
+            problem, p0 = plain, T.Tunable(*(getattr(plain.base, k) for k in T.PARAM_NAMES))
+        else:
+            problem, _, p0 = _config.tuning_problems(c)
         ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
                        jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
-        m = evaluate_many(plain, ps, len(sets), log=lambda _: None)
+        m = evaluate_many(problem, ps, chunk if problem is plain else len(sets), log=lambda _: None)
         for i, k in enumerate(sets):
             out[f"{label} set {k + 1}" if label == "Table 1" else label] = point_of(
                 jax.tree.map(lambda x, i=i: x[i], ps), m, i)  # fmt: skip
     return out
 
 
+#: Seconds kept at the end of ``fosmc front``'s budget for writing front.json and drawing front.png.
+WRITE_S = 1.5
+
+
 def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: bool = False,
-          compare: tuple = (), log: Callable[[str], None] = print) -> dict[str, Any]:  # fmt: skip
+          compare: tuple = (), started: float | None = None, log: Callable[[str], None] = print
+          ) -> dict[str, Any]:  # fmt: skip
     """``fosmc front``: the front of a resolved config's controller kind (its own parameters;
     training and plain problems as ``fosmc tune`` builds them), each point also evaluated on
-    :func:`held_out_config`'s batch, the FOSMC's Table 1 sets and SGN beside it. Writes
-    ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when given; returns what
-    ``front.json`` holds."""
-    t0 = time.perf_counter()
+    :func:`held_out_config`'s batch, the FOSMC's Table 1 sets and SGN beside it. The budget
+    counts from ``started`` (a ``time.perf_counter()`` value: the CLI's process start; None:
+    now): the held-out evaluator is compiled first and its cost per point kept out of the
+    search's time. Writes ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when
+    given; returns what ``front.json`` holds."""
+    t0 = time.perf_counter() if started is None else started
     plain, train, p0 = _config.tuning_problems(cfg)
-    refs = references(cfg, settings.chunk)
+    refs = references(cfg, settings.chunk, plain)
+    held_plain = _config.tuning_problems(held_out_config(cfg))[0]
+    one = jax.tree.map(lambda x: jnp.broadcast_to(x, (settings.chunk,) + jnp.shape(x)), p0)
+    for _ in range(2):  # compiled, then timed warm: the held-out evaluation's cost per front point
+        t = time.perf_counter()
+        evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)
+    held_s = (time.perf_counter() - t) / settings.chunk
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
-    left = settings._replace(budget=settings.budget - (time.perf_counter() - t0))
-    result = run(train, plain, p0, left, checkpoint=checkpoint, resume=resume, reserve=(1, 0.15), log=log)
+    result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
+                 deadline=t0 + settings.budget - WRITE_S, reserve_per_point=1.5 * held_s, log=log)  # fmt: skip
     params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
                         for k, x in zip(p0._fields, p0)))  # fmt: skip
-    held_plain = _config.tuning_problems(held_out_config(cfg))[0]
     held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
     for i, pt in enumerate(result["points"]):
         pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), held, i)["metrics"]

@@ -1,5 +1,6 @@
-"""Derivative-free baselines for the front, at a wall-time budget: a log grid, random search
-and CMA-ES (pycma, the reference implementation).
+"""Derivative-free baselines for the front, at a wall-time budget: a log grid, random search,
+CMA-ES (pycma, the reference implementation) and NSGA-II, pymoo's (:func:`nsga2`) and
+optuna's (:func:`optuna_nsga2`; both optional: ``pip install fosmc_jax[peers]``).
 
 They search the same space as :mod:`fosmc_jax._front` (the parameters of p0's controller kind,
 e.g. the FOSMC's delta, gamma and poles, as per-joint log factors of a start p0 in the kind's
@@ -17,9 +18,14 @@ from typing import Any
 import numpy as np
 
 from . import _tuning as T
-from ._front import DIM, bounds, evaluate_many, from_factors, grid_factors
+from ._front import DIM, bounds, evaluate_many, from_factors, grid_factors, nondominated
 
-__all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "random_search"]
+__all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "nsga2", "optuna_nsga2", "random_search"]
+
+#: Added to both objectives of a candidate with a diverged rollout (NSGA-II), as the weighted
+#: objective of :func:`cma_front` adds 1e3; a candidate whose every rollout diverged (NaN
+#: metrics) scores this alone.
+PENALTY = 1e3
 
 
 def _collect(problem, p0, zs: list[np.ndarray], chunk: int, log, what) -> dict[str, Any]:
@@ -93,4 +99,87 @@ def cma_front(problem: T.Problem, p0: T.Params, weights, budget: float, popsize:
 
         cma_es(objective, np.zeros(space.dim), 0.5, budget / len(weights), popsize, seed, lo, hi,
                log=lambda s, w=w: log(f"w = {w:g}: {s}"))  # fmt: skip
+    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+
+
+def objectives(m: dict[str, np.ndarray]) -> np.ndarray:
+    """The two objectives (n, 2) of NSGA-II from the metrics of :func:`evaluate_many`: log10 of
+    mean ``rms_error`` and mean ``chattering_hf``, + :data:`PENALTY` for a candidate with a
+    diverged rollout, :data:`PENALTY` where not finite."""
+    f = np.log10(np.stack([np.mean(m[k], axis=-1) for k in ("rms_error", "chattering_hf")], -1))
+    f = f + np.where(m["diverged"] > 0, PENALTY, 0.0)[:, None]
+    return np.where(np.isfinite(f), f, PENALTY)
+
+
+def _archive(front: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
+    """The non-dominated (mean rms_error, mean chattering_hf) pairs (k, 2) of ``front`` and the
+    candidates of metrics m without a diverged rollout: the progress line's count, kept
+    without sweeping every evaluation again each generation."""
+    e, c = (np.mean(m[k], axis=-1) for k in ("rms_error", "chattering_hf"))
+    pts = np.concatenate([front, np.stack([e, c], -1)[m["diverged"] == 0]])
+    return pts[nondominated(pts[:, 0], pts[:, 1])]
+
+
+def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
+          log=print) -> dict[str, Any]:  # fmt: skip
+    """pymoo's NSGA-II (its defaults: uniform initial population, SBX crossover, polynomial
+    mutation, rank and crowding survival) on :func:`objectives` over the search box of p0's
+    kind, through pymoo's ask/tell interface: each generation of ``popsize`` evaluated in one
+    :func:`evaluate_many` call, generations (one at least) until the wall-time ``budget`` (s)
+    is spent. Returns every candidate evaluated and their metrics."""
+    from pymoo.algorithms.moo.nsga2 import NSGA2  # optional (fosmc_jax[peers]), imported here
+    from pymoo.core.evaluator import Evaluator
+    from pymoo.core.problem import Problem
+    from pymoo.core.termination import NoTermination
+    from pymoo.problems.static import StaticProblem
+
+    space = T.space_of(p0)
+    lo, hi = space.bounds()
+    box = Problem(n_var=space.dim, n_obj=2, xl=lo, xu=hi)
+    algorithm = NSGA2(pop_size=popsize)
+    algorithm.setup(box, termination=NoTermination(), seed=seed, verbose=False)
+    start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
+    while not zs or time.perf_counter() - start < budget:
+        pop = algorithm.ask()
+        z = np.clip(pop.get("X"), lo, hi)
+        m = evaluate_many(problem, from_factors(p0, z), popsize, log=lambda _: None)
+        Evaluator().eval(StaticProblem(box, F=objectives(m)), pop)
+        algorithm.tell(infills=pop)
+        zs.append(z)
+        ms.append(m)
+        front = _archive(front, m)
+        log(f"nsga2 (pymoo): generation {len(zs)}  {sum(map(len, zs))} evaluations  {len(front)} non-dominated  "
+            f"{time.perf_counter() - start:7.1f} s")  # fmt: skip
+    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+
+
+def optuna_nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
+                 log=print) -> dict[str, Any]:  # fmt: skip
+    """optuna's NSGA-II (``NSGAIISampler(population_size=popsize, seed=seed)``, its defaults
+    otherwise) on :func:`objectives` over the search box of p0's kind, through optuna's ask/tell
+    interface: a whole generation of ``popsize`` trials asked (optuna puts a trial in the next
+    generation once the current one has ``popsize`` complete trials, so all of them land in the
+    same one), evaluated in one :func:`evaluate_many` call, then told; generations (one at
+    least) until the wall-time ``budget`` (s) is spent. optuna's logging is silenced. Returns
+    every candidate evaluated and their metrics."""
+    import optuna  # optional (fosmc_jax[peers]), imported here
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    space = T.space_of(p0)
+    lo, hi = space.bounds()
+    dists = {f"z{i:02d}": optuna.distributions.FloatDistribution(a, b) for i, (a, b) in enumerate(zip(lo, hi))}
+    sampler = optuna.samplers.NSGAIISampler(population_size=popsize, seed=seed)
+    study = optuna.create_study(directions=["minimize", "minimize"], sampler=sampler)
+    start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
+    while not zs or time.perf_counter() - start < budget:
+        trials = [study.ask(dists) for _ in range(popsize)]
+        z = np.array([[t.params[k] for k in dists] for t in trials])
+        m = evaluate_many(problem, from_factors(p0, z), popsize, log=lambda _: None)
+        for t, f in zip(trials, objectives(m)):
+            study.tell(t, f.tolist())
+        zs.append(z)
+        ms.append(m)
+        front = _archive(front, m)
+        log(f"nsga2 (optuna): generation {len(zs)}  {sum(map(len, zs))} evaluations  {len(front)} non-dominated  "
+            f"{time.perf_counter() - start:7.1f} s")  # fmt: skip
     return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}

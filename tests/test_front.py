@@ -162,16 +162,24 @@ def test_global_stage_holds_the_start_and_the_whole_grid_of_common_factors():
     assert F.grid_size(300, 0.5) == 5 and F.grid_size(8, 1.0) == 0 and F.grid_size(28, 1.0) == 3
 
 
-def test_stage_sizes_follow_the_budget_and_keep_given_sizes():
-    s = F.Settings(chunk=16, global_share=0.25)
-    n, rounds = F.stage_sizes(s, search_s=200.0, chunk_s=2.5)  # 80 chunks: 20 global, 60 local
-    assert (n, rounds) == (320, 60)
-    n2, rounds2 = F.stage_sizes(s, search_s=400.0, chunk_s=2.5)
-    assert (n2, rounds2) == (640, 120)
-    assert F.stage_sizes(s, 200.0, 2.5, final_chunks=4) == (304, 57)  # a plain re-evaluation is left room
-    assert F.stage_sizes(s._replace(candidates=64), 200.0, 2.5) == (64, 76)
-    assert F.stage_sizes(s._replace(candidates=64, steps=3), 200.0, 2.5) == (64, 3)
-    assert F.stage_sizes(s, 1.0, 2.5) == (16, 1)  # never empty
+def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
+    """Sizes from the budget: the probe's chunk joins the global stage, every stage runs, and
+    the checkpoint holds the stage deadlines in order (offsets from the run's start, which a
+    resumed run keeps)."""
+    import cma  # noqa: F401  (imported and compiled before: the budget then goes to the stages)
+
+    plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
+    F.evaluate_many(train, F.sample_candidates(p0, 8, 0), 8, log=lambda _: None)
+    settings = F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
+    r = F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
+    st = r["stages"]
+    assert st["candidates"] % 8 == 0 and st["candidates"] >= 16  # the global stage and the probe's chunk
+    assert st["cma_generations"] >= 1 and st["local_rounds"] >= 1
+    assert st["evaluations"] >= st["candidates"] + 8 * st["local_rounds"]
+    header, _ = F.T._load(tmp_path / "c.npz")
+    ends = header["ends"]
+    assert 0 < ends["global"] <= ends["cma"] <= ends["local"] <= ends["end"] <= settings.budget
+    assert header["steps"] == st["local_rounds"] and header["cma_generations"] == st["cma_generations"]
 
 
 def test_local_round_perturbs_only_non_dominated_points_within_the_box():
@@ -267,7 +275,7 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
     chunk made them look cheap (here: a budget already spent), and stages say how many ran."""
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
     r = F.run(train, plain, p0, F.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None)
-    assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16
+    assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16 + 8  # the given 16, the probe's 8
     assert r["stages"]["cma_generations"] == 0  # a spent budget leaves no stage a negative size
     assert len(r["points"]) >= 1
 

@@ -4,7 +4,9 @@ For one config, each method gets the same wall time on the same machine, one aft
 (the baselines get what the front actually took, its references and held-out evaluation
 included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._front.study`),
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
-and a log grid over the same search space (:mod:`fosmc_jax._search`). Every method's non-dominated set is compared in (mean
+and a log grid over the same search space (:mod:`fosmc_jax._search`), and with ``--peers`` NSGA-II,
+pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: ``pip install -e .[peers]``; each generation of
+``--popsize`` in one batched call). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
 reference point (beyond the worst of Table 1's sets and SGN), how many of the
 front's points some baseline point dominates, and the epsilon indicator both ways (by how
@@ -12,6 +14,8 @@ much, at most, one set beats the other: :func:`fosmc_jax._front.epsilon`). The f
 or box samples, fresh noise seeds) is reported beside its training metrics.
 
     .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic
+    .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic_peers \
+        --peers  # also NSGA-II (pymoo) and NSGA-II (optuna); --peers nsga2: pymoo's only
 
 Writes tuning/results/frontier_<name>.{json,md,png} (and the front in tuning/results/front_<name>/).
 """
@@ -88,6 +92,9 @@ def main(argv=None) -> None:
     ap.add_argument("--name")
     ap.add_argument("--points", type=int, default=8)
     ap.add_argument("--methods", default="front,cma,random,grid")
+    ap.add_argument("--peers", nargs="?", const="nsga2,optuna_nsga2", default="",
+                    help="also these NSGA-II baselines (default both: nsga2,optuna_nsga2; fosmc_jax[peers])")  # fmt: skip
+    ap.add_argument("--popsize", type=int, default=64, help="NSGA-II's population, one batched call each (default 64)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     ap.add_argument("--check", action="store_true",
@@ -116,7 +123,10 @@ def main(argv=None) -> None:
     if args.check:
         return check_costs(cfg)
     plain, train, p0 = _config.tuning_problems(cfg)
-    methods = args.methods.split(",")
+    methods = args.methods.split(",") + [m for m in args.peers.split(",") if m]
+    unknown = [m for m in args.peers.split(",") if m and m not in ("nsga2", "optuna_nsga2")]
+    if unknown:
+        ap.error(f"--peers: unknown {unknown}; expected nsga2, optuna_nsga2")
     out: dict = {"config": args.config, "budget_s": args.budget, "methods": {}}
     front_dir = OUT / f"front_{args.name}"
 
@@ -142,6 +152,8 @@ def main(argv=None) -> None:
         "cma": ("CMA-ES (pycma)", lambda: S.cma_front(plain, p0, weights, budget, log=log)),
         "random": ("random search", lambda: S.random_search(plain, p0, budget, log=log)),
         "grid": ("log grid", lambda: S.log_grid(plain, p0, grid_size(plain, p0, budget), log=log)),
+        "nsga2": ("NSGA-II (pymoo)", lambda: S.nsga2(plain, p0, budget, args.popsize, log=log)),
+        "optuna_nsga2": ("NSGA-II (optuna)", lambda: S.optuna_nsga2(plain, p0, budget, args.popsize, log=log)),
     }
     for key in methods:
         if key not in runs:
