@@ -263,10 +263,14 @@ def run_reproduce(
     settings = R.Settings(t_final=t_final, dt=dt, integrator=integrator)
     log(f"fosmc reproduce: {plant} plant, {settings.integrator}, dt = {settings.dt} s, "
         f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
-    cases = R.run_cases(plant, settings, log=log)
-    rows = R.metric_rows(cases)
-    log(f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s) ...")
-    short = R.metric_rows(R.run_cases(plant, R.SHORT, log=log))
+    log(f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s)"
+        f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ...")
+    # every group at once, a thread per core: their time is mostly compilation, one core each
+    jobs = [lambda: R.run_cases(plant, settings, log=log), lambda: R.run_cases(plant, R.SHORT, log=log)]
+    if plant == "arm":
+        jobs += [lambda: R.run_realistic_cases(t_final, log=log), lambda: R.tradeoff_sweeps(t_final, log=log)]
+    cases, short_cases, *arm_only = R.parallel(*jobs)
+    rows, short = R.metric_rows(cases), R.metric_rows(short_cases)
     files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts(),
              "metrics_short.csv": R.to_csv(short)}  # fmt: skip
     tables = {"metrics": rows, "metrics_short": short}
@@ -277,9 +281,7 @@ def run_reproduce(
         log("fosmc reproduce: drawing figures ...")
         figures = R.write_figures(cases, out, plant)
     if plant == "arm":
-        log(f"fosmc reproduce: the realistic loop ({R.REALISTIC_PRESET.name}) beside the ideal one ...")
-        realistic = R.run_realistic_cases(t_final, log=log)
-        sweeps = R.tradeoff_sweeps(t_final, log=log)
+        realistic, sweeps = arm_only
         tables["realistic"] = R.metric_rows(realistic, R.METRIC_NAMES)
         files.update({"realistic.md": R.to_markdown(tables["realistic"], R.METRIC_NAMES),
                       "tradeoff.md": R.sweep_markdown(sweeps)})  # fmt: skip

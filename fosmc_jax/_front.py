@@ -278,7 +278,12 @@ def _chunk_evaluator(problem: T.Problem) -> tuple[Callable, int]:
 
 
 def _axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
-    return np.mean(m[AXES[0]], axis=-1), np.mean(m[AXES[1]], axis=-1)
+    """The two axes of evaluated points, NaN (never non-dominated) where some rollout diverged:
+    such a point's metrics are means over the rollouts that survived (unless every point has a
+    diverged rollout)."""
+    e, c = np.mean(m[AXES[0]], axis=-1), np.mean(m[AXES[1]], axis=-1)
+    bad = np.asarray(m.get("diverged", np.zeros(e.shape))) > 0
+    return (e, c) if bad.all() else (np.where(bad, np.nan, e), np.where(bad, np.nan, c))
 
 
 def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,10 +8,12 @@ paper does not show. Figures are drawn by :mod:`fosmc_jax._reproduce_plots`.
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import csv
 import functools
 import io
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +30,7 @@ from ._design import summarize
 from ._linear_plant import LinearPlant, uncertain_plants
 from ._metrics import METRIC_NAMES, UNITS
 from ._reference import Cycloid, desired_state
-from ._simulator import simulate
+from ._simulator import simulate, simulate_batch
 
 SWITCHINGS = ("sign", "set 1", "set 2", "set 3")
 
@@ -47,13 +49,31 @@ class Settings(NamedTuple):
     dt: float = 1e-4
     integrator: str = "rk4"
     vertices: int = 64
-    save_every: int = 10
+    save_every: int = 10  # 0: metrics only, through simulate_batch's fast paths (no figures)
     seed: int = 0
 
 
 #: The shortened run whose table ``tuning/results/reproduction/metrics_short.csv`` the tests recompute, so
-#: the committed report cannot drift from the code.
-SHORT = Settings(t_final=0.1, vertices=8, save_every=100)
+#: the committed report cannot drift from the code (a table only: no trace).
+SHORT = Settings(t_final=0.1, vertices=8, save_every=0)
+
+
+def parallel(*thunks: Callable[[], Any]) -> list[Any]:
+    """Each thunk's result, in order, the thunks run in one thread per core: XLA compiles and
+    runs a program without holding the GIL, so independent case groups, whose time is mostly
+    single-threaded compilation, overlap."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, min(len(thunks), os.cpu_count() or 1))) as pool:
+        return [f.result() for f in [pool.submit(t) for t in thunks]]
+
+
+def _batched(plants, ctrls, reference, X0, dt, **options):
+    """Rollout i of ``plants`` under controller set i // P (``ctrls`` with a leading axis of
+    sets, ``plants`` a batch of P), metrics only, through :func:`simulate_batch`'s fast paths
+    (the native kernels: a program that compiles in about a second instead of the ``vmap`` of
+    :func:`simulate`'s 3-17 s); results with a leading axis sets x P, set-major."""
+    one = lambda c: simulate_batch(plants, c, reference, X0[None], dt, **options)
+    r = jax.vmap(one)(ctrls)
+    return jax.block_until_ready(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), r))
 
 
 def _controller(delta, dtype) -> Controller:
@@ -82,7 +102,8 @@ def run_cases(
     kind: str, settings: Settings | None = None, dtype=jnp.float64, log: Callable[[str], None] = print
 ) -> list[Case]:
     """Simulate every case. Per plant group, SGN is one vmapped call over the group's plants and
-    the three Table 1 sets are one call over (set x plant): four compilations in all."""
+    the three Table 1 sets are one call over (set x plant): four compilations in all, run in
+    :func:`parallel`."""
     reference = Cycloid(*(jnp.asarray(x, dtype) for x in (paper.THETA_START, paper.THETA_END, paper.TAU)))
     X0 = desired_state(reference(jnp.zeros((), dtype)))
     n_steps = round(settings.t_final / settings.dt)
@@ -93,32 +114,39 @@ def run_cases(
     groups = [(kind, plants_under_test(kind, dtype))]
     groups.append(("linear", [(f"box vertices ({vertices.a_rows.shape[0]})", vertices)]))
 
-    cases: list[Case] = []
-    for g, (plant_kind, labelled) in enumerate(groups):
+    def run(g: int, plant_kind: str, labelled: list, switching: str, sets: list[int]) -> list[Case]:
         plants = jax.tree.map(lambda *xs: jnp.concatenate(xs), *(p for _, p in labelled))
         sizes = [jax.tree.leaves(p)[0].shape[0] for _, p in labelled]
         n = sum(sizes)
-        for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
-            start = time.perf_counter()
-            repeats = len(sets)
-            batch = jax.tree.map(lambda x, r=repeats: jnp.concatenate([x] * r), plants)
+        start = time.perf_counter()
+        dt = jnp.asarray(settings.dt, dtype)
+        if not settings.save_every:
+            ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets])
+            result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator,
+                              switching=switching)  # fmt: skip
+        else:
+            batch = jax.tree.map(lambda x, r=len(sets): jnp.concatenate([x] * r), plants)
             ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)])
             # every step of the primary plant's SGN runs is kept, to show the chattering period
             save_every = 1 if switching == "sign" and g == 0 else settings.save_every
             one = functools.partial(simulate, n_steps=n_steps, integrator=settings.integrator,
                                     switching=switching, save_every=save_every)  # fmt: skip
-            result = jax.vmap(one, in_axes=(0, 0, None, None, None))(
-                batch, ctrls, reference, X0, jnp.asarray(settings.dt, dtype)
-            )
-            result = jax.block_until_ready(result)
-            offset = 0
-            for k in sets:
-                for (label, _), size in zip(labelled, sizes):
-                    part = jax.tree.map(lambda x, o=offset, m=size: x[o : o + m], result)
-                    cases.append(Case(plant_kind, label, "sign" if switching == "sign" else f"set {k + 1}", part))
-                    offset += size
-            log(f"{plant_kind:6} {switching:5} {n * len(sets):4d} rollout(s) x {n_steps} steps "
-                f"({settings.integrator}, dt = {settings.dt} s)  {time.perf_counter() - start:6.2f} s")  # fmt: skip
+            result = jax.block_until_ready(jax.vmap(one, in_axes=(0, 0, None, None, None))(
+                batch, ctrls, reference, X0, dt))  # fmt: skip
+        cases, offset = [], 0
+        for k in sets:
+            for (label, _), size in zip(labelled, sizes):
+                part = jax.tree.map(lambda x, o=offset, m=size: x[o : o + m], result)
+                cases.append(Case(plant_kind, label, "sign" if switching == "sign" else f"set {k + 1}", part))
+                offset += size
+        log(f"{plant_kind:6} {switching:5} {n * len(sets):4d} rollout(s) x {n_steps} steps "
+            f"({settings.integrator}, dt = {settings.dt} s)  {time.perf_counter() - start:6.2f} s")  # fmt: skip
+        return cases
+
+    jobs = [functools.partial(run, g, plant_kind, labelled, switching, sets)
+            for g, (plant_kind, labelled) in enumerate(groups)
+            for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2]))]  # fmt: skip
+    cases = [c for part in parallel(*jobs) for c in part]
     order = {s: i for i, s in enumerate(SWITCHINGS)}
     return sorted(cases, key=lambda c: (c.plant != kind, "vertices" in c.payload, c.payload, order[c.switching]))
 
@@ -148,6 +176,11 @@ def _run(cfg: dict, params: list[Controller], switching: str, realistic: bool, s
     cfg["controller"]["switching"] = switching
     problem = _config.build(cfg)
     make = problem.make if realistic else functools.partial(FOSMC, switching=switching)
+    if not save_every:  # metrics only: the arm's kernel
+        keys = None if problem.keys is None else problem.keys[:1]
+        return _batched(problem.plants, jax.vmap(make)(_stack(params)), problem.reference, problem.X0s[0],
+                        problem.dt, keys=keys, n_steps=problem.options["n_steps"],
+                        integrator=problem.options["integrator"])  # fmt: skip
     P = jax.tree.leaves(problem.plants)[0].shape[0]
     ctrls = _stack([make(p) for p in params for _ in range(P)])
     plants = jax.tree.map(lambda x: jnp.concatenate([x] * len(params)), problem.plants)

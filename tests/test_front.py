@@ -201,6 +201,9 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     common = step[1::2].reshape(-1, 3, 3)  # parameter, joint: the same step for the three joints
     np.testing.assert_allclose(common, np.repeat(common[:, :, :1], 3, axis=2), atol=1e-15)
     assert np.ptp(step[0::2].reshape(-1, 3, 3), axis=2).max() > 0  # per joint
+    # a point with a diverged rollout (its metrics: means over the survivors) is no parent
+    children = F.local_factors(z, dict(m, diverged=np.array([0, 1, 0, 0])), 12, points=3, sigma=0.0, seed=1)
+    assert {int(np.flatnonzero((z == c).all(1))[0]) for c in children} == {0, 3}
 
 
 @pytest.mark.slow  # a second front study with its own compilations (~8 s), run three times

@@ -52,9 +52,10 @@ def test_design_facts_are_recomputed():
     assert R.design_facts() == (OUT / "design.md").read_text()
 
 
-@pytest.mark.slow  # needs the short cases (see above)
-def test_figures_are_written(short_cases, tmp_path):
-    names = R.write_figures(short_cases, tmp_path, "arm")
+@pytest.mark.slow  # the short cases with their traces: four compilations of the traced loop
+def test_figures_are_written(tmp_path):
+    cases = R.run_cases("arm", R.SHORT._replace(save_every=100), log=lambda _: None)
+    names = R.write_figures(cases, tmp_path, "arm")
     assert len(names) == 7
     for name in names:
         assert (tmp_path / name).stat().st_size > 10_000, name
