@@ -203,8 +203,8 @@ def cmd_front(args) -> int:
 
     start = process_start()
     result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
-                         steps=args.steps, compare=tuple(args.compare), force=args.force, resume=args.resume,
-                         started=start, log=_log)  # fmt: skip
+                         steps=args.steps, seed=args.seed, compare=tuple(args.compare), force=args.force,
+                         resume=args.resume, started=start, log=_log)  # fmt: skip
     _log(f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
          "start)")
     for i, pt in enumerate(result["points"]):
@@ -292,6 +292,7 @@ def parser() -> argparse.ArgumentParser:
         "--candidates", type=int, help="global stage size: start, log grid, per-joint draws (default: from the budget)"
     )
     f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
+    f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")
     f.add_argument(
         "--compare",
         action="append",

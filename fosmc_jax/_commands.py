@@ -459,6 +459,7 @@ def run_front(
     budget: float = 300.0,
     candidates: int | None = None,
     steps: int | None = None,
+    seed: int = 0,
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
@@ -471,7 +472,7 @@ def run_front(
     gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
     kind's box, ``fosmc_jax._tuning.SPACES``), by ``fosmc_jax._front.study``: ``points``
     parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
-    the local rounds, default from the budget. ``out``: folder for ``front.json``,
+    the local rounds, default from the budget; ``seed``: of the search's draws. ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
@@ -501,5 +502,5 @@ def run_front(
             raise ConfigError(f"--compare: cannot read {path}: {e}") from None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0)
+    settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
     return F.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
