@@ -464,42 +464,41 @@ def run(
         """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
         (None: no deadline) passes, sigma from sigma[0] to sigma[1] over the rounds or, with a
         deadline, over the stage's time; returns (z, m, rounds run). Parents are drawn from the
-        front, kept as the rounds go (the non-dominated set of everything evaluated)."""
-        (s0, s1), begin, shown = sigma, time.perf_counter(), -np.inf
-        front = np.flatnonzero(nondominated(*_axes(m)))
+        front, kept as the rounds go (the non-dominated set of the old front and the round's
+        children: a dominated point stays dominated). With a deadline, checkpoints are written
+        at most every 10 s (a round can cost less than writing the archive)."""
+        (s0, s1), begin, shown, saved = sigma, time.perf_counter(), -np.inf, time.perf_counter()
+        keep = nondominated(*_axes(m))
+        fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
         zs, ms = [z], [m]
+        join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in a}
         for r in range(r0, n):
-            now, end = time.perf_counter(), None if deadline is None else deadline(len(front))
+            now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
             if end is not None and now > end:
                 log(f"front: {what} rounds: {r} run, the stage's time is spent")
                 n = r
                 break
             progress = r / max(1, n - 1) if end is None else (now - begin) / max(end - begin, 1e-9)
             sig = s0 * (s1 / s0) ** min(progress, 1.0)
-            fz, fm = zs_front(zs, ms, front)
             zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, space)
             mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
             zs.append(zr)
             ms.append(mr)
-            # the new front: of the old front and the round's children (a dominated point stays dominated)
-            both = np.concatenate([front, sum(len(x) for x in zs[:-1]) + np.arange(len(zr))])
-            fz, fm = zs_front(zs, ms, both)
-            front = both[nondominated(*_axes(fm))]
+            fz, fm = np.concatenate([fz, zr]), join(fm, mr)
+            keep = nondominated(*_axes(fm))
+            fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
             if end is None or time.perf_counter() - shown > 1.0:
                 shown = time.perf_counter()
                 total = f"/{n}" if end is None else f" ({end - shown:.1f} s left)"
-                log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(front)} non-dominated  "
+                log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(fz)} non-dominated  "
                     f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
-            if settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n):
+            due = settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n)
+            if due and (end is None or time.perf_counter() - saved > 10.0):
                 z, m = np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}
                 zs, ms = [z], [m]
                 save_at(r + 1, z, m)
+                saved = time.perf_counter()
         return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
-
-    def zs_front(zs, ms, idx):
-        """The points ``idx`` of the concatenation of the chunks (zs, ms)."""
-        z = np.concatenate(zs)[idx]
-        return z, {k: np.concatenate([x[k] for x in ms])[idx] for k in ms[0]}
 
     seed = settings.seed * 1_000_003
     if state.get("stage") != "polish":

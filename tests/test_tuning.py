@@ -144,3 +144,72 @@ def test_resume_equals_uninterrupted(tmp_path):
     for a, b in zip(full, resumed):
         np.testing.assert_array_equal(a, b)
     assert hist["loss"] == hist_full["loss"]
+
+
+def test_truncated_gradient_keeps_values_and_is_exact_beyond_the_horizon():
+    """``truncate_every``: the rollout's values are unchanged; a window at least as long as the
+    horizon gives the whole horizon's gradient (to rounding); a shorter one another, finite one
+    (on this smooth loop the two differ, which is why the ideal loop is not truncated)."""
+    prob = problem(n_steps=100)
+    u = T.to_internal(T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
+    obj = T.Objective(error_ref=0.01)
+
+    def grad(window):
+        p = prob._replace(options=dict(prob.options, truncate_every=window))
+        return jax.jit(jax.value_and_grad(T.make_loss(p, obj, None), has_aux=True))(u)
+
+    (v0, _), g0 = grad(0)
+    (v1, _), g1 = grad(100)
+    (v2, _), g2 = grad(10)
+    assert float(v0) == float(v1) == float(v2)
+    flat = lambda g: np.concatenate([np.ravel(x) for x in g])
+    np.testing.assert_allclose(flat(g1), flat(g0), rtol=1e-12, atol=1e-14)
+    assert np.isfinite(flat(g2)).all() and not np.allclose(flat(g2), flat(g0), rtol=1e-3)
+
+
+def test_norm_does_not_overflow():
+    big = T.Tunable(jnp.array([3e200, 4e200]), jnp.zeros(1), jnp.zeros(1))
+    assert np.isclose(T._norm(big), 5e200, rtol=1e-12)
+    assert T._norm(big._replace(gamma=jnp.array([jnp.inf]))) == np.inf
+    assert T._norm(T.Tunable(jnp.zeros(2), jnp.zeros(1), jnp.zeros(1))) == 0.0
+
+
+CONFIGS = sorted((__import__("pathlib").Path(__file__).parent.parent / "tuning" / "configs").glob("*.toml"))
+
+
+@pytest.mark.slow  # a reverse-mode compilation per committed config
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.stem for p in CONFIGS])
+def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
+    """At ``fosmc tune``'s start on every committed config (the best of 16 global candidates, a
+    shortened 1 s horizon), with the config's own [tune] (the automatic gradient window): the
+    gradient is finite and below 1e5 in norm (no exponential growth: the whole horizon's
+    reached 1e226 on the realistic preset; the sign law's ideal loop gives 5.5e3 in gamma), and
+    five Adam steps reach a lower training loss."""
+    from fosmc_jax import _config
+    from fosmc_jax._front import global_stage
+
+    cfg = _config.load(path)
+    cfg["sim"]["t_final"] = min(cfg["sim"]["t_final"], 1.0)
+    cfg["tune"]["train_t_final"] = min(cfg["tune"]["train_t_final"], 1.0)
+    _, train, p0 = _config.tuning_problems(cfg)
+    obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
+    start, _ = global_stage(train, obj, p0, 16, free=tuple(cfg["tune"]["params"]), log=lambda _: None)
+    u0 = T.to_internal(start, train.base)
+    loss = T.make_loss(train, obj, None)
+    (value, _), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(u0)
+    assert np.isfinite(float(value)) and np.isfinite(T._norm(g)) and T._norm(g) < 1e5
+    settings = T.Settings(steps=5, learning_rate=cfg["tune"]["learning_rate"], mode="reverse",
+                          free=tuple(cfg["tune"]["params"]), checkpoint_every=0)  # fmt: skip
+    _, hist = T.run(loss, u0, settings, log=lambda _: None)
+    assert not any(hist["skipped"])
+    if path.stem in NO_DESCENT:
+        pytest.xfail(NO_DESCENT[path.stem])
+    assert min(hist["loss"][1:]) < hist["loss"][0]
+
+
+#: Committed configs whose first five Adam steps from tune's start were seen not to lower the loss.
+NO_DESCENT = {
+    "arm_sign_dt": "the sign law: only gamma acts, and the loss is rough in it (gradient 5.5e3)",
+    "realistic_arm_exact_rates": "quantized measured rates, 20-sample windows, 1 s: -2.54 at best against "
+                                 "-2.57 at the start (known, the issue's note)",
+}
