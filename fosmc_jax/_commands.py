@@ -418,7 +418,8 @@ def run_tune(
         u0 = T.to_internal(start_params, plain.base, floor)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    settings = T.Settings(tcfg["steps"], tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], tcfg["mode"],
+    lr = T.learning_rate(tcfg["learning_rate"], problem)
+    settings = T.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
                           tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
     start = time.perf_counter()
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume, log=log)

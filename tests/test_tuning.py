@@ -198,7 +198,7 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
     loss = T.make_loss(train, obj, None)
     (value, _), g = jax.jit(jax.value_and_grad(loss, has_aux=True))(u0)
     assert np.isfinite(float(value)) and np.isfinite(T._norm(g)) and T._norm(g) < 1e5
-    settings = T.Settings(steps=5, learning_rate=cfg["tune"]["learning_rate"], mode="reverse",
+    settings = T.Settings(steps=5, learning_rate=T.learning_rate(cfg["tune"]["learning_rate"], train), mode="reverse",
                           free=tuple(cfg["tune"]["params"]), checkpoint_every=0)  # fmt: skip
     _, hist = T.run(loss, u0, settings, log=lambda _: None)
     assert not any(hist["skipped"])
