@@ -599,8 +599,9 @@ def build(cfg: dict) -> Problem:
     return Problem(plants, make(params), reference, X0s, dt, options, keys_of(cfg), params, make)
 
 
-#: The automatic ``[tune] gradient_window`` of a digital loop, in controller samples.
-GRADIENT_SAMPLES = 20
+#: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:
+#: growth starts between 20 and 50 ms at 1 and 2 kHz alike (tuning/results/truncation.md).
+GRADIENT_WINDOW = 0.02
 
 
 def tuning_problems(cfg: dict):
@@ -637,14 +638,15 @@ def tuning_problems(cfg: dict):
     # the gradient follows the loop over windows of tune.gradient_window (truncate_every): over the
     # whole horizon it grows exponentially on a digital loop that quantizes or differences its
     # measurements (at tune's start, the near-sign law of the global stage: to 9e226 on
-    # realistic_arm, every step skipped, and 4e34 over 1 s with measured rates) while 20 samples'
-    # windows give steps that lower the plain loss on realistic_arm; elsewhere the whole horizon's
-    # gradient is finite and tunes best (tuning/results/truncation.md)
+    # realistic_arm, every step skipped, 4e34 over 1 s with measured rates) and is uphill under the
+    # sign law, while 0.02 s windows give finite gradients that lower the plain loss; in the ideal
+    # loop with a smooth law the whole horizon's is finite and tunes best (tuning/results/truncation.md)
     window_s = cfg["tune"]["gradient_window"]
     sensors, period = cfg["sensors"], cfg["controller"]["sample_period"]
-    rough = any(n > 0 for n in sensors["encoder_counts"]) or sensors["derivatives"] == "difference"
-    if not window_s and period > cfg["sim"]["dt"] and rough:
-        window_s = GRADIENT_SAMPLES * period
+    rough = period > cfg["sim"]["dt"] and (any(n > 0 for n in sensors["encoder_counts"])
+                                           or sensors["derivatives"] == "difference")  # fmt: skip
+    if not window_s and (rough or cfg["controller"]["switching"] == "sign"):
+        window_s = GRADIENT_WINDOW
     window = int(round(window_s / train_cfg["sim"]["dt"]))
     remat = {"checkpoint_every": cfg["tune"]["remat_steps"], "truncate_every": window}
     # no surrogate: the same simulation (the same make and keys tell fosmc_jax._front so)

@@ -49,7 +49,7 @@ import optax
 from ._controller import Controller
 from ._design import gain_from_poles, gamma_bounds
 from ._io import atomic_write
-from ._sharding import simulate_split
+from ._sharding import replicated, simulate_split
 from ._simulator import simulate_batch
 
 #: The FOSMC's tunable parameters (a kind's are ``SPACES[kind].names``).
@@ -389,6 +389,7 @@ def run(
         history, start_step, mode = header["history"], header["step"], header["mode"]
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
+    u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
     candidates = ("reverse", "forward") if mode == "auto" else (mode,)
     compiled = {m: _value_and_grad(loss, m) for m in candidates}
     if mode == "auto":

@@ -143,6 +143,7 @@ def main(argv=None) -> None:
                                      "evaluations": front["stages"]["evaluations"],
                                      "load": [load, os.getloadavg()[0]]}  # fmt: skip
     front_m = {k: np.array([p["metrics"][k] for p in front["points"]]) for k in ("rms_error", "chattering_hf")}
+    front_m["diverged"] = np.array([p["diverged"] for p in front["points"]])
     weights = F.pick_starts(front_m, 4)[1].tolist()  # the front's slopes at four points along it
     budget = out["methods"]["fosmc front"]["wall_s"]  # the baselines get the front's actual wall time
     out["baseline_budget_s"], out["cma_weights"] = budget, weights

@@ -17,6 +17,9 @@ other, and nowhere by more); points with a diverged rollout never count.
     # CLI's own files in <config>/front/), every candidate to --save-all's .npz
     .venv/bin/python tuning/reference_front.py build --config tuning/configs/realistic_arm.toml \\
         --method nsga2 --budget 900 --save-all /tmp/ref_realistic_arm_nsga2_all.npz
+    .venv/bin/python tuning/reference_front.py build --config tuning/configs/realistic_arm.toml --method front --budget 900
+    .venv/bin/python tuning/reference_front.py build --config tuning/configs/realistic_arm.toml --method cma \\
+        --budget 900 --weights-from tuning/results/reference/realistic_arm/front/front.json
     .venv/bin/python tuning/reference_front.py build --config tuning/configs/unseen_arm.toml --method front --budget 600
     .venv/bin/python tuning/reference_front.py build --config tuning/configs/unseen_arm.toml --method cma --budget 600 \\
         --weights-from tuning/results/reference/unseen_arm/front/front.json
@@ -27,7 +30,7 @@ other, and nowhere by more); points with a diverged rollout never count.
         tuning/results/front_realistic_15min_polish/front.json tuning/results/front_realistic_15min_cma/front.json \\
         tuning/results/front_realistic_15min_plaincma/front.json tuning/results/frontier_realistic_15min_polish.json \\
         tuning/results/frontier_realistic_15min_cma.json tuning/results/frontier_realistic_15min_plaincma.json \\
-        tuning/results/frontier_realistic_15min.json tuning/results/reference/realistic_arm/nsga2.json
+        tuning/results/frontier_realistic_15min.json tuning/results/reference/realistic_arm/{nsga2,front,cma}.json
     .venv/bin/python tuning/reference_front.py merge --config tuning/configs/unseen_arm.toml \\
         tuning/results/reference/unseen_arm/{front,cma,nsga2}.json
 
@@ -240,7 +243,7 @@ def build(args) -> dict:
         z, m = None, {k: np.array([p["metrics"][k] for p in pts]) for k in METRIC_NAMES}
         params, m["diverged"] = params_of(pts, p0), np.array([p["diverged"] for p in pts])
         extra = {"evaluations": front["stages"]["evaluations"] + front["stages"].get("plain_evaluations", 0),
-                 "stages": front["stages"], "cli": "fosmc " + " ".join(cli[1:]),
+                 "stages": front["stages"], "cli": "fosmc " + " ".join(cli[1:]).replace(f"{ROOT}/", ""),
                  "note": "evaluations: training + plain; points: its front.json's"}  # fmt: skip
         (folder / "front" / "checkpoint.npz").unlink(missing_ok=True)
     else:
@@ -249,7 +252,8 @@ def build(args) -> dict:
                 weights = [float(w) for w in args.weights.split(",")]
             else:  # tuning/frontier.py's: the slopes of the front at four points along it
                 pts = json.loads(pathlib.Path(args.weights_from).read_text())["points"]
-                weights = F.pick_starts({k: np.array([p["metrics"][k] for p in pts]) for k in F.AXES}, 4)[1].tolist()
+                front_m = {k: np.array([p["metrics"][k] for p in pts]) for k in F.AXES}
+                weights = F.pick_starts(dict(front_m, diverged=np.array([p["diverged"] for p in pts])), 4)[1].tolist()
             runs, seed = [], args.seed
             while not runs or time.perf_counter() - start < args.budget - 1.0:
                 left = args.budget - (time.perf_counter() - start)
