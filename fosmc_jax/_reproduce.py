@@ -69,11 +69,10 @@ def parallel(*thunks: Callable[[], Any]) -> list[Any]:
 def _batched(plants, ctrls, reference, X0, dt, **options):
     """Rollout i of ``plants`` under controller set i // P (``ctrls`` with a leading axis of
     sets, ``plants`` a batch of P), metrics only, through :func:`simulate_batch`'s fast paths
-    (the native kernels: a program that compiles in about a second instead of the ``vmap`` of
-    :func:`simulate`'s 3-17 s); results with a leading axis sets x P, set-major."""
+    (the native kernels); results (NumPy) with a leading axis sets x P, set-major."""
     one = lambda c: simulate_batch(plants, c, reference, X0[None], dt, **options)
     r = jax.vmap(one)(ctrls)
-    return jax.block_until_ready(jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), r))
+    return jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + x.shape[2:]), r)
 
 
 def _controller(delta, dtype) -> Controller:
@@ -82,7 +81,9 @@ def _controller(delta, dtype) -> Controller:
 
 
 def _stack(trees):
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *trees)
+    """The trees stacked on a new leading axis, in NumPy (an eager ``jnp.stack`` compiles a
+    program per shape: 27 of them in a cold ``fosmc reproduce``)."""
+    return jax.tree.map(lambda *xs: jnp.asarray(np.stack([np.asarray(x) for x in xs])), *trees)
 
 
 def plants_under_test(kind: str, dtype) -> list[tuple[str, Any]]:
@@ -115,7 +116,7 @@ def run_cases(
     groups.append(("linear", [(f"box vertices ({vertices.a_rows.shape[0]})", vertices)]))
 
     def run(g: int, plant_kind: str, labelled: list, switching: str, sets: list[int]) -> list[Case]:
-        plants = jax.tree.map(lambda *xs: jnp.concatenate(xs), *(p for _, p in labelled))
+        plants = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *(p for _, p in labelled))
         sizes = [jax.tree.leaves(p)[0].shape[0] for _, p in labelled]
         n = sum(sizes)
         start = time.perf_counter()
@@ -125,7 +126,7 @@ def run_cases(
             result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator,
                               switching=switching)  # fmt: skip
         else:
-            batch = jax.tree.map(lambda x, r=len(sets): jnp.concatenate([x] * r), plants)
+            batch = jax.tree.map(lambda x, r=len(sets): np.concatenate([x] * r), plants)
             ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)])
             # every step of the primary plant's SGN runs is kept, to show the chattering period
             save_every = 1 if switching == "sign" and g == 0 else settings.save_every
@@ -136,7 +137,7 @@ def run_cases(
         cases, offset = [], 0
         for k in sets:
             for (label, _), size in zip(labelled, sizes):
-                part = jax.tree.map(lambda x, o=offset, m=size: x[o : o + m], result)
+                part = jax.tree.map(lambda x, o=offset, m=size: np.asarray(x)[o : o + m], result)
                 cases.append(Case(plant_kind, label, "sign" if switching == "sign" else f"set {k + 1}", part))
                 offset += size
         log(f"{plant_kind:6} {switching:5} {n * len(sets):4d} rollout(s) x {n_steps} steps "
@@ -183,7 +184,7 @@ def _run(cfg: dict, params: list[Controller], switching: str, realistic: bool, s
                         integrator=problem.options["integrator"])  # fmt: skip
     P = jax.tree.leaves(problem.plants)[0].shape[0]
     ctrls = _stack([make(p) for p in params for _ in range(P)])
-    plants = jax.tree.map(lambda x: jnp.concatenate([x] * len(params)), problem.plants)
+    plants = jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * len(params)), problem.plants)
     key = None if problem.keys is None else problem.keys[0]
     one = functools.partial(simulate, n_steps=problem.options["n_steps"], integrator=problem.options["integrator"],
                             save_every=save_every, key=key)  # fmt: skip
@@ -206,7 +207,7 @@ def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None]
         i = 0
         for k in sets:
             for load in payloads:
-                part = jax.tree.map(lambda x, i=i: x[i : i + 1], result)
+                part = jax.tree.map(lambda x, i=i: np.asarray(x)[i : i + 1], result)
                 cases.append(Case("arm, realistic loop", load, "sign" if switching == "sign" else f"set {k + 1}", part))
                 i += 1
         log(f"arm realistic {switching:5} {i:2d} rollout(s) x {cfg['sim']['t_final']} s  "

@@ -11,7 +11,7 @@ hypervolume. Stochastic runs are summarised as the median over the seeds, with t
     .venv/bin/python tuning/budget_guide.py --config tuning/configs/realistic_arm.toml \\
         --reference tuning/results/reference/realistic_arm/reference.json --budgets 60 300 --seeds 0 1 2
 
-Writes tuning/results/budget_guide_<config>.{json,md} (the runs' fronts in /tmp unless --keep).
+Writes tuning/results/budget_guide_<config>_<budgets>.{json,md} (the runs' fronts in /tmp unless --keep).
 The target of the time-to-front issue: wall <= 1.05 budget + 2 s, epsilon <= 0.05 at 60 s and
 <= 0.02 at 300 s.
 """
@@ -105,7 +105,7 @@ def main(argv=None) -> None:
                 f"epsilon {r['eps1']:.3f} (0.1-10 V), {r['eps2']:.3f} (0.5-10 V)")  # fmt: skip
             runs.append(r)
     command = "python tuning/budget_guide.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    out = HERE / "results" / f"budget_guide_{name}"
+    out = HERE / "results" / f"budget_guide_{name}_{'_'.join(f'{b:g}' for b in args.budgets)}"
     out.with_suffix(".json").write_text(json.dumps({"command": command, "reference": args.reference, "runs": runs},
                                                    indent=1, default=float))  # fmt: skip
     out.with_suffix(".md").write_text(markdown(name, runs, command))
