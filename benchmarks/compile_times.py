@@ -55,7 +55,13 @@ def markdown(name: str, command: str, runs: dict) -> str:
     for label, r in runs.items():
         lines.append(f"| {label} | {r['wall_s']:.1f} | {r['programs']} | {r['compile_s']:.1f} | "
                      f"{r['load_before'][0]:.1f} -> {r['load_after'][0]:.1f} |")  # fmt: skip
-    lines += ["", "Largest programs, cold (count, seconds):", "", "| program | count | compile (s) |", "|---|---:|---:|"]
+    lines += [
+        "",
+        "Largest programs, cold (count, seconds):",
+        "",
+        "| program | count | compile (s) |",
+        "|---|---:|---:|",
+    ]
     for prog, (n, s) in list(runs["cold"]["per_program"].items())[:12]:
         lines.append(f"| `{prog}` | {n} | {s:.2f} |")
     return "\n".join(lines) + "\n"
@@ -72,8 +78,11 @@ def main(argv=None) -> None:
     for label in ("cold", "warm"):
         print(f"[{time.strftime('%H:%M:%S')}] {label}: fosmc {' '.join(command)}", flush=True)
         runs[label] = run(command, cache)
-        print(f"  wall {runs[label]['wall_s']:.1f} s, {runs[label]['programs']} programs, "
-              f"{runs[label]['compile_s']:.1f} s compiling", flush=True)
+        print(
+            f"  wall {runs[label]['wall_s']:.1f} s, {runs[label]['programs']} programs, "
+            f"{runs[label]['compile_s']:.1f} s compiling",
+            flush=True,
+        )
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / f"compile_{args.name}.json").write_text(json.dumps({"command": command, "runs": runs}, indent=1))
     (OUT / f"compile_{args.name}.md").write_text(markdown(args.name, " ".join(command), runs))

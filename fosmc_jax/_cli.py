@@ -12,8 +12,6 @@ import sys
 import time
 import warnings
 
-_IMPORTED = time.perf_counter()
-
 import jax
 import numpy as np
 
@@ -22,6 +20,8 @@ from . import _config, _paper
 from ._design import CONVENTIONS
 from ._io import atomic_write, jsonable
 from ._metrics import METRIC_NAMES, UNITS
+
+_IMPORTED = time.perf_counter()  # process_start's fallback
 
 
 def process_start() -> float:
@@ -205,8 +205,10 @@ def cmd_front(args) -> int:
     result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
                          steps=args.steps, seed=args.seed, compare=tuple(args.compare), force=args.force,
                          resume=args.resume, started=start, log=_log)  # fmt: skip
-    _log(f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
-         "start)")
+    _log(
+        f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
+        "start)"
+    )
     for i, pt in enumerate(result["points"]):
         e, c = (float(np.mean(pt["metrics"][k])) for k in AXES)
         print(f"point {i:3d}  {AXES[0]} {e:.4e} rad  {AXES[1]} {c:.4e} V  diverged {pt['diverged']}")

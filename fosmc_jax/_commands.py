@@ -263,8 +263,10 @@ def run_reproduce(
     settings = R.Settings(t_final=t_final, dt=dt, integrator=integrator)
     log(f"fosmc reproduce: {plant} plant, {settings.integrator}, dt = {settings.dt} s, "
         f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
-    log(f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s)"
-        f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ...")
+    log(
+        f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s)"
+        f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
+    )
     # every group at once, a thread per core: their time is mostly compilation, one core each
     jobs = [lambda: R.run_cases(plant, settings, log=log), lambda: R.run_cases(plant, R.SHORT, log=log)]
     if plant == "arm":

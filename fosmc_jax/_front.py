@@ -420,10 +420,10 @@ def run(
             f"{search:.0f} s of search: {n_cand} global candidates, then CMA-ES, local rounds"
             f"{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
 
-    def finish_by(stage: str, n_points: int, per_point: float) -> float | None:
+    def finish_by(stage: str, n_points: int) -> float | None:
         """The deadline of the last stage: the run's end less the final evaluations of its front."""
         end = clock.end(stage)
-        return None if end is None else end - n_points * (reserve_per_point + per_point)
+        return None if end is None else end - n_points * reserve_per_point
 
     if "round" in state:
         keys = state["keys"]
@@ -503,7 +503,7 @@ def run(
     seed = settings.seed * 1_000_003
     if state.get("stage") != "polish":
         local_end = None if clock.ends is None else (
-            (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n, 0.0)))  # fmt: skip
+            (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n)))  # fmt: skip
         z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local", save)
     n_train = len(z)
     idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
@@ -518,7 +518,7 @@ def run(
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
             save(rounds, z, m, (0, zp, mp))
         save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
-        plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n, 0.0))
+        plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n))
         zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
                                    plain_end, "plain", save_plain)  # fmt: skip
         idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])

@@ -126,7 +126,7 @@ def run_cases(
             result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator,
                               switching=switching)  # fmt: skip
         else:
-            batch = jax.tree.map(lambda x, r=len(sets): np.concatenate([x] * r), plants)
+            batch = jax.tree.map(lambda x: np.concatenate([x] * len(sets)), plants)
             ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)])
             # every step of the primary plant's SGN runs is kept, to show the chattering period
             save_every = 1 if switching == "sign" and g == 0 else settings.save_every

@@ -52,6 +52,7 @@ import subprocess
 import sys
 import tempfile
 import time
+
 import tomllib
 
 from fosmc_jax._sharding import use_all_cores
@@ -414,7 +415,12 @@ def tune_vs_cma(name: str, cfg: dict, s: dict, args) -> dict:
                               tuple(tcfg["params"]), 0)  # fmt: skip
         stamps = []
         t = time.perf_counter()
-        u, hist = T.run(T.make_loss(train, s["obj"], None), u0, settings, log=lambda m: stamps.append(time.perf_counter()) if m.startswith("step ") else None)
+        u, hist = T.run(
+            T.make_loss(train, s["obj"], None),
+            u0,
+            settings,
+            log=lambda m: stamps.append(time.perf_counter()) if m.startswith("step ") else None,
+        )
         wall = time.perf_counter() - t
         durations = [b - a for a, b in zip([t] + stamps, stamps + [t + wall])]  # per step, then the final evaluation
         per_step = float(np.median(durations))
@@ -490,8 +496,9 @@ VARIANTS = {
 }  # fmt: skip
 
 
-def diagnosis(start: T.Params | None, variants: list[str], as_is: dict | None = None,
-              windows: tuple[float, ...] = (0.0,)) -> dict:
+def diagnosis(
+    start: T.Params | None, variants: list[str], as_is: dict | None = None, windows: tuple[float, ...] = (0.0,)
+) -> dict:
     """The gradient at realistic_arm's tune start with one ingredient changed: at the whole
     horizon (W = 0; the entry's own fields) and at the other ``windows`` (its "windows")."""
     user0 = tomllib.loads((CONFIGS / f"{DIAG_CONFIG}.toml").read_text())
@@ -588,10 +595,12 @@ def report(data: dict) -> str:
         A(f"| {n} | " + " | ".join(fmt(c["windows"].get(w, {}).get("points", {}).get("start", {}).get("norm"), ".2g")
                                    for w in ws) + " |\n")  # fmt: skip
     A("\n## Growth rate of the gradient with the window\n")
-    A("Least-squares slope of log10 max|g| against the window length (W = whole counted as the training "
-      "horizon), over every window and over those of 0.02 s and longer; decades per second. Crude (one line "
-      "through windows of 5 ms to 4 s; the growth is not a straight line): the slopes between consecutive "
-      "windows in the Findings are the better measure.\n\n")
+    A(
+        "Least-squares slope of log10 max|g| against the window length (W = whole counted as the training "
+        "horizon), over every window and over those of 0.02 s and longer; decades per second. Crude (one line "
+        "through windows of 5 ms to 4 s; the growth is not a straight line): the slopes between consecutive "
+        "windows in the Findings are the better measure.\n\n"
+    )
     A("| config | start: all | start: >= 0.02 s | p0: all | p0: >= 0.02 s |\n|---|---|---|---|---|\n")
     for n, c in cfgs.items():
         gs, gp = c["points"]["start"]["growth"], c["points"]["p0"]["growth"]
@@ -621,8 +630,10 @@ def report(data: dict) -> str:
     for pname, title in (("start", "tune's start"), ("p0", "p0")):
         for sk in [wkey(x) for x in STEP_SIZES[1:]]:
             A(f"\n### Change of the PLAIN loss after a step of {sk} in u along -g/|g| at {title}\n\n")
-            A("Negative: the step improves the plain loss. Columns after the windows: the same step along 3 "
-              f"random unit directions (the control: min / mean / max) and along -FD(h = {wkey(FD_MAIN)}).\n\n")
+            A(
+                "Negative: the step improves the plain loss. Columns after the windows: the same step along 3 "
+                f"random unit directions (the control: min / mean / max) and along -FD(h = {wkey(FD_MAIN)}).\n\n"
+            )
             A("| config | " + " | ".join("whole" if w == "0" else f"{w} s" for w in ws)
               + " | random min / mean / max | -FD |\n" + "|---" * (len(ws) + 3) + "|\n")  # fmt: skip
             for n, c in cfgs.items():
@@ -653,8 +664,13 @@ def report(data: dict) -> str:
         A(f"| {n} | {j(c['evaluator_compile_s']['train'])} | {j(c['evaluator_run_s']['train'])} | "
           f"{j(c['evaluator_compile_s']['plain'])} | {j(c['evaluator_run_s']['plain'])} | "
           f"{fmt(g / r16 if g and r16 else None, '.0f')} |\n")  # fmt: skip
-    diffs = [abs(pr["train_loss_vs_batched"]) for c in cfgs.values() for r in c["windows"].values()
-             for pr in r.get("points", {}).values() if pr.get("train_loss_vs_batched") is not None]
+    diffs = [
+        abs(pr["train_loss_vs_batched"])
+        for c in cfgs.values()
+        for r in c["windows"].values()
+        for pr in r.get("points", {}).values()
+        if pr.get("train_loss_vs_batched") is not None
+    ]
     if diffs:
         A(f"\nCheck: the AD loss value (tune's loss, the vmap path) and the batched evaluator's (the fast path) "
           f"at the same point differ by at most {max(diffs):.1e} over every config, window and point.\n")  # fmt: skip
@@ -719,8 +735,12 @@ def main() -> int:
     ap.add_argument("--out", default=str(OUT), help="output stem (writes STEM.json and STEM.md)")
     ap.add_argument("--no-diagnosis", action="store_true")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
-    ap.add_argument("--diagnosis-only", action="store_true", help="(re)run the diagnosis at the whole horizon and "
-                    "at --diagnosis-windows into the existing JSON, then rewrite the Markdown")
+    ap.add_argument(
+        "--diagnosis-only",
+        action="store_true",
+        help="(re)run the diagnosis at the whole horizon and "
+        "at --diagnosis-windows into the existing JSON, then rewrite the Markdown",
+    )
     ap.add_argument("--diagnosis-windows", default="0.1,0.5", help="windows (s) of the diagnosis besides the "
                     "whole horizon (default 0.1,0.5)")  # fmt: skip
     args = ap.parse_args()
@@ -743,8 +763,14 @@ def main() -> int:
         c = data["configs"][DIAG_CONFIG]
         start = T.Tunable(*(jnp.asarray(v) for v in c["params"]["start"].values()))
         dws = tuple(float(x) for x in args.diagnosis_windows.split(",") if x.strip())
-        as_is = dict(c["windows"]["0"]["points"]["start"], windows={
-            wkey(w): c["windows"][wkey(w)]["points"]["start"] for w in dws if "points" in c["windows"].get(wkey(w), {})})
+        as_is = dict(
+            c["windows"]["0"]["points"]["start"],
+            windows={
+                wkey(w): c["windows"][wkey(w)]["points"]["start"]
+                for w in dws
+                if "points" in c["windows"].get(wkey(w), {})
+            },
+        )
         use_compilation_cache(pathlib.Path(tempfile.mkdtemp(prefix="truncation-xla-")))
         old = data.get("diagnosis") or {}
         data["diagnosis"] = diagnosis(start, list(VARIANTS), as_is, (0.0,) + dws)
@@ -752,8 +778,15 @@ def main() -> int:
             r["windows"] = {**old.get(k, {}).get("windows", {}), **r.get("windows", {})}
         runs = data.get("diagnosis_run") or []
         runs = [runs] if isinstance(runs, dict) else runs
-        data["diagnosis_run"] = runs + [{"windows": list(dws), "wall_s": time.perf_counter() - t0, "uptime_start": up,
-                                         "uptime_end": uptime(), "command": " ".join(["tuning/truncation.py"] + sys.argv[1:])}]
+        data["diagnosis_run"] = runs + [
+            {
+                "windows": list(dws),
+                "wall_s": time.perf_counter() - t0,
+                "uptime_start": up,
+                "uptime_end": uptime(),
+                "command": " ".join(["tuning/truncation.py"] + sys.argv[1:]),
+            }
+        ]
         write_text(json_path, json.dumps(jsonable(data), indent=1))
         write_text(md_path, report(data))
         log(f"wrote {json_path} and {md_path}")
@@ -1000,31 +1033,46 @@ def _recommendation(cfgs, tv, pt, digital, sign, smooth) -> str:
         "that quantizes or differences its measurements and for the sign law; the whole training horizon for the "
         "ideal loop with a smooth switching law (ratio, sat, tanh). If one value must serve every config, 0.02 s: "
         "it is the only window with which 30 tune steps improve the plain loss on all four configs of part c ("
-        + ", ".join(f"{n} {_f(imp(n, '0.02'), '+.2f')}" for n in tv) + "; whole: "
-        + ", ".join(f"{_f(imp(n, '0'), '+.2f')}" for n in tv) + "; 0.1 s: "
-        + ", ".join(f"{_f(imp(n, '0.1'), '+.2f')}" for n in tv) + "; 0.005 s: "
-        + ", ".join(f"{_f(imp(n, '0.005'), '+.2f')}" for n in tv) + "), and its gradient is finite and at most "
-        + _f(mx) + " in size on every config at both points. Longer windows reach 1e2-1e60 on the digital loops: "
+        + ", ".join(f"{n} {_f(imp(n, '0.02'), '+.2f')}" for n in tv)
+        + "; whole: "
+        + ", ".join(f"{_f(imp(n, '0'), '+.2f')}" for n in tv)
+        + "; 0.1 s: "
+        + ", ".join(f"{_f(imp(n, '0.1'), '+.2f')}" for n in tv)
+        + "; 0.005 s: "
+        + ", ".join(f"{_f(imp(n, '0.005'), '+.2f')}" for n in tv)
+        + "), and its gradient is finite and at most "
+        + _f(mx)
+        + " in size on every config at both points. Longer windows reach 1e2-1e60 on the digital loops: "
         "the growth starts between 20 and 50 ms at 1 kHz (realistic_arm) and at 2 kHz (unseen_arm) alike, so the "
         "window is a time, about 20 ms (20 samples at 1 kHz, 40 at 2 kHz; 20 samples at 2 kHz, 10 ms, is as "
         "sane: max|g| " + _f(pt("unseen_arm", "0.01", "start").get("max")) + "). Shorter windows cost "
         "information where the gradient is informative: on the smooth ideal loops the start's cos(AD, FD) falls "
-        "from " + "/".join(_f(cs(n, "0"), ".2f") for n in smooth) + " (whole) to "
-        + "/".join(_f(cs(n, "0.02"), ".2f") for n in smooth) + " (20 ms) and "
-        + "/".join(_f(cs(n, "0.005"), ".2f") for n in smooth) + " (5 ms) for " + ", ".join(smooth)
-        + ", and arm_set2's tune gains " + _f(imp("arm_set2", "0"), "+.2f") + " with the whole horizon against "
-        + _f(imp("arm_set2", "0.02"), "+.2f") + " with 0.02 s; hence the whole horizon there. The best window "
+        "from "
+        + "/".join(_f(cs(n, "0"), ".2f") for n in smooth)
+        + " (whole) to "
+        + "/".join(_f(cs(n, "0.02"), ".2f") for n in smooth)
+        + " (20 ms) and "
+        + "/".join(_f(cs(n, "0.005"), ".2f") for n in smooth)
+        + " (5 ms) for "
+        + ", ".join(smooth)
+        + ", and arm_set2's tune gains "
+        + _f(imp("arm_set2", "0"), "+.2f")
+        + " with the whole horizon against "
+        + _f(imp("arm_set2", "0.02"), "+.2f")
+        + " with 0.02 s; hence the whole horizon there. The best window "
         "depends on the point as well as the loop: at p0 the whole horizon is finite and the most informative on "
-        "the 1 kHz digital loops too (cos " + ", ".join(f"{n} {_f(cs(n, '0', 'p0'), '.2f')}" for n in digital
-                                                          if n != "unseen_arm")
-        + "; truncated windows give " + ", ".join(_f(cs(n, "0.02", "p0"), ".2f") for n in digital if n != "unseen_arm")
+        "the 1 kHz digital loops too (cos "
+        + ", ".join(f"{n} {_f(cs(n, '0', 'p0'), '.2f')}" for n in digital if n != "unseen_arm")
+        + "; truncated windows give "
+        + ", ".join(_f(cs(n, "0.02", "p0"), ".2f") for n in digital if n != "unseen_arm")
         + " at 0.02 s); it explodes only near the sign-like corner where the global stage puts tune's start. An "
         "adaptive choice (the whole horizon while its max|g| stays below about 10, else 20 ms) would keep both, at "
         "one more compilation; not measured as a tuner here. The sign law is "
         "the exception to 'whole horizon when not digital': on " + ", ".join(sign) + " the whole horizon's "
         "gradient reaches " + ", ".join(_f(pt(n, "0", "start").get("max")) for n in sign) + " at the start and "
         "points uphill at p0 (cos " + ", ".join(_f(cs(n, "0", "p0"), ".2f") for n in sign) + "), while 20 ms "
-        "gives " + ", ".join(f"{_f(cs(n, '0.02'), '.2f')} / {_f(cs(n, '0.02', 'p0'), '.2f')}" for n in sign)
+        "gives "
+        + ", ".join(f"{_f(cs(n, '0.02'), '.2f')} / {_f(cs(n, '0.02', 'p0'), '.2f')}" for n in sign)
         + " (start / p0). Package commit b55b8f5 (made while this study ran) already sets 0 = automatic: 20 "
         "controller samples on a quantizing or differencing digital loop, the whole horizon elsewhere; the data "
         "support it for the digital loops and the smooth ideal loops, and add the sign law to the truncated side. "
