@@ -28,6 +28,11 @@ __all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "
 PENALTY = 1e3
 
 
+def _joined(zs: list[np.ndarray], ms: list[dict]) -> dict[str, Any]:
+    """Chunks of evaluated factors and their metrics as one ``{"z", "metrics"}``."""
+    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+
+
 def _collect(problem, p0, zs: list[np.ndarray], chunk: int, log, what) -> dict[str, Any]:
     z = np.concatenate(zs)
     m = evaluate_many(problem, from_factors(p0, z), chunk, log=log, what=what)
@@ -53,7 +58,7 @@ def random_search(problem: T.Problem, p0: T.Params, budget: float, chunk: int = 
         zs.append(z)
         ms.append(evaluate_many(problem, from_factors(p0, z), chunk, log=lambda _: None))
         log(f"random search: {len(zs) * chunk} evaluations  {time.perf_counter() - start:7.1f} s")
-    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+    return _joined(zs, ms)
 
 
 def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0: float, budget: float,
@@ -99,7 +104,7 @@ def cma_front(problem: T.Problem, p0: T.Params, weights, budget: float, popsize:
 
         cma_es(objective, np.zeros(space.dim), 0.5, budget / len(weights), popsize, seed, lo, hi,
                log=lambda s, w=w: log(f"w = {w:g}: {s}"))  # fmt: skip
-    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+    return _joined(zs, ms)
 
 
 def objectives(m: dict[str, np.ndarray]) -> np.ndarray:
@@ -120,6 +125,25 @@ def _archive(front: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     return pts[nondominated(pts[:, 0], pts[:, 1])]
 
 
+def _generations(problem: T.Problem, p0: T.Params, budget: float, popsize: int, ask, tell, name: str,
+                 log) -> dict[str, Any]:  # fmt: skip
+    """A peer's generations (one at least) until the wall-time ``budget`` (s) is spent:
+    ``ask() -> (z (popsize, dim), handle)``, the generation evaluated in one
+    :func:`evaluate_many` call, ``tell(handle, metrics)``. Returns every candidate evaluated
+    and their metrics."""
+    start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
+    while not zs or time.perf_counter() - start < budget:
+        z, handle = ask()
+        m = evaluate_many(problem, from_factors(p0, z), popsize, log=lambda _: None)
+        tell(handle, m)
+        zs.append(z)
+        ms.append(m)
+        front = _archive(front, m)
+        log(f"{name}: generation {len(zs)}  {sum(map(len, zs))} evaluations  {len(front)} non-dominated  "
+            f"{time.perf_counter() - start:7.1f} s")  # fmt: skip
+    return _joined(zs, ms)
+
+
 def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
           log=print) -> dict[str, Any]:  # fmt: skip
     """pymoo's NSGA-II (its defaults: uniform initial population, SBX crossover, polynomial
@@ -138,19 +162,16 @@ def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, se
     box = Problem(n_var=space.dim, n_obj=2, xl=lo, xu=hi)
     algorithm = NSGA2(pop_size=popsize)
     algorithm.setup(box, termination=NoTermination(), seed=seed, verbose=False)
-    start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
-    while not zs or time.perf_counter() - start < budget:
+
+    def ask():
         pop = algorithm.ask()
-        z = np.clip(pop.get("X"), lo, hi)
-        m = evaluate_many(problem, from_factors(p0, z), popsize, log=lambda _: None)
+        return np.clip(pop.get("X"), lo, hi), pop
+
+    def tell(pop, m):
         Evaluator().eval(StaticProblem(box, F=objectives(m)), pop)
         algorithm.tell(infills=pop)
-        zs.append(z)
-        ms.append(m)
-        front = _archive(front, m)
-        log(f"nsga2 (pymoo): generation {len(zs)}  {sum(map(len, zs))} evaluations  {len(front)} non-dominated  "
-            f"{time.perf_counter() - start:7.1f} s")  # fmt: skip
-    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+
+    return _generations(problem, p0, budget, popsize, ask, tell, "nsga2 (pymoo)", log)
 
 
 def optuna_nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
@@ -170,16 +191,13 @@ def optuna_nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int =
     dists = {f"z{i:02d}": optuna.distributions.FloatDistribution(a, b) for i, (a, b) in enumerate(zip(lo, hi))}
     sampler = optuna.samplers.NSGAIISampler(population_size=popsize, seed=seed)
     study = optuna.create_study(directions=["minimize", "minimize"], sampler=sampler)
-    start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
-    while not zs or time.perf_counter() - start < budget:
+
+    def ask():
         trials = [study.ask(dists) for _ in range(popsize)]
-        z = np.array([[t.params[k] for k in dists] for t in trials])
-        m = evaluate_many(problem, from_factors(p0, z), popsize, log=lambda _: None)
+        return np.array([[t.params[k] for k in dists] for t in trials]), trials
+
+    def tell(trials, m):
         for t, f in zip(trials, objectives(m)):
             study.tell(t, f.tolist())
-        zs.append(z)
-        ms.append(m)
-        front = _archive(front, m)
-        log(f"nsga2 (optuna): generation {len(zs)}  {sum(map(len, zs))} evaluations  {len(front)} non-dominated  "
-            f"{time.perf_counter() - start:7.1f} s")  # fmt: skip
-    return {"z": np.concatenate(zs), "metrics": {k: np.concatenate([m[k] for m in ms]) for k in ms[0]}}
+
+    return _generations(problem, p0, budget, popsize, ask, tell, "nsga2 (optuna)", log)

@@ -34,7 +34,8 @@ other, and nowhere by more); points with a diverged rollout never count.
     .venv/bin/python tuning/reference_front.py merge --config tuning/configs/unseen_arm.toml \\
         tuning/results/reference/unseen_arm/{front,cma,nsga2}.json
 
-    # scores: a front.json, a method's json or a frontier_<name>.json (each of its methods)
+    # scores: a front.json, a method's json, a frontier_<name>.json (each of its methods) or a
+    # fosmc tune result.json (also by how much the reference beats its one point)
     .venv/bin/python tuning/reference_front.py score tuning/results/reference/unseen_arm/cma.json \\
         --reference tuning/results/reference/unseen_arm/reference.json
 
@@ -168,7 +169,17 @@ def points_of(path: str | pathlib.Path) -> dict[str, list[dict]]:
         return {f"{name}: {label}": m["points"] for label, m in data["methods"].items()}
     if "method" in data:  # a method's json of build
         return {data["method"]: data["points"]}
+    if "final" in data:  # a fosmc tune result.json: its one point
+        return {f"{path.parent.name} (tune)": [data["final"]]}
     return {path.parent.name: data["points"]}
+
+
+def dominated_by(point: tuple[float, float], ref: tuple[np.ndarray, np.ndarray]) -> float:
+    """By how much, at most, some reference point beats one point in both axes at once, in log10:
+    max_r min(log10 e - log10 r_e, log10 c - log10 r_c) (<= 0: no reference point dominates it;
+    0.05: one beats it by 12% in both). The score of ``fosmc tune``'s single point."""
+    (e, c), (re, rc) = np.log10(point), (np.log10(np.asarray(x, float)) for x in ref)
+    return float(np.max(np.minimum(e - re, c - rc)))
 
 
 def params_of(points: list[dict], p0):
@@ -363,6 +374,9 @@ def score_files(paths: list[str], reference_path: str) -> dict[str, dict]:
         for label, pts in points_of(path).items():
             pts = [p for p in pts if p.get("diverged", 0) == 0]
             s = score(axes(pts), reference)
+            if len(pts) == 1:  # one point (a tune result): also how far the reference beats it
+                s["dominated_by"] = dominated_by(tuple(float(a[0]) for a in axes(pts)), axes(reference["points"]))
+                print(f"{path} ({label}): the reference beats its point by {s['dominated_by']:.4f} (log10) at most")
             out[f"{path}: {label}"] = s
             print(f"{path} ({label}, {len(pts)} points): epsilon (log10) over 0.1-10 V {s['epsilon_0.1_10']:.4f}, "
                   f"over 0.5-10 V {s['epsilon_0.5_10']:.4f}; hypervolume {s['hypervolume']:.4f} (reference front "
