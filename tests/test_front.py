@@ -292,3 +292,18 @@ def test_held_out_batch_has_the_payloads_and_seeds_training_did_not_see():
     assert F.held_out_config(cfg)["plant"]["payloads"] == [3.0, 7.0, 9.0]
     cfg = _config.resolve(TINY)  # linear, sampled box: fresh samples
     assert F.held_out_config(cfg)["plant"]["seed"] == cfg["plant"]["seed"] + 1
+
+
+@pytest.mark.parametrize("peer", ["nsga2", "optuna_nsga2"])
+def test_peers_evaluate_whole_generations_within_the_box(peer):
+    """pymoo's and optuna's NSGA-II (the optional extra ``peers``; skipped without it): whole
+    generations of ``popsize`` candidates, inside the kind's box, at least one generation even
+    with a spent budget, metrics for every candidate."""
+    pytest.importorskip("pymoo" if peer == "nsga2" else "optuna")
+    from fosmc_jax import _search as S
+
+    plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
+    r = getattr(S, peer)(train, p0, budget=0.0, popsize=8, log=lambda _: None)
+    lo, hi = F.bounds()
+    assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
+    assert r["metrics"]["rms_error"].shape == (8, 3) and r["metrics"]["diverged"].shape == (8,)
