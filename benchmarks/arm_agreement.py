@@ -1,11 +1,11 @@
-"""How closely the arm's kernel (fosmc_jax/_arm_kernel.cc) agrees with vmap of simulate, and how
+"""How closely the arm's kernel (fosmc_jax/_simulator/arm_kernel.cc) agrees with vmap of simulate, and how
 far float32 digital loops are from float64: the figures BENCHMARKS.md ("Issue 21") and the README
 quote, in one command:
 
     python benchmarks/arm_agreement.py            # about 2 minutes on 2 cores
 
 Cases: the paper's arm case in the ideal loop (Table 1 set 1, payloads 0, 5, 10 kg x 2
-offsets, 0.2 s), and the realistic preset (fosmc_jax/presets/realistic_arm.toml: the digital
+offsets, 0.2 s), and the realistic preset (fosmc_jax/_app/presets/realistic_arm.toml: the digital
 loop, 0.3 s, 2 offsets) with the FOSMC, SMC and super-twisting, and its float32 variants. Per
 case: the largest difference of any metric between the kernel and vmap(simulate), relative to
 that metric's largest |value| over the batch; for float32 digital loops also each path's
@@ -22,9 +22,9 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax import _config  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 
-PRESET = "fosmc_jax/presets/realistic_arm.toml"
+PRESET = "fosmc_jax/_app/presets/realistic_arm.toml"
 IDEAL = {"controller.sample_period": 0.0, "controller.delay_samples": 0, "sensors.encoder_counts": [0, 0, 0],
          "sensors.derivatives": "measured", "actuator.u_max": None}  # fmt: skip
 

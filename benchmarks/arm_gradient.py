@@ -8,7 +8,7 @@ The problem is ``fosmc tune``'s on ``tuning/configs/arm_ideal_set2.toml`` (the i
 arm, Table 1 set 2, ratio switching, dt = 1e-4) with ``[sim]`` changed to RK4, float64 and
 ``t_final = steps x dt`` (the config itself says Euler and 4 s), and the batch enlarged to 64
 rollouts: 8 payloads in [0, 10] kg x 8 initial offsets (``bench.problem(64)``'s: uniform in
-+-0.05, seed 1). It is built as ``fosmc_jax._commands.run_tune`` builds it:
++-0.05, seed 1). It is built as ``fosmc_jax._app.commands.run_tune`` builds it:
 ``_config.tuning_problems`` (the training problem: the scan rematerialised every
 ``tune.remat_steps`` steps, default 100), the objective's scales from ``_tuning.evaluate`` at the
 config's parameters, the loss ``_tuning.make_loss`` (``simulate_batch(fast=False)``, the
@@ -60,7 +60,7 @@ def problems(path: Path, steps: int):
     ``tuning_problems`` (plain, train, p0) and the resolved config."""
     import numpy as np
 
-    from fosmc_jax import _config
+    from fosmc_jax._app import config as _config
 
     cfg = _config.load(path)
     offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (OFFSETS, 9))  # bench.problem(64)'s
@@ -124,8 +124,8 @@ def main(argv=None):
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    from fosmc_jax import _native
-    from fosmc_jax import _tuning as T
+    from fosmc_jax._search import tune as T
+    from fosmc_jax._simulator import native as _native
 
     cfg, plain, train, p0 = problems(Path(args.config), args.steps)
     if cfg["tune"]["keep_gamma_bound"]:

@@ -9,7 +9,7 @@ x 32 initial offsets, the ideal-loop FOSMC, ratio switching, Table 1 set 1, dt =
 steps, in two cells: Euler float32 and RK4 float64. The variants, each in a fresh process:
 
 - (a) the ``vmap`` path: ``FOSMC_JAX_NATIVE=0`` (``vmap`` of ``simulate``, a ``lax.scan``);
-- (b) the kernel (``fosmc_jax/_arm_kernel.cc``), as built by default;
+- (b) the kernel (``fosmc_jax/_simulator/arm_kernel.cc``), as built by default;
 - (c) the kernel built with ``-DFOSMC_NO_REUSE``: the accelerations recomputed at the start of
   each step instead of reusing those computed when the state was observed;
 - (d) the kernel built with ``-DFOSMC_LIBM_SINCOS``: libm's sin and cos lane by lane instead of
@@ -89,7 +89,9 @@ def child(spec_path: str) -> None:
     import jax
 
     import fosmc_jax as fj
-    from fosmc_jax import _arm_native, _native, _simulator
+    from fosmc_jax._simulator import arm_native as _arm_native
+    from fosmc_jax._simulator import native as _native
+    from fosmc_jax._simulator import rollout as _simulator
 
     jax.config.update("jax_compilation_cache_dir", spec["cache"])
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)

@@ -198,7 +198,7 @@ def _numba_kernel(numba):
 
 
 # ---------------------------------------------------------------------------- arm (NumPy)
-# How it is built: the kinematics of fosmc_jax._arm._frames rewritten in NumPy over the batch;
+# How it is built: the kinematics of fosmc_jax._plants.arm._frames rewritten in NumPy over the batch;
 # the link Jacobians J_v in closed form (geometric Jacobian: column i = axis_i x (p - o_i),
 # exact for this chain); G = g sum m J_v[z] (exact, = dV/dq); C from the Christoffel symbols of
 # M with dM/dq by central finite differences of the NumPy M (h = 1e-4, in float64 whatever the
@@ -249,8 +249,8 @@ def _arm_accel(p, payload, theta, dtheta, current, h=1e-4):
 
 def numpy_arm(payloads, X0, dt, n):
     """NumPy vectorised over the batch (payloads (N,), X0 (N, 9)), Python loop in time, Euler:
-    the arm of fosmc_jax._arm under the same controller; returns the mean RMS tracking error."""
-    from fosmc_jax._arm import ARM_PARAMS
+    the arm of fosmc_jax._plants.arm under the same controller; returns the mean RMS tracking error."""
+    from fosmc_jax._plants.arm import ARM_PARAMS
 
     dtype = X0.dtype
     p = {k: np.asarray(v, dtype) for k, v in ARM_PARAMS._asdict().items()}

@@ -55,9 +55,9 @@ if __name__ == "__main__" and "--pin-child" in sys.argv[1:]:
     # the arm table's one-core column (arm_package): this process on CPU 0 before JAX is
     # imported, so that no thread of it (XLA's pools included) can run on another core
     os.sched_setaffinity(0, {0})
+from fosmc_jax._app.plots import save_figure  # noqa: E402
 from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._plots import save_figure  # noqa: E402
-from fosmc_jax._sharding import simulate_sharded, use_host_devices  # noqa: E402
+from fosmc_jax._simulator.sharding import simulate_sharded, use_host_devices  # noqa: E402
 
 use_host_devices(2)
 
@@ -70,7 +70,9 @@ jax.config.update("jax_enable_x64", True)
 import baselines  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax import _simulator, _tuning, paper  # noqa: E402
+from fosmc_jax import paper  # noqa: E402
+from fosmc_jax._search import tune as _tuning  # noqa: E402
+from fosmc_jax._simulator import rollout as _simulator  # noqa: E402
 
 FLOPS = {"euler": 303, "rk4": 810}
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -99,7 +101,7 @@ def problem(batch: int, dtype, arm: bool = False):
                          c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
     ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
     if arm:
-        from fosmc_jax._arm import arm_sweep
+        from fosmc_jax._plants.arm import arm_sweep
 
         plants = arm_sweep(c(np.linspace(0.0, 10.0, P)))
     else:
@@ -325,13 +327,13 @@ def read_case(path, batch: int, dtype):
 
 
 def realistic(batch: int, dtype, steps: int):
-    """The realistic preset (fosmc_jax/presets/realistic_arm.toml: DigitalLoop around the
+    """The realistic preset (fosmc_jax/_app/presets/realistic_arm.toml: DigitalLoop around the
     DiscreteFOSMC, 2,621,440-count encoders, differenced rates, one sample of delay, 24 V, RK4,
     dt = 1e-4, a sample every 10 steps) through the config path as ``run_simulate`` takes it
     (``_config.load``, ``resolve``, ``build``), its batch enlarged to P payloads in [0, 10] kg
     x O initial offsets (problem()'s P, O and offsets), ``steps`` steps, in ``dtype``.
     Returns (positional arguments, dynamic keyword arguments, static options) of simulate_batch."""
-    from fosmc_jax import _config
+    from fosmc_jax._app import config as _config
 
     P, O = split(batch)
     cfg = _config.load(PRESET)
@@ -354,7 +356,7 @@ def arm_cell_inputs(cell: dict):
         return realistic(cell["batch"], dtype, cell["steps"])
     plants, ctrl, ref, X0s, dt = problem(cell["batch"], dtype, arm=True)
     if cell.get("case"):
-        from fosmc_jax._arm import arm_sweep
+        from fosmc_jax._plants.arm import arm_sweep
 
         payloads, x0 = read_case(cell["case"], cell["batch"], dtype)
         plants, X0s = arm_sweep(jnp.asarray(payloads)), jnp.asarray(x0)
@@ -484,7 +486,7 @@ def arm_table(quick: bool) -> dict:
     import statistics
     import tempfile
 
-    from fosmc_jax import _config
+    from fosmc_jax._app import config as _config
 
     preset_integrator = _config.load(PRESET)["sim"]["integrator"]
     batches = (1024,) if quick else (1024, 4096)
@@ -686,7 +688,7 @@ def main(argv=None):
         for d in (1, 2):
             rows.append(cli(4 * head, steps, d, output)), say(rows[-1])
     try:
-        import fosmc_jax._arm  # noqa: F401
+        import fosmc_jax._plants.arm  # noqa: F401
 
         arm_steps = 1000 if q else steps
         for batch in (1, 64) if q else (1, 64, 1024):
@@ -694,7 +696,7 @@ def main(argv=None):
         rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
         info["arm_table"] = arm_table(q)
     except ImportError:
-        print("arm: fosmc_jax._arm not available, skipped")
+        print("arm: fosmc_jax._plants.arm not available, skipped")
     base_steps = 100 if q else 1000
     for integrator in ("euler", "rk4"):
         rows.append(baseline("numpy_vectorised", head, np.float32, integrator, base_steps)), say(rows[-1])

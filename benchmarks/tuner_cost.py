@@ -5,14 +5,14 @@ without and with the native kernel, one command:
     python benchmarks/tuner_cost.py --chunk 16 --chunks 2 --out /tmp/tuner_cost.json
     python benchmarks/tuner_cost.py --t-final 0.1 --chunk 8 --chunks 1 --grads 1   # a short trial
 
-- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax._front.study`` builds
+- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax._search.front.study`` builds
   it (``_config.tuning_problems``; the search stages evaluate the training problem), candidates
   drawn as its global stage draws them (``global_factors`` with the front's ``grid_share``,
   ``from_factors``), evaluated by ``evaluate_many`` in chunks of ``--chunk`` (the compiled
   ``_chunk_evaluator``: vmap over the candidates, split over every local device). The first
   chunk compiles: its time less a warm chunk's is the compile time. Then ``--chunks`` warm
   chunks: the cost per candidate is their median / ``--chunk``.
-- **tune:** one value-and-grad of ``fosmc tune``'s loss as ``fosmc_jax._commands.run_tune``
+- **tune:** one value-and-grad of ``fosmc tune``'s loss as ``fosmc_jax._app.commands.run_tune``
   builds it and ``_tuning.run`` compiles it (``_tuning.make_loss`` on the training problem,
   the objective's scales from ``_tuning.evaluate`` at the config's parameters,
   ``_tuning._value_and_grad`` per gradient mode; ``tune.mode = "auto"`` compiles both and
@@ -49,7 +49,7 @@ def load() -> float:
 
 def config(path: str, t_final: float | None) -> dict:
     """The resolved config (``t_final``: ``[sim] t_final`` replaced, for short trials)."""
-    from fosmc_jax import _config
+    from fosmc_jax._app import config as _config
 
     cfg = _config.load(path)
     if t_final:
@@ -73,9 +73,9 @@ def front_cost(cfg: dict, chunk: int, chunks: int, seed: int = 0, which: str = "
     which every result is re-evaluated)."""
     import jax
 
-    from fosmc_jax import _config
-    from fosmc_jax import _front as F
-    from fosmc_jax import _tuning as T
+    from fosmc_jax._app import config as _config
+    from fosmc_jax._search import front as F
+    from fosmc_jax._search import tune as T
 
     plain, train, p0 = _config.tuning_problems(cfg)
     train = plain if which == "plain" else train
@@ -106,14 +106,14 @@ def tune_cost(cfg: dict, grads: int) -> dict:
     ``tune.mode`` lets it try: compile time and warm cost."""
     import jax
 
-    from fosmc_jax import _config
-    from fosmc_jax import _tuning as T
+    from fosmc_jax._app import config as _config
+    from fosmc_jax._search import tune as T
 
     tcfg = cfg["tune"]
     plain, problem, p0 = _config.tuning_problems(cfg)
     floor = None
     if tcfg["keep_gamma_bound"]:  # as run_tune
-        from fosmc_jax._design import summarize
+        from fosmc_jax._design.gains import summarize
 
         d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], _config.box_of(cfg), cfg["controller"]["C"],
                       cfg["controller"]["poles"])  # fmt: skip

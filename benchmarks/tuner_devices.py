@@ -8,7 +8,7 @@ process shows (run it once as is, one device per core, and once with ``JAX_NUM_C
   realistic preset's 2 s training problem (tuning/configs/realistic_arm_short_training.toml);
 - ``fosmc tune``'s step: one value-and-gradient of the default loss on the ideal arm
   (tuning/configs/arm_ideal_set2.toml: 2 payloads, 40,000 Euler steps), its two rollouts
-  split over the devices (``fosmc_jax._sharding.simulate_split``).
+  split over the devices (``fosmc_jax._simulator.sharding.simulate_split``).
 
 Each timed after a warm-up call (compilation apart), best of 3. Prints one line per figure.
 """
@@ -25,9 +25,9 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
 
 
 def best_of(fn, n: int = 3) -> float:

@@ -2,14 +2,10 @@
 controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class of Uncertain
 Dynamical System", for a 3-DOF direct-drive arm."""
 
-from . import _paper as paper
-from . import _tuning as tuning
-from ._arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
-from ._cache import use_compilation_cache
-from ._certify import Certificate, certify
-from ._commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
-from ._config import ConfigError
-from ._controller import (
+from ._app.commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
+from ._app.config import ConfigError
+from ._certificate.certify import Certificate, certify
+from ._controllers.fosmc import (
     FOSMC,
     LAWS,
     SWITCHING,
@@ -21,7 +17,9 @@ from ._controller import (
     sliding_surface,
     switch,
 )
-from ._design import (
+from ._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
+from ._design import paper
+from ._design.gains import (
     CONVENTIONS,
     BoxBound,
     DesignError,
@@ -36,16 +34,18 @@ from ._design import (
     stable_step,
     summarize,
 )
-from ._linear_plant import UNCERTAINTY, LinearPlant, uncertain_plants
-from ._loop import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
-from ._metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
-from ._reference import Cycloid, Sinusoid, desired_state, feedforward
-from ._sharding import simulate_sharded, use_all_cores, use_host_devices
-from ._simulator import INTEGRATORS, Result, Trace, simulate, simulate_batch
-from ._smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
+from ._loop.digital import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
+from ._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
+from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
+from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
+from ._search import tune as tuning
+from ._simulator.cache import use_compilation_cache
+from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
+from ._simulator.rollout import INTEGRATORS, Result, Trace, simulate, simulate_batch
+from ._simulator.sharding import simulate_sharded, use_all_cores, use_host_devices
 
 __all__ = [
-    # one function per `fosmc` command: a config in, the command's data out (fosmc_jax._commands)
+    # one function per `fosmc` command: a config in, the command's data out (fosmc_jax._app.commands)
     "run_bounds",
     "run_certify",
     "run_front",

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _config, _paper
-from fosmc_jax._cli import main
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._design import paper as _paper
 from fosmc_jax._io import jsonable
 
 SHORT = {"sim": {"t_final": 0.05, "dt": 1e-3, "initial_offset": [[0.0] * 9, [0.01] + [0.0] * 8]}}

@@ -1,4 +1,4 @@
-"""The physical arm plant (fosmc_jax._arm): physics, payload handling, closed loop."""
+"""The physical arm plant (fosmc_jax._plants.arm): physics, payload handling, closed loop."""
 
 import jax
 import jax.numpy as jnp
@@ -10,7 +10,7 @@ jax.config.update("jax_enable_x64", True)
 
 import fosmc_jax as fj  # noqa: E402
 from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._arm import (  # noqa: E402
+from fosmc_jax._plants.arm import (  # noqa: E402
     ARM_PARAMS,
     PAYLOAD_RANGE,
     Arm,

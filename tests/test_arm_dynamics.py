@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fosmc_jax._arm import (
+from fosmc_jax._plants.arm import (
     ARM_PARAMS,
     Arm,
     ArmState,
@@ -19,7 +19,7 @@ from fosmc_jax._arm import (
     mass_matrix_closed,
     potential_energy,
 )
-from fosmc_jax._simulator import _rk4
+from fosmc_jax._simulator.rollout import _rk4
 
 
 def test_closed_form_equals_the_autodiff_oracle():

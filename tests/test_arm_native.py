@@ -1,4 +1,4 @@
-"""The arm's native kernel (fosmc_jax/_arm_kernel.cc, fosmc_jax/_arm_native.py) against the JAX
+"""The arm's native kernel (fosmc_jax/_simulator/arm_kernel.cc, fosmc_jax/_simulator/arm_native.py) against the JAX
 model it copies: vmap of simulate, the path every other controller takes and the kernel's
 derivatives come from. The kernel's copy of the arm's closed form (M, C q', G, the solve), the
 FOSMC law, the digital loop's sensors, delay and limit, and the metrics are held to rounding
@@ -10,9 +10,12 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _arm_native, _config, _native, paper
-from fosmc_jax._arm import ARM_PARAMS, arm_sweep
-from fosmc_jax._simulator import as_controller
+from fosmc_jax import paper
+from fosmc_jax._app import config as _config
+from fosmc_jax._plants.arm import ARM_PARAMS, arm_sweep
+from fosmc_jax._simulator import arm_native as _arm_native
+from fosmc_jax._simulator import native as _native
+from fosmc_jax._simulator.rollout import as_controller
 
 pytestmark = pytest.mark.skipif(_native._compiler() is None, reason="no C++ compiler: no kernel")
 
@@ -134,7 +137,7 @@ def preset(t_final=0.3, **changes):
     """The realistic preset (DigitalLoop around the DiscreteFOSMC: 2.6M-count encoder,
     differenced rates, one-sample delay, 24 V) with two initial offsets and ``changes``
     ({"section.key": value})."""
-    cfg = _config.load("fosmc_jax/presets/realistic_arm.toml")
+    cfg = _config.load("fosmc_jax/_app/presets/realistic_arm.toml")
     cfg["sim"]["t_final"] = t_final
     cfg["sim"]["initial_offset"] = [[0.0] * 9, [0.01, 0, 0, -0.02, 0, 0, 0.03, 0, 0]]
     for key, value in changes.items():

@@ -39,7 +39,7 @@ def test_command_line_runs_reuse_their_compilations(tmp_path):
     xla = tmp_path / "cache" / "xla"
 
     def simulate(**extra):
-        cmd = [sys.executable, "-m", "fosmc_jax._cli", "simulate", "--config", str(config), "--json", "--devices", "1"]
+        cmd = [sys.executable, "-m", "fosmc_jax", "simulate", "--config", str(config), "--json", "--devices", "1"]
         out = subprocess.run(cmd, env=env_without_cache(tmp_path, **extra), capture_output=True, text=True,
                              timeout=300, check=True)  # fmt: skip
         return [r["metrics"] for r in json.loads(out.stdout)["rollouts"]]

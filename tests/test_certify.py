@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fosmc_jax import _config, _paper
-from fosmc_jax._certify import (
+from fosmc_jax._app import config as _config
+from fosmc_jax._certificate.certify import (
     box_max_hitting,
     certify,
     hitting,
@@ -17,9 +17,10 @@ from fosmc_jax._certify import (
     vertices_from_codes,
     z_samples,
 )
-from fosmc_jax._controller import Controller
-from fosmc_jax._design import gain_from_poles
-from fosmc_jax._reference import Cycloid
+from fosmc_jax._controllers.fosmc import Controller
+from fosmc_jax._design import paper as _paper
+from fosmc_jax._design.gains import gain_from_poles
+from fosmc_jax._plants.reference import Cycloid
 
 SMALL = dict(n_times=5, n_z=6, n_s=28)
 

@@ -5,9 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from fosmc_jax import _config, _paper
-from fosmc_jax._cli import main
-from fosmc_jax._metrics import METRIC_NAMES
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._design import paper as _paper
+from fosmc_jax._simulator.metrics import METRIC_NAMES
 
 SHORT = """
 [sim]
@@ -69,7 +70,7 @@ def test_simulate_npz_holds_the_json_values(capsys, tmp_path):
 
 
 def test_simulate_json_writes_non_finite_numbers_as_null():
-    from fosmc_jax._cli import _simulate_json
+    from fosmc_jax._app.cli import _simulate_json
 
     arrays = {name: np.ones((1, 3)) for name in METRIC_NAMES}
     arrays["rms_error"] = np.array([[np.nan, 1.0, -np.inf]])
@@ -170,7 +171,7 @@ def test_simulate_shards_over_every_core_by_default_and_equals_one_device(tmp_pa
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
 
     def simulate(*extra):
-        cmd = [sys.executable, "-m", "fosmc_jax._cli", "simulate", "--config", str(path), "--json", *extra]
+        cmd = [sys.executable, "-m", "fosmc_jax", "simulate", "--config", str(path), "--json", *extra]
         out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
         return json.loads(out.stdout), out.stderr

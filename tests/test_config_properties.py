@@ -13,8 +13,8 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from fosmc_jax import _config
-from fosmc_jax._cli import main
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
 
 
 def _paths(schema, prefix=""):

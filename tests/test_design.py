@@ -15,7 +15,7 @@ from scipy.optimize import linear_sum_assignment
 
 import fosmc_jax as fj
 from fosmc_jax import paper
-from fosmc_jax._design import _lambda_max_sym3
+from fosmc_jax._design.gains import _lambda_max_sym3
 
 A_NOM = paper.full_A(paper.A_ROWS)
 B_NOM = paper.full_B(paper.B_ROWS)

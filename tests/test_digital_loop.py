@@ -1,4 +1,4 @@
-"""The digital loop (fosmc_jax._loop): sampled FOSMC, sensors, delay, actuator limit.
+"""The digital loop (fosmc_jax._loop.digital): sampled FOSMC, sensors, delay, actuator limit.
 
 Checked against the ideal loop (equality where the semantics coincide), against values
 computed by hand on short runs, against central finite differences (gradients), and through
@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _config
-from fosmc_jax._cli import main
-from fosmc_jax._loop import SensorMemory, measure, quantize
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._loop.digital import SensorMemory, measure, quantize
 
 P = fj.paper
 REF = fj.Cycloid(jnp.array(P.THETA_START), jnp.array(P.THETA_END), jnp.array(P.TAU))
@@ -358,7 +358,7 @@ def test_report_realistic_blocks_equal_committed_tables():
         block = report[report.index(begin) + len(begin) : report.index(end)]
         assert block == (root / "tuning/results/reproduction" / f"{name}.md").read_text(), name
     preset = root / "tuning/configs/realistic_arm.toml"
-    assert _config.load(preset) == _config.load(root / "fosmc_jax/presets/realistic_arm.toml")
+    assert _config.load(preset) == _config.load(root / "fosmc_jax/_app/presets/realistic_arm.toml")
 
 
 @pytest.mark.slow
@@ -366,7 +366,7 @@ def test_tradeoff_exists_in_the_realistic_loop_and_not_in_the_ideal_one():
     """Shortened sweep (0.2 s): lowering delta 3000-fold raises the realistic loop's
     chattering_hf more than tenfold, while the ideal loop's stays below 0.2 V until the
     smallest delta."""
-    from fosmc_jax import _reproduce as R
+    from fosmc_jax._app import reproduce as R
 
     sweeps = R.tradeoff_sweeps(t_final=0.2, log=lambda _: None)
     delta = sweeps[0]

@@ -29,7 +29,7 @@ WORKER = textwrap.dedent(
     import numpy as np
     from jax.experimental import multihost_utils
     import fosmc_jax as fj
-    from fosmc_jax._sharding import simulate_sharded
+    from fosmc_jax._simulator.sharding import simulate_sharded
     import test_performance_paths as t
 
     assert jax.process_count() == 2 and jax.device_count() == 2 and jax.local_device_count() == 1, jax.devices()

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from fosmc_jax import _config
-from fosmc_jax import _front as F
-from fosmc_jax._cli import main
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._search import front as F
 
 TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
@@ -105,7 +105,7 @@ def test_bad_front_arguments_are_refused(tmp_path, capsys, args, key):
 
 
 def test_cma_es_wrapper_reaches_the_minimum_of_a_quadratic():
-    from fosmc_jax._search import cma_es
+    from fosmc_jax._search.peers import cma_es
 
     a = np.array([0.3, -1.2, 2.0, 0.5])
     f = lambda X: np.sum((X - a) ** 2, axis=1)
@@ -115,7 +115,7 @@ def test_cma_es_wrapper_reaches_the_minimum_of_a_quadratic():
 
 
 def test_factors_map_and_random_search_cover_the_box():
-    from fosmc_jax import _search as S
+    from fosmc_jax._search import peers as S
 
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
@@ -131,7 +131,7 @@ def test_factors_map_and_random_search_cover_the_box():
 
 
 def test_global_stage_keeps_frozen_parameters_and_never_scores_worse_than_the_start():
-    from fosmc_jax import _tuning as T
+    from fosmc_jax._search import tune as T
 
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
@@ -217,7 +217,7 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
     res = F.run(train, plain, p0, settings, log=lambda _: None)
     st = res["stages"]
     assert st["plain_rounds"] == 3 and st["plain_evaluations"] > 3 * settings.chunk
-    from fosmc_jax import _tuning as T
+    from fosmc_jax._search import tune as T
 
     for pt in res["points"]:
         p = T.Tunable(*(np.asarray(pt["params"][k]) for k in T.PARAM_NAMES))
@@ -300,7 +300,7 @@ def test_peers_evaluate_whole_generations_within_the_box(peer):
     generations of ``popsize`` candidates, inside the kind's box, at least one generation even
     with a spent budget, metrics for every candidate."""
     pytest.importorskip("pymoo" if peer == "nsga2" else "optuna")
-    from fosmc_jax import _search as S
+    from fosmc_jax._search import peers as S
 
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
     r = getattr(S, peer)(train, p0, budget=0.0, popsize=8, log=lambda _: None)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from fosmc_jax import _metrics
+from fosmc_jax._simulator import metrics as _metrics
 
 CUTOFF = 10.0  # Hz
 T = 1e-3  # s, the hold period of the sequences below

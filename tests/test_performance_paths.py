@@ -14,7 +14,9 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _native, _simulator, paper
+from fosmc_jax import paper
+from fosmc_jax._simulator import native as _native
+from fosmc_jax._simulator import rollout as _simulator
 
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
 
@@ -162,7 +164,7 @@ def test_fast_batch_gradient_with_checkpointing():
 def test_sharded_equals_single_device():
     code = textwrap.dedent(
         """
-        from fosmc_jax._sharding import simulate_sharded, use_host_devices
+        from fosmc_jax._simulator.sharding import simulate_sharded, use_host_devices
         use_host_devices(2)
         import jax, numpy as np
         jax.config.update("jax_enable_x64", True)
@@ -197,7 +199,7 @@ def test_sharded_equals_single_device():
 def test_use_all_cores_default_and_user_count(env, expected):
     code = textwrap.dedent(
         """
-        from fosmc_jax._sharding import simulate_sharded, use_all_cores
+        from fosmc_jax._simulator.sharding import simulate_sharded, use_all_cores
         n = use_all_cores()
         import jax, numpy as np
         jax.config.update("jax_enable_x64", True)
@@ -223,12 +225,14 @@ def test_tuners_split_over_the_devices_as_on_one():
     tuner's loss with its rollouts split (simulate_split) has one device's value and gradient."""
     code = textwrap.dedent(
         """
-        from fosmc_jax._sharding import use_host_devices
+        from fosmc_jax._simulator.sharding import use_host_devices
         use_host_devices(2)
         import jax, numpy as np
         jax.config.update("jax_enable_x64", True)
         assert jax.device_count() == 2
-        from fosmc_jax import _config, _front, _tuning
+        from fosmc_jax._app import config as _config
+        from fosmc_jax._search import front as _front
+        from fosmc_jax._search import tune as _tuning
         cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 2},
                                "sim": {"t_final": 0.1, "dt": 2e-3, "integrator": "euler"}})
         plain, _, p0 = _config.tuning_problems(cfg)

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from fosmc_jax import _config
-from fosmc_jax._cli import main
-from fosmc_jax._metrics import Metrics, batch_summary
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._simulator.metrics import Metrics, batch_summary
 
 TINY = """
 [plant]
@@ -73,7 +73,7 @@ def test_tune_killed_with_sigkill_resumes_to_the_uninterrupted_result(tmp_path, 
     assert main(["tune", "--config", str(config), "--out", str(whole)]) == 0
     capsys.readouterr()
 
-    cmd = [sys.executable, "-m", "fosmc_jax._cli", "tune", "--config", str(config), "--out", str(killed)]
+    cmd = [sys.executable, "-m", "fosmc_jax", "tune", "--config", str(config), "--out", str(killed)]
     # one device, as in this process: the loss sums its rollouts split over the devices, so the
     # last bits of a step depend on their count (the CLI uses every core by default)
     env = dict(os.environ, JAX_NUM_CPU_DEVICES="1")

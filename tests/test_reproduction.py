@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fosmc_jax import _reproduce as R
+from fosmc_jax._app import reproduce as R
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "tuning" / "results" / "reproduction"

@@ -1,4 +1,4 @@
-"""The comparison controllers (fosmc_jax._smc): super-twisting against a hand-integrated
+"""The comparison controllers (fosmc_jax._controllers.smc): super-twisting against a hand-integrated
 scalar example with finite-time convergence, SMC's boundary layer, and the config's kinds."""
 
 import jax
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _config
-from fosmc_jax._cli import main
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
 
 P = fj.paper
 REF = fj.Cycloid(jnp.array(P.THETA_START), jnp.array(P.THETA_END), jnp.array(P.TAU))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _tuning as T
+from fosmc_jax._search import tune as T
 
 P = fj.paper
 
@@ -185,8 +185,8 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
     gradient is finite and below 1e5 in norm (no exponential growth: the whole horizon's
     reached 1e226 on the realistic preset; the sign law's ideal loop gives 5.5e3 in gamma), and
     five Adam steps reach a lower training loss."""
-    from fosmc_jax import _config
-    from fosmc_jax._front import global_stage
+    from fosmc_jax._app import config as _config
+    from fosmc_jax._search.front import global_stage
 
     cfg = _config.load(path)
     cfg["sim"]["t_final"] = min(cfg["sim"]["t_final"], 1.0)

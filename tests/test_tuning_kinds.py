@@ -9,10 +9,10 @@ import jax
 import numpy as np
 import pytest
 
-from fosmc_jax import _config
-from fosmc_jax import _front as F
-from fosmc_jax import _tuning as T
-from fosmc_jax._cli import main
+from fosmc_jax._app import config as _config
+from fosmc_jax._app.cli import main
+from fosmc_jax._search import front as F
+from fosmc_jax._search import tune as T
 
 #: (kind, [controller] extras, [tune] params): SMC in the ideal loop with all its parameters,
 #: super-twisting in a digital loop (sampled at 2 steps, one sample of delay) with k2 alone free.
@@ -70,7 +70,7 @@ def test_tune_lowers_the_objective_and_its_result_resimulates(tuned, capsys):
 
 @pytest.fixture(scope="module", params=CASES, ids=[c[0] for c in CASES])
 def front(request, tmp_path_factory):
-    """The front's search (fosmc_jax._front.run) on the kind's problem, written as a front.json."""
+    """The front's search (fosmc_jax._search.front.run) on the kind's problem, written as a front.json."""
     kind, controller, _ = request.param
     tmp = tmp_path_factory.mktemp(f"front_{kind}")
     path = toml(tmp / "c.toml", kind, controller)

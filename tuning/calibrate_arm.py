@@ -1,10 +1,10 @@
-"""Calibrate the arm of fosmc_jax._arm to the paper's (29) and Appendix box.
+"""Calibrate the arm of fosmc_jax._plants.arm to the paper's (29) and Appendix box.
 
 The paper prints no arm, only the nominal rows 3, 6, 9 of its third-order model (29) and the
 box they range over (Appendix, corrected in NOTES.md). This script fits the arm's physical
 parameters so that, over the paper's operating envelope (its reference (30) at 41 instants x
 payloads 0, 2.5, 5, 7.5, 10 kg), the box of the arm's instantaneous rows
-(``fosmc_jax._arm.third_order_rows``) has its midpoint near (29) and lies inside, or close
+(``fosmc_jax._plants.arm.third_order_rows``) has its midpoint near (29) and lies inside, or close
 to, the Appendix box. Every parameter is mapped from an unconstrained vector through exp /
 sigmoid, so masses, inertias, lengths, friction and motor constants stay positive and the
 link inertias satisfy the triangle inequalities by construction (I = (b+c, a+c, a+b)).
@@ -14,7 +14,7 @@ Kb = Kt (SI units, ideal motor), d1 = 0.5 m and g = 9.81 m/s^2 are fixed.
 
 Deterministic: float64, fixed initial guess, Adam with a fixed schedule. It prints the fitted
 parameters as a paste-able ``ARM_PARAMS`` literal, checks them against the ones stored in
-``fosmc_jax/_arm.py`` (``--check`` makes a mismatch an error) and writes the comparison table
+``fosmc_jax/_plants/arm.py`` (``--check`` makes a mismatch an error) and writes the comparison table
 ``tuning/results/arm_calibration.md``.
 
     .venv/bin/python tuning/calibrate_arm.py [--steps N] [--check]
@@ -35,7 +35,9 @@ import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._arm import (  # noqa: E402
+from fosmc_jax._design.gains import box_norm_bound  # noqa: E402
+from fosmc_jax._io import write_text  # noqa: E402
+from fosmc_jax._plants.arm import (  # noqa: E402
     ARM_PARAMS,
     PAYLOAD_RANGE,
     ArmParams,
@@ -44,8 +46,6 @@ from fosmc_jax._arm import (  # noqa: E402
     envelope_samples,
     rows_over,
 )
-from fosmc_jax._design import box_norm_bound  # noqa: E402
-from fosmc_jax._io import write_text  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results" / "arm_calibration.md"
 PAYLOADS = np.linspace(*PAYLOAD_RANGE, 5)
@@ -169,7 +169,7 @@ def round_params(p: ArmParams) -> ArmParams:
 
 
 def literal(p: ArmParams) -> str:
-    """``ARM_PARAMS = ArmParams(...)`` as Python source, to paste into fosmc_jax/_arm.py."""
+    """``ARM_PARAMS = ArmParams(...)`` as Python source, to paste into fosmc_jax/_plants/arm.py."""
     fmt = lambda v: f"{float(v):.{SIG}g}"
     lines = ["ARM_PARAMS = ArmParams("]
     for name, x in zip(ArmParams._fields, p):
@@ -224,7 +224,7 @@ def table(p: ArmParams) -> str:
     md = [
         "# The arm's box and nominal vs the paper's (29) and Appendix",
         "",
-        "Written by `tuning/calibrate_arm.py`. Arm: `fosmc_jax._arm.ARM_PARAMS`; rows 3, 6, 9 of",
+        "Written by `tuning/calibrate_arm.py`. Arm: `fosmc_jax._plants.arm.ARM_PARAMS`; rows 3, 6, 9 of",
         "its own third-order model (`third_order_rows`) sampled along the paper's reference (30)",
         f"({N_TIMES} instants over [0, tau]) x payloads {PAYLOADS.tolist()} kg. Arm nominal = midpoint",
         "of the arm's box, as in the paper. `mid misfit` = (arm nominal - paper nominal) / s and",
@@ -282,7 +282,7 @@ def main() -> None:
     write_text(OUT, table(p))
     print(f"wrote {OUT}")
     if args.check and not ok:
-        raise SystemExit("calibrated parameters differ from fosmc_jax._arm.ARM_PARAMS")
+        raise SystemExit("calibrated parameters differ from fosmc_jax._plants.arm.ARM_PARAMS")
 
 
 if __name__ == "__main__":

@@ -7,12 +7,12 @@ wall-time budget, each point re-evaluated on held-out payloads.
     .venv/bin/python tuning/compare_controllers.py --config tuning/configs/realistic_arm_short_training.toml \\
         --budget 240 --out tuning/results/compare_controllers
 
-For every kind, one after the other on the same machine: ``fosmc front`` (:func:`fosmc_jax._front.study`)
+For every kind, one after the other on the same machine: ``fosmc front`` (:func:`fosmc_jax._search.front.study`)
 on the config with ``[controller] kind`` set, over the kind's own parameters
-(``fosmc_jax._tuning.SPACES``: the FOSMC's delta, gamma, poles; SMC's k, phi; super-twisting's
+(``fosmc_jax._search.tune.SPACES``: the FOSMC's delta, gamma, poles; SMC's k, phi; super-twisting's
 k1, k2; per-joint log factors around the config's values), with ``--budget`` seconds (its
 compilations, references and held-out evaluation included); the front's points carry their
-held-out metrics (:func:`fosmc_jax._front.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
+held-out metrics (:func:`fosmc_jax._search.front.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
 849d357, 2.5, 5 and 7.5 kg in the committed study; fresh noise seeds). The kind's defaults
 (the config's values) are evaluated beside it.
 
@@ -43,10 +43,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
 
 KINDS = tuple(T.SPACES)
 LABELS = {"fosmc": "FOSMC (delta, gamma, poles)", "smc": "SMC (k, phi)", "super_twisting": "super-twisting (k1, k2)"}

@@ -66,10 +66,10 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESET = ROOT / "tuning" / "configs" / "realistic_arm.toml"

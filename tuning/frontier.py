@@ -2,15 +2,15 @@
 
 For one config, each method gets the same wall time on the same machine, one after the other
 (the baselines get what the front actually took, its references and held-out evaluation
-included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._front.study`),
+included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._search.front.study`),
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
-and a log grid over the same search space (:mod:`fosmc_jax._search`), and with ``--peers`` NSGA-II,
+and a log grid over the same search space (:mod:`fosmc_jax._search.peers`), and with ``--peers`` NSGA-II,
 pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: ``pip install -e .[peers]``; each generation of
 ``--popsize`` in one batched call). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
 reference point (beyond the worst of Table 1's sets and SGN), how many of the
 front's points some baseline point dominates, and the epsilon indicator both ways (by how
-much, at most, one set beats the other: :func:`fosmc_jax._front.epsilon`). The front's held-out evaluation (fresh payloads
+much, at most, one set beats the other: :func:`fosmc_jax._search.front.epsilon`). The front's held-out evaluation (fresh payloads
 or box samples, fresh noise seeds) is reported beside its training metrics.
 
     .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic
@@ -37,10 +37,10 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _search as S  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import peers as S  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
@@ -96,7 +96,7 @@ def main(argv=None) -> None:
                     help="also these NSGA-II baselines (default both: nsga2,optuna_nsga2; fosmc_jax[peers])")  # fmt: skip
     ap.add_argument("--popsize", type=int, default=64, help="NSGA-II's population, one batched call each (default 64)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a fosmc_jax._front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
+                    help="a fosmc_jax._search.front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     ap.add_argument("--check", action="store_true",
                     help="only the cost and surrogate check (check_costs), then exit")  # fmt: skip
     ap.add_argument("--epsilon", nargs="+", metavar="FRONTIER_JSON",
@@ -197,7 +197,7 @@ def main(argv=None) -> None:
              f"machine (`.venv/bin/python tuning/frontier.py --config {args.config} --budget {args.budget:.0f} "
              f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
              f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
-             "Epsilon: the multiplicative epsilon indicator (`fosmc_jax._front.epsilon`), the largest "
+             "Epsilon: the multiplicative epsilon indicator (`fosmc_jax._search.front.epsilon`), the largest "
              "factor by which one set beats the other anywhere (1 or less: nowhere).",
              "", "| method | wall s | load (1-min, start/end) | evaluations | front points | hypervolume | "
              "`fosmc front` points it dominates | epsilon: it beats the front by | epsilon: the front beats it by | "
@@ -228,7 +228,7 @@ def reference_point(refs: dict) -> tuple[float, float]:
 
 def compare_study(path: str) -> None:
     """Print, for a study's result (``frontier_<name>.json``), each baseline's count of front
-    points it dominates, the epsilon indicator both ways (:func:`fosmc_jax._front.epsilon`), and
+    points it dominates, the epsilon indicator both ways (:func:`fosmc_jax._search.front.epsilon`), and
     by chattering_hf band where it wins."""
     study = json.loads(pathlib.Path(path).read_text())
     sets = {label: axes_of_points(m["points"]) for label, m in study["methods"].items()}
@@ -342,7 +342,7 @@ def plot(out: dict, path: pathlib.Path, config: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from fosmc_jax._plots import save_figure
+    from fosmc_jax._app.plots import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 6))
     for i, (label, m) in enumerate(out["methods"].items()):

@@ -32,11 +32,12 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config, paper  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax import paper  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax._app.plots import save_figure  # noqa: E402
 from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._plots import save_figure  # noqa: E402
-from fosmc_jax._simulator import simulate_batch  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax._simulator.rollout import simulate_batch  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 SCALES = (1.0, 0.3, 0.1, 0.03, 0.01)

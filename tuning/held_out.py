@@ -1,6 +1,6 @@
 """Plain metrics of tuned parameters on the training batch and on a held-out batch.
 
-The held-out batch is :func:`fosmc_jax._front.held_out_config`'s: arm payloads the training did
+The held-out batch is :func:`fosmc_jax._search.front.held_out_config`'s: arm payloads the training did
 not use (1, 3, 5, 7, 9 kg; 2.5, 5, 7.5 kg for the committed results), fresh box samples for
 the linear model, fresh noise seeds.
 
@@ -29,9 +29,9 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
 
 
 def main(argv=None) -> None:

@@ -6,7 +6,7 @@ Gains (36), SGN and the ratio switching (28) with each Table 1 set, the paper's 
 - ``linear``: the uncertain linear plant (3) with rows 3, 6, 9 drawn uniformly and
   independently in the Appendix box (NOTES.md), ``--samples`` draws (seeded);
 - ``vertices``: ``--vertices`` distinct box vertices (seeded), the box's extreme plants;
-- ``arm``: the arm of ``fosmc_jax._arm`` with payloads uniform in PAYLOAD_RANGE,
+- ``arm``: the arm of ``fosmc_jax._plants.arm`` with payloads uniform in PAYLOAD_RANGE,
   ``--arm-samples`` draws (seeded).
 
 For each (plant set, switching) case: the distribution of max |theta - theta_d| per joint
@@ -34,9 +34,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fosmc_jax import Controller, Cycloid, desired_state, paper, simulate_batch, uncertain_plants  # noqa: E402
-from fosmc_jax._arm import PAYLOAD_RANGE, arm_sweep  # noqa: E402
+from fosmc_jax._app.plots import save_figure  # noqa: E402
 from fosmc_jax._io import atomic_write, write_text  # noqa: E402
-from fosmc_jax._plots import save_figure  # noqa: E402
+from fosmc_jax._plants.arm import PAYLOAD_RANGE, arm_sweep  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)

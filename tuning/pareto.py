@@ -1,7 +1,7 @@
 """Pareto front of tracking error against chattering, by sweeping the chattering weight.
 
 Every weight w_c starts from the paper's gains (36), poles (33) and Table 1 set 2, and is tuned
-(delta, gamma, poles; Adam in the unconstrained coordinates of :mod:`fosmc_jax._tuning`) on
+(delta, gamma, poles; Adam in the unconstrained coordinates of :mod:`fosmc_jax._search.tune`) on
 the objective of ``fosmc tune``:
 
     J = mean_i [ mean_j rms_error_ij / e_ref + w_c * mean_j chattering_ij / c_ref ]
@@ -36,11 +36,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
-from fosmc_jax import _config, paper  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
+from fosmc_jax import paper  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax._app.plots import save_figure  # noqa: E402
 from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._plots import save_figure  # noqa: E402
-from fosmc_jax._simulator import simulate_batch  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax._simulator.rollout import simulate_batch  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
@@ -52,7 +53,7 @@ def log(msg: str) -> None:
 
 
 def load_problems(config=CONFIG, train_dt: float | None = 1e-3, t_final: float | None = None):
-    """(plain, train) :class:`fosmc_jax._tuning.Problem` of a config, as ``fosmc tune`` builds
+    """(plain, train) :class:`fosmc_jax._search.tune.Problem` of a config, as ``fosmc tune`` builds
     them (``train`` uses ``train_dt``; ``t_final`` overrides both horizons), and p0."""
     cfg = _config.load(config)
     if t_final is not None:

@@ -2,7 +2,7 @@
 
 A config's reference front is the non-dominated union, in (mean ``rms_error``, mean
 ``chattering_hf``) on the config's plain problem, of long runs of every method: ``fosmc front``,
-CMA-ES (:func:`fosmc_jax._search.cma_front`) and NSGA-II (:func:`fosmc_jax._search.nsga2`),
+CMA-ES (:func:`fosmc_jax._search.peers.cma_front`) and NSGA-II (:func:`fosmc_jax._search.peers.nsga2`),
 every candidate re-evaluated with the current code (the metric definitions change: the
 committed fronts of tuning/results/front_realistic_15min_* predate today's ``chattering_hf``).
 A front is scored by the additive epsilon indicator in log10 of both axes against the
@@ -72,11 +72,11 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _front as F  # noqa: E402
-from fosmc_jax import _search as S  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._metrics import METRIC_NAMES  # noqa: E402
+from fosmc_jax._search import front as F  # noqa: E402
+from fosmc_jax._search import peers as S  # noqa: E402
+from fosmc_jax._simulator.metrics import METRIC_NAMES  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "tuning" / "results" / "reference"
@@ -104,8 +104,8 @@ def additive_epsilon(front: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray
     with log10 a_err <= log10 r_err + eps and log10 a_chat <= log10 r_chat + eps, i.e.
     max_r min_a max(log10 a_err - log10 r_err, log10 a_chat - log10 r_chat). <= 0: the front
     weakly dominates every reference point; NaN with no reference point, inf with no front
-    point. It is log10 of the multiplicative :func:`fosmc_jax._front.epsilon` (front, ref),
-    restricted to the reference points given; it belongs beside that one in fosmc_jax._front."""
+    point. It is log10 of the multiplicative :func:`fosmc_jax._search.front.epsilon` (front, ref),
+    restricted to the reference points given; it belongs beside that one in fosmc_jax._search.front."""
     (ae, ac), (re, rc) = (tuple(np.log10(np.asarray(x, float)) for x in s) for s in (front, ref))
     if not len(re):
         return float("nan")
@@ -234,7 +234,7 @@ def build(args) -> dict:
     """Run one method on the config's plain problem for the budget; write its non-dominated
     candidates (no diverged rollout) with their plain metrics to <OUT>/<config>/<method>.json
     (the front: its front.json's points), and every candidate it evaluated to ``--save-all``
-    (.npz) when given. CMA-ES (:func:`fosmc_jax._search.cma_front`) is restarted with the next
+    (.npz) when given. CMA-ES (:func:`fosmc_jax._search.peers.cma_front`) is restarted with the next
     seed while budget is left: pycma stops a run at its own criteria (tolfun, ...)."""
     cfg = _config.load(args.config)
     name = config_name(args.config)

@@ -55,7 +55,7 @@ import time
 
 import tomllib
 
-from fosmc_jax._sharding import use_all_cores
+from fosmc_jax._simulator.sharding import use_all_cores
 
 use_all_cores()  # before the first JAX operation, as the command line does
 
@@ -69,12 +69,12 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 from jax.sharding import Mesh, NamedSharding  # noqa: E402
 from jax.sharding import PartitionSpec as Spec  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
-from fosmc_jax import _tuning as T  # noqa: E402
-from fosmc_jax._cache import use_compilation_cache  # noqa: E402
-from fosmc_jax._front import global_stage  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import cma_es  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax._search.front import global_stage  # noqa: E402
+from fosmc_jax._search.peers import cma_es  # noqa: E402
+from fosmc_jax._simulator.cache import use_compilation_cache  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "tuning" / "configs"
@@ -164,7 +164,7 @@ def grad_stats(g: np.ndarray) -> dict:
 
 class Batched:
     """The tuning objective of ``problem`` (same obj) at many flat u at once: vmapped over
-    candidates, the candidates split over the local devices (as fosmc_jax._front's chunk
+    candidates, the candidates split over the local devices (as fosmc_jax._search.front's chunk
     evaluator); compiled once per chunk size. Values of the training problem do not depend on
     the gradient window (truncation changes derivatives only)."""
 
@@ -1012,7 +1012,7 @@ def _diagnosis_text(diag: dict) -> str:
         f"{_f(g(e))} and {_f(g(dx))} instead of {_f(g('as is'))}). The one-sample delay slows it (without it "
         f"{rt(d)} decades/s, and the whole horizon's gradient overflows to NaN: the only NaN of the study, an "
         f"overflow after some 300 decades, not a 0/0); the saturation hardly matters. Mechanism: rounding passes "
-        f"a straight-through derivative (d round(x)/dx := 1, fosmc_jax/_loop.py), so the gradient is that of the "
+        f"a straight-through derivative (d round(x)/dx := 1, fosmc_jax/_loop/digital.py), so the gradient is that of the "
         f"unquantized loop, with its 1/T and 1/T^2 differences of theta, linearized along the quantized loop's "
         f"chattering orbit, on which that linearization is unstable; the quantized loop's own derivative with "
         f"respect to the measurement is 0 almost everywhere. So: no defect of the 0/0, sqrt or log kind; the "

@@ -30,7 +30,7 @@ fj.use_all_cores()
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import _config  # noqa: E402
+from fosmc_jax._app import config as _config  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent

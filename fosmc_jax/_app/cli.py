@@ -1,0 +1,357 @@
+"""The ``fosmc`` command line: parses arguments, calls the ``run_<command>`` functions of
+:mod:`fosmc_jax._app.commands` (which do the work and return the data), prints, and maps
+:class:`ConfigError` to ``fosmc: error: ...`` and exit status 2. No numerics here."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+import time
+import warnings
+
+import jax
+import numpy as np
+
+from .._design import paper as _paper
+from .._design.gains import CONVENTIONS
+from .._io import atomic_write, jsonable
+from .._simulator.metrics import METRIC_NAMES, UNITS
+from . import commands as C
+from . import config as _config
+
+_IMPORTED = time.perf_counter()  # process_start's fallback
+
+
+def process_start() -> float:
+    """This process's start as a ``time.perf_counter()`` value (from /proc on Linux; elsewhere
+    the import of this module, after Python's start and the package's imports): the CLI's
+    budgets count from it, as a user's stopwatch does."""
+    try:
+        ticks = int(open("/proc/self/stat").read().rsplit(")", 1)[1].split()[19])
+        uptime = float(open("/proc/uptime").read().split()[0])
+        age = uptime - ticks / os.sysconf("SC_CLK_TCK")
+        if 0 <= age < time.perf_counter() - _IMPORTED + 600:  # a sane age (a container's /proc may lie)
+            return time.perf_counter() - age
+    except (OSError, ValueError, IndexError, AttributeError):
+        pass
+    return _IMPORTED
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------- simulate
+
+
+def cmd_simulate(args) -> int:
+    r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
+                       keep_trace=bool(args.plot), records=not (args.json or args.npz), log=_log)  # fmt: skip
+    cfg, summary = r["config"], r["summary"]
+    index = (
+        r["arrays"] if "arrays" in r else {k: [x[k] for x in r["rollouts"]] for k in ("plant_index", "offset_index")}
+    )
+    n = len(index["plant_index"])
+    if args.plot:
+        from .plots import plot_rollouts
+
+        shown = min(n, 12)
+        tr = r.pop("trace")
+        pairs = zip(index["plant_index"][:shown], index["offset_index"][:shown])
+        labels = [f"plant {p}, offset {o}" for p, o in pairs]
+        plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
+                      title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
+                            f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
+        _log(f"fosmc: wrote {args.plot}")
+    if args.npz:
+
+        def write(tmp):
+            with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to a name
+                np.savez(f, **r["arrays"])
+
+        atomic_write(args.npz, write)
+        _log(f"fosmc: wrote {args.npz}")
+    if args.json:
+        print(_simulate_json(r))
+    else:
+        if not args.npz:
+            _print_rollouts(r["rollouts"])
+        if n > 1 or args.npz:  # with --npz the summary is all that is printed
+            print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
+            for name in METRIC_NAMES:
+                print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
+    return 0
+
+
+def _simulate_json(r: dict) -> str:
+    """``fosmc simulate --json`` from ``run_simulate(records=False)``: its records
+    (``rollout_records``), one per line, written by json's C encoder from one ``tolist``
+    per array (records of NumPy rows through ``jsonable`` and an indented dump cost 1 s at
+    16,384 rollouts, more than the simulation; BENCHMARKS.md, issue 13). Non-finite numbers
+    become null, as ``jsonable`` makes them (the records hold only numbers and booleans, so the
+    tokens cannot be in a string)."""
+    records = C.rollout_records({k: v.tolist() for k, v in r["arrays"].items()})
+    rows = ",\n  ".join(json.dumps(x) for x in records)
+    if "NaN" in rows or "Infinity" in rows:
+        rows = re.sub(r"-?Infinity|NaN", "null", rows)
+    rest = json.dumps(jsonable({k: v for k, v in r.items() if k not in ("arrays", "trace")}), indent=1)
+    return '{\n "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
+
+
+def _print_rollouts(rollouts: list[dict]) -> None:
+    head = f"{'rollout':>7} {'plant':>5} {'offset':>6} {'diverged':>8}  {'metric':<16} " + " ".join(
+        f"{j:>11}" for j in ("joint 1", "joint 2", "joint 3")
+    )
+    print(head)
+    for i, r in enumerate(rollouts):
+        for k, name in enumerate(METRIC_NAMES):
+            lead = (
+                f"{i:>7} {r['plant_index']:>5} {r['offset_index']:>6} {str(r['diverged']):>8}" if k == 0 else " " * 29
+            )
+            vals = " ".join(f"{v:>11.4e}" for v in r["metrics"][name])
+            print(f"{lead}  {name + ' (' + UNITS[name] + ')':<26}{vals}")
+
+
+def _fmt3(v) -> str:
+    return " ".join(f"{x:.4e}" for x in v)
+
+
+# ---------------------------------------------------------------------------- bounds
+
+
+def cmd_bounds(args) -> int:
+    start = time.perf_counter()
+    d = C.run_bounds(args.config, log=_log)
+    elapsed = time.perf_counter() - start
+    if args.json:
+        print(json.dumps(jsonable(d), indent=1))
+        return 0
+    gamma = d["gamma"]
+    fmt = lambda v: "  ".join(f"{x:10.4f}" for x in np.ravel(v))
+    if "box" in d:
+        a_rows, b_rows, box = d["nominal_A_rows"], d["nominal_B_rows"], [d["box"][k] for k in _config.BOX_KEYS]
+        print("The arm's box (sampled along the reference x payloads) beside the paper's Appendix box")
+        print("and nominal (29); rows 3, 6, 9 of A (columns 1-9) and B (columns 1-3):")
+        print(f"  {'entry':<8}{'arm lower':>11}{'arm upper':>11}{'arm nominal':>12}   "
+              f"{'paper lower':>11}{'paper upper':>12}{'paper (29)':>11}")  # fmt: skip
+        paper_box = (_paper.A_LOWER, _paper.A_UPPER, _paper.B_LOWER, _paper.B_UPPER)
+        for m, nom, pnom, (lo_, hi_), (plo, phi) in (
+            ("A", a_rows, _paper.A_ROWS, box[:2], paper_box[:2]),
+            ("B", b_rows, _paper.B_ROWS, box[2:], paper_box[2:]),
+        ):
+            for i in range(3):
+                for j in range(nom.shape[1]):
+                    arm_cols = f"{lo_[i, j]:11.3f}{hi_[i, j]:11.3f}{nom[i, j]:12.3f}"
+                    paper_cols = f"{plo[i, j]:11.3f}{phi[i, j]:12.3f}{pnom[i, j]:11.3f}"
+                    print(f"  {m}({3 * i + 3},{j + 1})".ljust(10) + arm_cols + "   " + paper_cols)
+    checked = d["vertices_checked"]
+    print(f"alpha = max ||B_bar^-1 dA_r||_2 over {checked['A']} box vertices = {d['alpha']:.4f}"
+          f"   (paper (31): {_paper.ALPHA_PRINTED})")  # fmt: skip
+    print(f"beta  = max ||B_bar^-1 dB_r||_2 over {checked['B']} box vertices = {d['beta']:.4f}"
+          f"   (paper (31): {_paper.BETA_PRINTED})")  # fmt: skip
+    print(f"({elapsed:.1f} s)\nK (3x9), placing the poles exactly (A + BK, (16)):")
+    for row in d["K"]:
+        print("  " + "  ".join(f"{x:9.4f}" for x in row))
+    poles = [complex(re, im) for re, im in d["closed_loop_poles"]]
+    print("eig(A + BK): " + ", ".join(f"{z.real:.4g}" + (f"{z.imag:+.3g}j" if z.imag else "") for z in poles))
+    print("CB:")
+    for row in d["CB"]:
+        print("  " + fmt(row))
+    s = np.linalg.svd(d["CB"], compute_uv=False)
+    print(f"singular values of CB: {fmt(s)}")
+    print("gamma lower bounds (24)-(26):")
+    print(f"  {'spectral (all 2-norms)':<34}{fmt(d['gamma_min']['spectral'])}")
+    print(f"  {'paper (||CB|| = sigma_min(CB))':<34}{fmt(d['gamma_min']['paper'])}")
+    print(f"  {'printed in the paper, (35)':<34}{fmt(_paper.GAMMA_MIN_PRINTED)}")
+    print(f"  {'gamma in use':<34}{fmt(gamma)}")
+    for c in CONVENTIONS:
+        ok = np.all(np.asarray(gamma) > d["gamma_min"][c])
+        print(f"  gamma {'meets' if ok else 'does NOT meet'} the {c} bounds")
+    return 0
+
+
+# ---------------------------------------------------------------------------- reproduce
+
+
+def cmd_reproduce(args) -> int:
+    start = time.perf_counter()
+    r = C.run_reproduce(args.out, plant=args.plant, t_final=args.t_final, dt=args.dt, integrator=args.integrator,
+                        force=args.force, report=args.report, log=_log)  # fmt: skip
+    print(r["files"]["metrics.md"])
+    _log(f"fosmc reproduce: wrote {', '.join(list(r['files']) + r['figures'])} to {args.out}/ "
+         f"in {time.perf_counter() - start:.1f} s (total wall time)")  # fmt: skip
+    return 0
+
+
+# ---------------------------------------------------------------------------- tune
+
+
+def cmd_tune(args) -> int:
+    r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force, log=_log)
+    for name in ("rms_error", "chattering"):
+        print(f"{name:<12} initial {_fmt3(r['initial']['metrics'][name])}   final {_fmt3(r['final']['metrics'][name])}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- front
+
+
+def cmd_front(args) -> int:
+    from .._search.front import AXES
+
+    start = process_start()
+    result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
+                         steps=args.steps, seed=args.seed, compare=tuple(args.compare), force=args.force,
+                         resume=args.resume, started=start, log=_log)  # fmt: skip
+    _log(
+        f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
+        "start)"
+    )
+    for i, pt in enumerate(result["points"]):
+        e, c = (float(np.mean(pt["metrics"][k])) for k in AXES)
+        print(f"point {i:3d}  {AXES[0]} {e:.4e} rad  {AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- certify
+
+
+def cmd_certify(args) -> int:
+    r = C.run_certify(args.config, vertices=args.vertices, configured_switching=args.configured_switching,
+                      seed=args.seed, log=_log)  # fmt: skip
+    if args.json:
+        print(json.dumps(jsonable(r), indent=1))
+        return 0
+    w = r["where"]
+    print(f"hitting condition (20): max s^T s'/||s|| = {r['max_hitting']:.4g} -> "
+          f"{'HOLDS' if r['holds'] else 'VIOLATED'} at all {r['points_checked']:.4g} points checked")  # fmt: skip
+    print(f"  plants: {r['vertices']}; evaluations: {r['evaluations']}")
+    for k, v in r["envelope"].items():
+        print(f"  {k}: {v}")
+    where = f", payload {w['payload']:g} kg" if "payload" in w else f", vertex code {w['vertex_code']}"
+    print(f"  worst at t = {w['t']:.4g} s, s = {np.round(w['s'], 4).tolist()}, "
+          f"||Z|| = {np.linalg.norm(w['Z']):.4g}{where}")  # fmt: skip
+    g = r["gamma_bounds"]
+    print(f"gamma bounds (24)-(26), alpha = {g['alpha']:.4f}, beta = {g['beta']:.4f}, "
+          f"checked at (1 +- {g['eps']}) x bound:")  # fmt: skip
+    for c in g["conventions"]:
+        print(f"  {c['convention']:<9} bound {np.round(c['bound'], 3).tolist()}: {c['verdict']} in this example "
+              f"(max at +eps {c['max_hitting_above']:.4g}, at -eps {c['max_hitting_below']:.4g})")  # fmt: skip
+    return 0
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("simulate", help="simulate the closed loop; print metrics per rollout")
+    s.add_argument("--config", help="TOML config (default: the paper's setup)")
+    s.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    s.add_argument("--plot", metavar="PNG", help="write a figure of the rollouts")
+    s.add_argument(
+        "--npz",
+        metavar="FILE",
+        help="write every rollout's metrics as NumPy arrays (one (N, 3) array per metric, diverged, diverged_at, "
+        "plant_index, offset_index, realization_index) and print only the batch summary",
+    )
+    s.add_argument(
+        "--params",
+        metavar="JSON",
+        help="use the tuned parameters of the config's controller kind (delta, gamma, poles; k, phi; k1, k2) "
+        "from a `fosmc tune` result.json or a `fosmc front` front.json",
+    )
+    s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
+    s.add_argument(
+        "--devices",
+        type=int,
+        help="split the batch over N devices (default: every core, or the count set in "
+        "JAX_NUM_CPU_DEVICES / XLA_FLAGS; 1 turns sharding off)",
+    )
+    s.set_defaults(func=cmd_simulate)
+    b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
+    b.add_argument("--config", help="TOML config (default: the paper's setup)")
+    b.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    b.set_defaults(func=cmd_bounds)
+    r = sub.add_parser("reproduce", help="the paper's Figs. 2-5, extra figures and metric tables")
+    r.add_argument("--out", default="out/reproduction", help="output folder (default: out/reproduction)")
+    r.add_argument("--plant", choices=("arm", "linear"), default="arm", help="plant for Figs. 2-5")
+    r.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    r.add_argument("--report", metavar="MD", help="also update the generated blocks of this report")
+    r.add_argument("--t-final", type=float, default=4.0, help="horizon (s), default 4")
+    r.add_argument("--dt", type=float, default=1e-4, help="step (s), default 1e-4")
+    r.add_argument("--integrator", choices=("euler", "rk4"), default="rk4")
+    r.set_defaults(func=cmd_reproduce)
+    f = sub.add_parser("front", help="Pareto front of tracking error against chattering (any controller kind)")
+    f.add_argument("--config", help="TOML config (default: the paper's setup)")
+    f.add_argument("--out", default="out/front", help="output folder (default: out/front)")
+    f.add_argument("--points", type=int, help="parents per local round (default 8)")
+    f.add_argument("--budget", type=float, default=300.0, help="wall time, s (default 300)")
+    f.add_argument(
+        "--candidates", type=int, help="global stage size: start, log grid, per-joint draws (default: from the budget)"
+    )
+    f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
+    f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")
+    f.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="JSON",
+        help="a front.json or tune result.json to draw on the same axes (repeatable)",
+    )
+    f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    f.set_defaults(func=cmd_front)
+    t = sub.add_parser("tune", help="gradient-based tuning of the controller kind's parameters (optax)")
+    t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
+    t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
+    t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")
+    t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    t.set_defaults(func=cmd_tune)
+    c = sub.add_parser("certify", help="check the hitting condition (20) numerically; gamma-bound verdicts")
+    c.add_argument("--config", help="TOML config (default: the paper's setup)")
+    c.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    c.add_argument("--vertices", default="all", help="'all' (exact over the box) or N sampled vertices")
+    c.add_argument("--configured-switching", action="store_true", help="use controller.switching instead of SGN")
+    c.add_argument("--seed", type=int, default=0, help="seed of the sampled points")
+    c.set_defaults(func=cmd_certify)
+    return p
+
+
+def _warn(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"fosmc: warning: {message}", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    warnings.showwarning = _warn
+    from .._simulator.cache import use_compilation_cache
+    from .._simulator.sharding import use_all_cores, use_host_devices  # before the first JAX operation
+
+    if getattr(args, "devices", None) is None:
+        use_all_cores()  # simulate, front (and tune's global stage) split their batches over every local device
+    else:
+        if args.devices < 1:
+            print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
+            return 2
+        try:
+            use_host_devices(args.devices)
+        except RuntimeError as e:
+            print(f"fosmc: error: --devices: {e}", file=sys.stderr)
+            return 2
+    jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
+    use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
+    try:
+        return args.func(args)
+    except _config.ConfigError as e:
+        print(f"fosmc: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

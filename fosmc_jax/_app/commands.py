@@ -1,0 +1,506 @@
+"""What each ``fosmc`` command computes, as one Python function per command.
+
+``run_simulate``, ``run_bounds``, ``run_reproduce``, ``run_certify``, ``run_tune`` and
+``run_front`` take a config (a TOML path, a user dict, an already resolved config, or
+``None`` for the paper's defaults) and the command's options as keyword arguments, and return
+the data the command writes: the dict that ``--json`` prints (``simulate``, ``bounds``,
+``certify``), that ``result.json`` / ``front.json`` hold (``tune``, ``front``), or the tables
+that ``reproduce`` writes. The dicts hold NumPy arrays where the JSON has lists;
+``fosmc_jax._io.jsonable`` of a result is exactly the command's JSON. The ``fosmc`` command
+line (``fosmc_jax._app.cli``) only parses arguments, prints and maps errors to exit codes.
+
+Naming: ``run_<command>`` says "what ``fosmc <command>`` does" and keeps these config-level
+entry points apart from the library functions they call (``simulate``, ``certify`` take
+plants, controllers and arrays, not configs). Errors are :class:`ConfigError` with the
+command line's one-line message; an option is named as the command line spells it
+(``--steps: expected a positive integer, got 0``), so both surfaces say the same thing.
+
+Every function runs with float64 available (``jax.enable_x64`` inside the call, as the
+command line enables it globally); the config's ``[sim] precision`` picks the dtype. ``log``
+receives the progress lines the command prints on stderr (default: silent). ``tune``,
+``front`` and ``reproduce`` write their files only when given ``out``, refusing a non-empty
+folder without ``force`` (or ``resume``) as the command does.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._design import paper as _paper
+from .._design.gains import summarize
+from .._io import jsonable, write_text
+from .._simulator.metrics import METRIC_NAMES, batch_summary
+from .._simulator.rollout import simulate_batch
+from . import config as _config
+from .config import ConfigError
+
+Config = str | Path | dict | None
+Log = Callable[[str], None]
+
+__all__ = ["run_simulate", "run_bounds", "run_reproduce", "run_certify", "run_tune", "run_front"]
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def _with_x64(f):
+    @functools.wraps(f)
+    def wrapped(*args, **kwargs):
+        with jax.enable_x64(True):
+            return f(*args, **kwargs)
+
+    return wrapped
+
+
+def config_of(config: Config) -> dict[str, Any]:
+    """The resolved config of a TOML path, a user dict (validated, defaults filled in), a
+    resolved config (returned as a copy), or ``None`` (the paper's defaults)."""
+    if config is None or isinstance(config, (str, Path)):
+        return _config.load(config)
+    if isinstance(config, dict):
+        return _config.resolve(config)
+    raise ConfigError(f"config: expected a TOML path, a dict or None, got {type(config).__name__}")
+
+
+def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not flags:
+        raise ConfigError(f"--out: {out} exists and is not empty ({hint})")
+    return out
+
+
+def _rollouts(problem) -> int:
+    """Rollouts in a problem's batch: plants x offsets x noise realizations."""
+    keys = 1 if problem.keys is None else problem.keys.shape[0]
+    return jax.tree.leaves(problem.plants)[0].shape[0] * problem.X0s.shape[0] * keys
+
+
+# ---------------------------------------------------------------------------- simulate
+
+
+@_with_x64
+def run_simulate(
+    config: Config = None,
+    *,
+    params: str | Path | None = None,
+    point: int | None = None,
+    devices: int | None = None,
+    keep_trace: bool = False,
+    records: bool = True,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
+
+    ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose parameters
+    replace the config's (``point``: the front's point): the FOSMC's delta, gamma, poles, or
+    SMC's k, phi (``smc_k``, ``smc_phi``) or super-twisting's k1, k2 (``st_k1``, ``st_k2``),
+    of the config's ``controller.kind`` only. The batch is split over ``devices`` devices
+    (``simulate_sharded``; default: every local device, one per core on CPU after
+    ``use_all_cores()`` or ``use_host_devices(n)`` before the first JAX operation, as the
+    command line does; 1: unsharded).
+    ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
+    it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
+
+    Returns ``{"rollouts": [{"plant_index", "offset_index", "realization_index", "metrics":
+    {name: (3,)}, "diverged", "diverged_at"}, ...], "summary": batch_summary, "config":
+    resolved config}``: what ``--json`` prints. With ``records=False``, ``"arrays"`` instead of
+    ``"rollouts"``: the same fields as NumPy arrays over the rollouts (what ``--npz`` writes,
+    and ``--json`` prints as records; no Python object per rollout).
+    """
+    cfg = config_of(config)
+    devices = jax.local_device_count() if devices is None else devices
+    if params:
+        cfg = _config.with_params(cfg, params, point)
+    elif point is not None:
+        raise ConfigError("--point: needs --params FRONT.json")
+    n = _config.n_steps(cfg)
+    if keep_trace and not cfg["sim"]["save_every"]:
+        m = _config.sample_steps(cfg)
+        cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
+    problem = _config.build(cfg)
+    n_plants = jax.tree.leaves(problem.plants)[0].shape[0]
+    n_offsets, n_real = problem.X0s.shape[0], 1 if problem.keys is None else problem.keys.shape[0]
+    n_rollouts = n_plants * n_offsets * n_real
+    log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
+        f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s): "
+        "compiling and running ...")  # fmt: skip
+    start = time.perf_counter()
+    if devices > 1:
+        from .._simulator.sharding import simulate_sharded
+
+        result = simulate_sharded(*problem.args, devices=devices, keys=problem.keys, **problem.options)
+    else:
+        result = simulate_batch(*problem.args, keys=problem.keys, **problem.options)
+    result = jax.block_until_ready(result)
+    log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
+
+    # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
+    # rollouts: BENCHMARKS.md, issue 13)
+    r = np.arange(n_rollouts)
+    arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+    arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
+                  plant_index=r // (n_offsets * n_real), offset_index=r // n_real % n_offsets,
+                  realization_index=r % n_real)  # fmt: skip
+    summary = batch_summary(result.metrics, result.diverged)
+    if not records:
+        out = {"arrays": arrays, "summary": summary, "config": cfg}
+        return dict(out, trace=result.trace) if keep_trace else out
+    rollouts = list(rollout_records(arrays))
+    out = {"rollouts": rollouts, "summary": summary, "config": cfg}
+    if keep_trace:
+        out["trace"] = result.trace
+    return out
+
+
+def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
+    """``run_simulate``'s records, one per rollout, from its ``arrays`` (NumPy arrays, or their
+    ``tolist()``, as ``--json`` passes them to json's encoder): indices, ``metrics`` rows,
+    ``diverged`` and ``diverged_at``."""
+    for i in range(len(arrays["diverged"])):
+        yield {
+            "plant_index": int(arrays["plant_index"][i]),
+            "offset_index": int(arrays["offset_index"][i]),
+            "realization_index": int(arrays["realization_index"][i]),
+            "metrics": {name: arrays[name][i] for name in METRIC_NAMES},
+            "diverged": bool(arrays["diverged"][i]),
+            "diverged_at": float(arrays["diverged_at"][i]),
+        }
+
+
+# ---------------------------------------------------------------------------- bounds
+
+
+@_with_x64
+def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
+    """``fosmc bounds``: alpha, beta (31) by exact vertex enumeration of the config's box, K
+    placing the poles (16), eig(A + BK), CB, and the gamma lower bounds (24)-(26) in both
+    conventions beside the paper's printed numbers.
+
+    Returns ``{"alpha", "beta", "vertices_checked": {"A", "B"}, "K": (3, 9),
+    "closed_loop_poles": [[re, im]] x 9, "CB": (3, 3), "gamma_min": {convention: (3,)},
+    "gamma", "paper_printed": {"alpha", "beta", "gamma_min"}}``; for ``kind = "arm"`` also
+    ``"box"`` (the arm's box, sampled along the reference x payloads) and ``"nominal_A_rows"``,
+    ``"nominal_B_rows"`` (from which K and the bounds are then computed).
+    """
+    cfg = config_of(config)
+    arm = cfg["plant"]["kind"] == "arm"
+    if arm:
+        from .._plants.arm import ARM_PARAMS, arm_box, envelope_samples
+
+        lo, hi = min(cfg["plant"]["payloads"]), max(cfg["plant"]["payloads"])
+        log(f"fosmc bounds: sampling the arm's rows along the reference, payloads {lo:g}..{hi:g} kg ...")
+        abox = arm_box(ARM_PARAMS, np.linspace(lo, hi, 11), envelope_samples())
+        a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
+    else:
+        box = _config.box_of(cfg)
+        a_rows, b_rows = cfg["model"]["A_rows"], cfg["model"]["B_rows"]
+    d = summarize(a_rows, b_rows, box, cfg["controller"]["C"], cfg["controller"]["poles"])
+    out = {
+        "alpha": d.alpha.value,
+        "beta": d.beta.value,
+        "vertices_checked": {"A": d.alpha.vertices_checked, "B": d.beta.vertices_checked},
+        "K": d.K,
+        "closed_loop_poles": [[z.real, z.imag] for z in d.closed_loop_poles],
+        "CB": d.CB,
+        "gamma_min": d.gamma_min,
+        "gamma": cfg["controller"]["gamma"],
+        "paper_printed": {
+            "alpha": _paper.ALPHA_PRINTED,
+            "beta": _paper.BETA_PRINTED,
+            "gamma_min": _paper.GAMMA_MIN_PRINTED,
+        },
+    }
+    if arm:
+        out["box"] = dict(zip(_config.BOX_KEYS, box))
+        out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
+    return out
+
+
+# ---------------------------------------------------------------------------- reproduce
+
+
+@_with_x64
+def run_reproduce(
+    out: str | Path | None = None,
+    *,
+    plant: str = "arm",
+    t_final: float = 4.0,
+    dt: float = 1e-4,
+    integrator: str = "rk4",
+    force: bool = False,
+    report: str | Path | None = None,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc reproduce``: the paper's cases (Table 1's sets and SGN, nominal and box
+    vertices or the arm at 0 and 10 kg) at ``t_final``, ``dt``, ``integrator``; the shortened
+    check table; for ``plant = "arm"`` the realistic loop beside the ideal one and the
+    trade-off sweeps. It takes no config: the cases are the paper's.
+
+    ``out``: folder for the tables and figures (None: nothing written, no figures).
+    ``report``: a Markdown file whose generated blocks are refreshed.
+    Returns ``{"files": {file name: text}, "figures": [file names], "rows": {"metrics",
+    "metrics_short"[, "realistic"]: metric rows}}``; ``files`` holds ``metrics.csv``,
+    ``metrics.md``, ``design.md``, ``metrics_short.csv`` (and ``realistic.md``,
+    ``tradeoff.md`` for the arm), exactly as written to ``out``.
+    """
+    from . import reproduce as R
+    if plant not in ("arm", "linear"):
+        raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
+    if integrator not in ("euler", "rk4"):
+        raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
+    if out is not None:
+        out = _fresh_out(out, force, "use --force to overwrite")
+        out.mkdir(parents=True, exist_ok=True)
+    settings = R.Settings(t_final=t_final, dt=dt, integrator=integrator)
+    log(f"fosmc reproduce: {plant} plant, {settings.integrator}, dt = {settings.dt} s, "
+        f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
+    log(
+        f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s)"
+        f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
+    )
+    # every group at once, a thread per core: their time is mostly compilation, one core each
+    jobs = [lambda: R.run_cases(plant, settings, log=log), lambda: R.run_cases(plant, R.SHORT, log=log)]
+    if plant == "arm":
+        jobs += [lambda: R.run_realistic_cases(t_final, log=log), lambda: R.tradeoff_sweeps(t_final, log=log)]
+    cases, short_cases, *arm_only = R.parallel(*jobs)
+    rows, short = R.metric_rows(cases), R.metric_rows(short_cases)
+    files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts(),
+             "metrics_short.csv": R.to_csv(short)}  # fmt: skip
+    tables = {"metrics": rows, "metrics_short": short}
+    figures: list[str] = []
+    if out is not None:
+        for name, text in files.items():
+            write_text(out / name, text)
+        log("fosmc reproduce: drawing figures ...")
+        figures = R.write_figures(cases, out, plant)
+    if plant == "arm":
+        realistic, sweeps = arm_only
+        tables["realistic"] = R.metric_rows(realistic, R.METRIC_NAMES)
+        files.update({"realistic.md": R.to_markdown(tables["realistic"], R.METRIC_NAMES),
+                      "tradeoff.md": R.sweep_markdown(sweeps)})  # fmt: skip
+        if out is not None:
+            for name in ("realistic.md", "tradeoff.md"):
+                write_text(out / name, files[name])
+            figures += R.write_realistic_figures(cases + realistic, sweeps, out)
+    if report:
+        report = Path(report)
+        text = report.read_text()
+        text = R.replace_block(text, "metrics", files["metrics.md"])
+        text = R.replace_block(text, "design", files["design.md"])
+        for name in ("realistic", "tradeoff"):
+            if f"{name}.md" in files:
+                text = R.replace_block(text, name, files[f"{name}.md"])
+        write_text(report, text)
+        log(f"fosmc reproduce: updated {report}")
+    return {"files": files, "figures": figures, "rows": tables}
+
+
+# ---------------------------------------------------------------------------- certify
+
+
+@_with_x64
+def run_certify(
+    config: Config = None,
+    *,
+    vertices: int | str = "all",
+    configured_switching: bool = False,
+    seed: int = 0,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc certify``: the hitting condition (20), s^T ds/dt < 0, checked numerically
+    along the reference over sampled errors and sliding directions, over the whole box
+    (``vertices = "all"``, exact) or ``vertices`` sampled vertices, or over the payload range
+    for the arm; and the verdicts on the gamma bounds (24)-(26) of each convention.
+
+    SGN switching unless ``configured_switching`` (then ``controller.switching``).
+    Returns ``fosmc_jax._certificate.certify.report``'s dict (``max_hitting``, ``holds``,
+    ``points_checked``, ``evaluations``, ``where``, ``vertices``, ``plant``, ``envelope``,
+    ``gamma_bounds``): what ``--json`` prints.
+    """
+    from .._certificate import certify as _certify
+    cfg = config_of(config)
+    switching = cfg["controller"]["switching"] if configured_switching else "sign"
+    opts = {"switching": switching, "seed": seed}
+    if vertices != "all":
+        count = vertices if isinstance(vertices, int) and not isinstance(vertices, bool) else None
+        if isinstance(vertices, str) and vertices.isdigit():
+            count = int(vertices)
+        if count is None or count < 1:
+            raise ConfigError(f"--vertices: expected 'all' or a positive integer, got {vertices!r}")
+        opts["vertices"] = count
+    log(f"fosmc certify: {cfg['plant']['kind']} plant, {switching} switching ...")
+    start = time.perf_counter()
+    r = _certify.report(cfg, **opts)
+    log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")
+    return r
+
+
+# ---------------------------------------------------------------------------- tune
+
+
+@_with_x64
+def run_tune(
+    config: Config = None,
+    *,
+    steps: int | None = None,
+    out: str | Path | None = None,
+    resume: bool = False,
+    force: bool = False,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` of the config's
+    ``controller.kind`` (every kind is tunable, each with its own parameters: the FOSMC's
+    delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2; default: all of them) on the
+    training simulation (``tune.train_dt``, ``tune.train_t_final``), with the objective's
+    scales taken at the config's parameters, the optional global stage
+    (``tune.global_candidates``) and, for the FOSMC only, gamma floor (24)-(26)
+    (``tune.keep_gamma_bound``); initial and final parameters evaluated on the plain
+    ``[sim]`` simulation.
+
+    ``steps`` overrides ``tune.steps``. ``out``: folder for ``result.json``, ``tuning.png``
+    and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
+    parameters); ``resume`` continues from its checkpoint. Returns what
+    ``result.json`` holds: ``{"initial": {"params", "metrics", ...}, "start": {"params",
+    "global_candidates"}, "final": {...}, "objective", "history", "config"}``, ``params`` by
+    the kind's names (e.g. ``{"k": [...], "phi": [...]}``).
+    """
+    from .._search import tune as T
+    cfg = config_of(config)
+    tcfg = cfg["tune"]
+    if steps is not None:
+        if steps < 1:
+            raise ConfigError(f"--steps: expected a positive integer, got {steps}")
+        tcfg["steps"] = steps
+    kind = cfg["controller"]["kind"]
+    names = T.SPACES[kind].names
+    if not set(tcfg["params"]) <= set(names):
+        raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
+                          f"controller.kind = '{kind}'), got {tcfg['params']}")  # fmt: skip
+    if tcfg["keep_gamma_bound"] and kind != "fosmc":
+        raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
+                          f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
+    if out is not None:
+        out = _fresh_out(out, force or resume, "use --resume or --force")
+    plain, problem, p0 = _config.tuning_problems(cfg)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    floor = None
+    if tcfg["keep_gamma_bound"]:
+        box = _config.box_of(cfg)
+        d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
+                      cfg["controller"]["poles"])  # fmt: skip
+        floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+    log(f"tune: {_rollouts(problem)} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
+        f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
+    m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    initial = T.evaluate(plain, p0)
+    obj = T.objective_of(tcfg, m)
+    start_params = p0
+    checkpoint = None if out is None else out / "checkpoint.npz"
+    resuming = resume and checkpoint is not None and checkpoint.exists()
+    if tcfg["global_candidates"] and floor is None and not resuming:
+        from .._search.front import global_stage
+
+        start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
+                                           log=log)  # fmt: skip
+        log(f"tune: global stage: the best of {tcfg['global_candidates']} candidates scores {score:.4f} "
+            "(the config's parameters score about 0 with the log scale)")  # fmt: skip
+    try:
+        u0 = T.to_internal(start_params, plain.base, floor)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    lr = T.learning_rate(tcfg["learning_rate"], problem)
+    settings = T.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
+                          tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
+    start = time.perf_counter()
+    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume, log=log)
+    final_params = T.to_physical(u, plain.base, floor)
+    final = T.evaluate(plain, final_params)
+    as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
+    result = {
+        "initial": {"params": as_dict(p0), **initial},
+        "start": {
+            "params": as_dict(start_params),
+            "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
+        },  # fmt: skip
+        "final": {"params": as_dict(final_params), **final},
+        "objective": obj._asdict(),
+        "history": {k: v for k, v in history.items() if k != "params"},
+        "config": cfg,
+    }
+    if out is not None:
+        from .plots import plot_tuning
+
+        write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
+        params_history = [as_dict(T.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
+                          for p in history["params"]]  # fmt: skip
+        plot_tuning(history, params_history, out / "tuning.png")
+        log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
+    return result
+
+
+# ---------------------------------------------------------------------------- front
+
+
+@_with_x64
+def run_front(
+    config: Config = None,
+    *,
+    out: str | Path | None = None,
+    points: int | None = None,
+    budget: float = 300.0,
+    candidates: int | None = None,
+    steps: int | None = None,
+    seed: int = 0,
+    compare: tuple[str | Path, ...] | list[str | Path] = (),
+    force: bool = False,
+    resume: bool = False,
+    started: float | None = None,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc front``: the Pareto front of mean ``rms_error`` against mean
+    ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time, over the
+    parameters of the config's ``controller.kind`` (every kind is tunable: the FOSMC's delta,
+    gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
+    kind's box, ``fosmc_jax._search.tune.SPACES``), by ``fosmc_jax._search.front.study``: ``points``
+    parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
+    the local rounds, default from the budget; ``seed``: of the search's draws. ``out``: folder for ``front.json``,
+    ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
+    nothing written); ``resume`` continues from its checkpoint. The budget counts from
+    ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
+    this call).
+
+    Returns what ``front.json`` holds: ``{"axes", "points": [{params, metrics, held_out,
+    diverged}], "stages", "references", "held_out_batch", "config"}``, ``params`` by the
+    kind's names, ``references`` the paper's FOSMC (Table 1's sets, SGN) whatever the kind.
+    With ``candidates`` and ``steps`` given the result is deterministic except
+    ``stages.wall_time_s``.
+    """
+    from .._search import front as F
+    cfg = config_of(config)
+    if out is not None:
+        out = _fresh_out(out, force or resume, "use --resume or --force")
+    for name, value in (("--points", points), ("--candidates", candidates), ("--steps", steps)):
+        if value is not None and value < (1 if name == "--points" else 0):
+            raise ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
+                              f"integer, got {value}")  # fmt: skip
+    if not budget > 0:
+        raise ConfigError(f"--budget: expected a positive number of seconds, got {budget}")
+    for path in compare:
+        try:
+            json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"--compare: cannot read {path}: {e}") from None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
+    return F.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)

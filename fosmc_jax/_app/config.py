@@ -1,0 +1,694 @@
+"""Configuration: TOML files, validation with one-line errors, and the objects they describe.
+
+Every key is optional; the defaults are the paper's (from :mod:`fosmc_jax._design.paper`). A config
+is resolved to a plain nested ``dict`` of Python numbers and lists (JSON-ready), then turned
+into simulator inputs by :func:`build`. Errors are :class:`ConfigError` (a ``ValueError``)
+with a message that names the key and the expected form.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._controllers.fosmc import LAWS, SWITCHING, Controller, DiscreteFOSMC
+from .._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
+from .._design import paper
+from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
+from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
+from .._plants.arm import PAYLOAD_RANGE, arm_sweep
+from .._plants.linear import UNCERTAINTY, uncertain_plants
+from .._plants.reference import Cycloid, desired_state
+from .._search import tune as _tuning
+from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, SPACES, WORST_CASE
+from .._simulator.rollout import INTEGRATORS
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+
+class ConfigError(ValueError):
+    """A configuration key is missing its expected form (one-line message naming the key)."""
+
+
+PLANT_KINDS = ("linear", "arm")
+#: ``[controller] kind``: the paper's FOSMC, conventional SMC, super-twisting (fosmc_jax._controllers.smc).
+CONTROLLER_KINDS = ("fosmc", "smc", "super_twisting")
+BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
+#: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
+MAX_STEPS = 10**8
+PRECISIONS = ("float32", "float64")
+#: Every kind's tunable parameters (``[tune] params`` names some of the config's kind's).
+TUNABLE_NAMES = tuple(name for space in SPACES.values() for name in space.names)
+
+
+def defaults() -> dict[str, Any]:
+    """The built-in configuration: the paper's model, design, gains and simulation."""
+    return {
+        "trajectory": {
+            "start": paper.THETA_START.tolist(),
+            "end": paper.THETA_END.tolist(),
+            "duration": paper.TAU,
+        },
+        "model": {"A_rows": paper.A_ROWS.tolist(), "B_rows": paper.B_ROWS.tolist()},
+        "controller": {
+            "C": paper.C.tolist(),
+            "poles": paper.POLES.tolist(),
+            "gamma": paper.GAMMA.tolist(),
+            "switching": "ratio",
+            "delta": paper.DELTA_SETS[0].tolist(),
+            "law": "paper",
+            "sample_period": 0.0,
+            "delay_samples": 0,
+            "kind": "fosmc",
+            "smc_k": [1000.0, 1000.0, 1000.0],
+            "smc_phi": [10.0, 10.0, 10.0],
+            "st_k1": [50.0, 50.0, 50.0],
+            "st_k2": [1000.0, 1000.0, 1000.0],
+        },
+        "sensors": {
+            "encoder_counts": [0, 0, 0],
+            "derivatives": "measured",
+            "noise_std": [0.0] * 9,
+            "seed": 0,
+            "realizations": 1,
+        },
+        "actuator": {},  # u_max absent: no limit
+        "plant": {
+            "kind": "linear",
+            "payloads": list(paper.PAYLOADS),
+            "uncertainty": "none",
+            "dA_rows": np.zeros((3, 9)).tolist(),
+            "dB_rows": np.zeros((3, 3)).tolist(),
+            "samples": 16,
+            "seed": 0,
+            "box": {
+                "A_lower": paper.A_LOWER.tolist(),
+                "A_upper": paper.A_UPPER.tolist(),
+                "B_lower": paper.B_LOWER.tolist(),
+                "B_upper": paper.B_UPPER.tolist(),
+            },
+        },
+        "sim": {
+            "t_final": paper.T_FINAL,
+            "dt": 1e-4,
+            "integrator": "rk4",
+            "initial_offset": [0.0] * 9,
+            "precision": "float64",
+            "save_every": 0,
+            "divergence_bound": 1e6,
+        },
+        "tune": {
+            "params": ["delta", "gamma", "poles"],
+            "weight_error": 1.0,
+            "weight_chattering": 1.0,
+            "worst_case": "none",
+            "worst_weight": 0.0,
+            "cvar_alpha": 0.9,
+            "penalty": 100.0,
+            "steps": 100,
+            "learning_rate": 0.0,
+            "schedule": "cosine",
+            "clip": 1.0,
+            "mode": "auto",
+            "checkpoint_every": 10,
+            "remat_steps": 100,
+            "gradient_window": 0.0,
+            "train_dt": 0.0,
+            "train_t_final": 0.0,
+            "keep_gamma_bound": False,
+            "gamma_bound_convention": "paper",
+            "global_candidates": 1024,
+            "objective": "weighted",
+            "scale": "log",
+            "error_metric": "rms_error",
+            "chattering_metric": "chattering_hf",
+            "error_bound": 0.0,
+            "chattering_bound": 0.0,
+            "bound_weight": 100.0,
+        },
+    }
+
+
+# ---------------------------------------------------------------------------- validators
+
+
+def _array(shape: tuple[int, ...], what: str, check: Callable[[np.ndarray], bool] | None = None):
+    def validate(key: str, value: Any) -> Any:
+        if not _all_numbers(value):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}") from None
+        if a.shape != shape:
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        if not np.all(np.isfinite(a)):
+            raise ConfigError(f"{key}: expected {what} (finite), got {_short(value)}")
+        if check is not None and not check(a):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        return a.tolist()
+
+    return validate
+
+
+def _all_numbers(value: Any) -> bool:
+    """True for a number (not a bool) or a (nested) list of them."""
+    if isinstance(value, list):
+        return all(_all_numbers(v) for v in value)
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _number(what: str, check: Callable[[float], bool] = lambda x: True):
+    def validate(key: str, value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:
+            finite = False
+        if not finite:
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        if not check(value):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        return float(value)
+
+    return validate
+
+
+def _integer(what: str, check: Callable[[int], bool]):
+    def validate(key: str, value: Any) -> Any:
+        if isinstance(value, bool) or not isinstance(value, int) or not check(value):
+            raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+        return int(value)
+
+    return validate
+
+
+def _choice(choices: tuple[str, ...]):
+    def validate(key: str, value: Any) -> Any:
+        if value not in choices:
+            raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {_short(value)}")
+        return value
+
+    return validate
+
+
+def _boolean(key: str, value: Any) -> Any:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {_short(value)}")
+    return value
+
+
+def _names(choices: tuple[str, ...]):
+    def validate(key: str, value: Any) -> Any:
+        if not isinstance(value, list) or not value or any(v not in choices for v in value):
+            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(choices)}; got {_short(value)}")
+        return list(dict.fromkeys(value))
+
+    return validate
+
+
+def _payloads(key: str, value: Any) -> Any:
+    lo, hi = PAYLOAD_RANGE
+    what = f"a non-empty list of payloads in [{lo:g}, {hi:g}] kg"
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+    return _array((len(value),), what, lambda a: np.all((a >= lo) & (a <= hi)))(key, value)
+
+
+def _offsets(key: str, value: Any) -> Any:
+    what = "9 numbers, or a non-empty list of lists of 9 numbers"
+    a = np.asarray(value, dtype=object)
+    if a.ndim == 1:
+        return _array((9,), what)(key, value)
+    if a.ndim == 2 and a.shape[0] >= 1:
+        return _array((a.shape[0], 9), what)(key, value)
+    raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+
+
+def _counts(key: str, value: Any) -> Any:
+    what = "a non-negative integer, or 3 of them (encoder counts per revolution; 0: exact)"
+    values = value if isinstance(value, list) else [value]
+    if len(values) not in (1, 3) or any(isinstance(v, bool) or not isinstance(v, int) or v < 0 for v in values):
+        raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
+    return values * 3 if len(values) == 1 else values
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+_finite = lambda a: True
+SCHEMA: dict[str, Any] = {
+    "trajectory": {
+        "start": _array((3,), "3 numbers (rad)"),
+        "end": _array((3,), "3 numbers (rad)"),
+        "duration": _number("a positive number (s)", lambda x: x > 0),
+    },
+    "model": {
+        "A_rows": _array((3, 9), "a 3x9 matrix (rows 3, 6, 9 of A)"),
+        "B_rows": _array((3, 3), "a 3x3 matrix (rows 3, 6, 9 of B)"),
+    },
+    "controller": {
+        "C": _array((3, 9), "a 3x9 matrix"),
+        "poles": _array((3, 3), "a 3x3 matrix of negative numbers (1/s)", lambda a: np.all(a < 0)),
+        "gamma": _array((3,), "3 non-negative numbers", lambda a: np.all(a >= 0)),
+        "switching": _choice(SWITCHING),
+        "delta": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "law": _choice(LAWS),
+        "sample_period": _number("a non-negative number (s; 0: the ideal loop)", lambda x: x >= 0),
+        "delay_samples": _integer("a non-negative integer (controller samples)", lambda n: n >= 0),
+        "kind": _choice(CONTROLLER_KINDS),
+        "smc_k": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "smc_phi": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "st_k1": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "st_k2": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+    },
+    "sensors": {
+        "encoder_counts": _counts,
+        "derivatives": _choice(DERIVATIVES),
+        "noise_std": _array((9,), "9 non-negative numbers", lambda a: np.all(a >= 0)),
+        "seed": _integer("a non-negative integer", lambda n: n >= 0),
+        "realizations": _integer("a positive integer", lambda n: n >= 1),
+    },
+    "actuator": {
+        "u_max": _array((3,), "3 positive numbers (V)", lambda a: np.all(a > 0)),
+    },
+    "plant": {
+        "kind": _choice(PLANT_KINDS),
+        "payloads": _payloads,
+        "uncertainty": _choice(UNCERTAINTY),
+        "dA_rows": _array((3, 9), "a 3x9 matrix"),
+        "dB_rows": _array((3, 3), "a 3x3 matrix"),
+        "samples": _integer("a positive integer", lambda n: n >= 1),
+        "seed": _integer("a non-negative integer", lambda n: n >= 0),
+        "box": {
+            "A_lower": _array((3, 9), "a 3x9 matrix"),
+            "A_upper": _array((3, 9), "a 3x9 matrix"),
+            "B_lower": _array((3, 3), "a 3x3 matrix"),
+            "B_upper": _array((3, 3), "a 3x3 matrix"),
+        },
+    },
+    "sim": {
+        "t_final": _number("a positive number (s)", lambda x: x > 0),
+        "dt": _number("a positive number (s)", lambda x: x > 0),
+        "integrator": _choice(INTEGRATORS),
+        "initial_offset": _offsets,
+        "precision": _choice(PRECISIONS),
+        "save_every": _integer("a non-negative integer", lambda n: n >= 0),
+        "divergence_bound": _number("a positive number", lambda x: x > 0),
+    },
+    "tune": {
+        "params": _names(TUNABLE_NAMES),
+        "weight_error": _number("a non-negative number", lambda x: x >= 0),
+        "weight_chattering": _number("a non-negative number", lambda x: x >= 0),
+        "worst_case": _choice(WORST_CASE),
+        "worst_weight": _number("a non-negative number", lambda x: x >= 0),
+        "cvar_alpha": _number("a number in [0, 1)", lambda x: 0 <= x < 1),
+        "penalty": _number("a positive number", lambda x: x > 0),
+        "steps": _integer("a positive integer", lambda n: n >= 1),
+        "learning_rate": _number("a non-negative number (0: automatic)", lambda x: x >= 0),
+        "schedule": _choice(("cosine", "constant")),
+        "clip": _number("a positive number", lambda x: x > 0),
+        "mode": _choice(MODES),
+        "checkpoint_every": _integer("a non-negative integer", lambda n: n >= 0),
+        "remat_steps": _integer("a non-negative integer", lambda n: n >= 0),
+        "gradient_window": _number("a non-negative number (s; 0: automatic)", lambda x: x >= 0),
+        "train_dt": _number("a non-negative number (s; 0: automatic)", lambda x: x >= 0),
+        "train_t_final": _number("a non-negative number (s; 0: sim.t_final)", lambda x: x >= 0),
+        "keep_gamma_bound": _boolean,
+        "gamma_bound_convention": _choice(CONVENTIONS),
+        "global_candidates": _integer("a non-negative integer (0: no global stage)", lambda n: n >= 0),
+        "objective": _choice(FORMS),
+        "scale": _choice(SCALES),
+        "error_metric": _choice(ERROR_METRICS),
+        "chattering_metric": _choice(CHATTERING_METRICS),
+        "error_bound": _number("a non-negative number (rad; used by objective = 'error_bound')", lambda x: x >= 0),
+        "chattering_bound": _number("a non-negative number (used by objective = 'chattering_bound')", lambda x: x >= 0),
+        "bound_weight": _number("a positive number", lambda x: x > 0),
+    },
+}
+
+
+def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
+    if not isinstance(user, dict):
+        raise ConfigError(f"{prefix or 'config'}: expected a table, got {_short(user)}")
+    out = dict(base)
+    for key, value in user.items():
+        shown = key if str(key).isidentifier() else repr(key)
+        name = f"{prefix}.{shown}" if prefix else shown
+        if key not in schema:
+            known = ", ".join(sorted(schema))
+            raise ConfigError(f"{name}: unknown key (known here: {known})")
+        rule = schema[key]
+        out[key] = _merge(rule, base[key], value, name) if isinstance(rule, dict) else rule(name, value)
+    return out
+
+
+def resolve(user: dict | None = None) -> dict[str, Any]:
+    """Validate a user configuration (nested dict, e.g. parsed TOML) and fill in defaults.
+
+    ``[tune] params`` defaults to every parameter of the config's ``controller.kind``.
+    Raises :class:`ConfigError` naming the first offending key.
+    """
+    cfg = _merge(SCHEMA, defaults(), copy.deepcopy(user or {}), "")
+    if "params" not in (user or {}).get("tune", {}):
+        cfg["tune"]["params"] = list(SPACES[cfg["controller"]["kind"]].names)
+    _check_consistency(cfg)
+    return cfg
+
+
+def load(path: str | Path | None) -> dict[str, Any]:
+    """Read and :func:`resolve` a TOML file (``None``: the defaults)."""
+    if path is None:
+        return resolve({})
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {str(path)!r}: {e.strerror or e}") from None
+    try:
+        user = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: not valid TOML: {e}") from None
+    return resolve(user)
+
+
+def _check_consistency(cfg: dict) -> None:
+    sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
+    if sim["dt"] > sim["t_final"]:
+        raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
+        raise ConfigError("plant.uncertainty: applies to kind = 'linear' only (the arm's uncertainty is its payloads)")
+    tune = cfg["tune"]
+    for form, key in (("error_bound", "error_bound"), ("chattering_bound", "chattering_bound")):
+        if tune["objective"] == form and not tune[key] > 0:
+            raise ConfigError(f"tune.{key}: expected a positive bound with tune.objective = '{form}', got {tune[key]}")
+    train_t = cfg["tune"]["train_t_final"] or sim["t_final"]
+    if train_t > sim["t_final"]:
+        raise ConfigError(f"tune.train_t_final: expected at most sim.t_final = {sim['t_final']}, got {train_t}")
+    if cfg["tune"]["train_dt"] > train_t:
+        raise ConfigError(
+            f"tune.train_dt: expected at most the training horizon {train_t}, got {cfg['tune']['train_dt']}"
+        )
+    if sim["t_final"] / sim["dt"] > MAX_STEPS:
+        raise ConfigError(
+            f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}"
+        )
+    _check_loop(cfg)
+    for m in ("A", "B"):
+        if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
+            raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")
+    if abs(np.linalg.det(np.asarray(model["B_rows"]))) < 1e-12:
+        raise ConfigError("model.B_rows: must be invertible (B_bar)")
+    try:
+        check_design(np.asarray(model["B_rows"]), np.asarray(ctl["C"]), np.asarray(ctl["poles"]))
+    except DesignError as e:
+        raise ConfigError(f"controller: {e}") from None
+    h = stable_step(model["A_rows"], model["B_rows"], ctl["poles"], sim["integrator"])
+    if sim["dt"] > h:
+        warnings.warn(
+            f"sim.dt = {sim['dt']} s exceeds the {sim['integrator']} stability limit {h:.3g} s of the "
+            "nominal model's fastest mode: expect divergence",
+            stacklevel=2,
+        )
+
+
+def sample_steps(cfg: dict) -> int:
+    """m = controller.sample_period / sim.dt (1 for the ideal loop)."""
+    T = cfg["controller"]["sample_period"]
+    return max(1, round(T / cfg["sim"]["dt"])) if T else 1
+
+
+def _check_loop(cfg: dict) -> None:
+    ctl, sens, sim = cfg["controller"], cfg["sensors"], cfg["sim"]
+    T, dt = ctl["sample_period"], sim["dt"]
+    if T == 0:
+        digital = {"controller.delay_samples": ctl["delay_samples"] != 0,
+                   "sensors.encoder_counts": any(sens["encoder_counts"]),
+                   "sensors.derivatives": sens["derivatives"] != "measured",
+                   "sensors.noise_std": any(sens["noise_std"]),
+                   "sensors.realizations": sens["realizations"] != 1,
+                   "actuator.u_max": "u_max" in cfg["actuator"]}  # fmt: skip
+        for key, set_ in digital.items():
+            if set_:
+                raise ConfigError(
+                    f"{key}: needs controller.sample_period > 0 (the ideal loop reads the exact state; "
+                    f"sample_period = sim.dt = {dt} gives a digital loop at the simulation's rate)"
+                )
+        return
+    m = T / dt
+    if round(m) < 1 or abs(m - round(m)) > 1e-9 * max(1.0, m):
+        raise ConfigError(f"controller.sample_period: expected an integer multiple (>= 1) of sim.dt = {dt}, got {T}")
+    if sim["save_every"] % round(m):
+        raise ConfigError(
+            f"sim.save_every: expected a multiple of controller.sample_period / sim.dt = {round(m)}, "
+            f"got {sim['save_every']}"
+        )
+    train_dt = cfg["tune"]["train_dt"]
+    if train_dt and (T / train_dt < 1 - 1e-9 or abs(T / train_dt - round(T / train_dt)) > 1e-9 * T / train_dt):
+        raise ConfigError(f"tune.train_dt: expected a step that divides controller.sample_period = {T}, got {train_dt}")
+    if sens["derivatives"] == "difference" and any(np.asarray(sens["noise_std"])[[1, 2, 4, 5, 7, 8]]):
+        raise ConfigError(
+            "sensors.noise_std: with sensors.derivatives = 'difference' only the theta entries (1, 4, 7) may be "
+            f"non-zero (the rates are differences of the measured angles), got {sens['noise_std']}"
+        )
+
+
+# ---------------------------------------------------------------------------- objects
+
+
+class Problem(NamedTuple):
+    """What a resolved config describes, as simulator inputs (see :func:`fosmc_jax.simulate`)."""
+
+    plants: Any  # plant pytree with a leading batch axis P
+    controller: Any  # what simulate() runs: make(params)
+    reference: Cycloid
+    X0s: Any  # (O, 9) initial states
+    dt: Any
+    options: dict  # simulate()'s static keyword arguments
+    keys: Any  # (R, 2) PRNG keys, one per noise realization (None: the ideal loop)
+    params: Controller  # the FOSMC parameters
+    make: Callable[[Controller], Any]  # FOSMC parameters -> the controller of the config's loop
+
+    @property
+    def args(self) -> tuple:
+        """simulate_batch's positional arguments."""
+        return self.plants, self.controller, self.reference, self.X0s, self.dt
+
+
+def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``[plant.box]`` as float64 arrays (A_lower, A_upper, B_lower, B_upper)."""
+    return tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
+
+
+def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
+    """The :class:`Controller` a config describes (``gamma`` overrides ``controller.gamma``)."""
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
+    ctl, model = cfg["controller"], cfg["model"]
+    gamma = ctl["gamma"] if gamma is None else gamma
+    return Controller(
+        cast(ctl["C"]),
+        cast(ctl["poles"]),
+        cast(gamma),
+        cast(ctl["delta"]),
+        cast(model["A_rows"]),
+        cast(model["B_rows"]),
+    )
+
+
+def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
+    """FOSMC parameters -> the controller of the config's loop: for ``controller.kind =
+    "fosmc"``, the parameters themselves (the paper's ideal loop, ``sample_period = 0``) or a
+    :class:`DigitalLoop` around a :class:`DiscreteFOSMC` with the config's sensors, delay and
+    actuator; for ``smc`` and ``super_twisting`` the same around their laws (which take C and
+    the nominal rows from the parameters, and their gains from the config)."""
+    law, loop = _law_and_loop(cfg, dtype)
+    return lambda params: loop(law(params))
+
+
+def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[Controller], Any], Callable[[Any], Any]]:
+    """(law, loop): FOSMC parameters -> the config's kind of law with the config's gains,
+    sampled with period T (T = 0: the ideal loop's); a law -> the controller of the config's
+    loop (the ideal loop: the law itself, super-twisting's v integrated with the plant)."""
+    ctl, sens = cfg["controller"], cfg["sensors"]
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
+    T = cast(ctl["sample_period"])
+    sampled = bool(ctl["sample_period"])
+    surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
+    if ctl["kind"] == "fosmc":
+        law = (lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])) if sampled else (lambda p: p)
+    elif ctl["kind"] == "smc":
+        law = lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
+    else:
+        law = lambda params: SuperTwisting(surface(params), cast(ctl["st_k1"]), cast(ctl["st_k2"]), T)
+    if not sampled:
+        return law, ContinuousSuperTwisting if ctl["kind"] == "super_twisting" else (lambda law: law)
+    noise_std = cast(sens["noise_std"]) if any(sens["noise_std"]) else None  # all zero: nothing to draw
+    sensors = Sensors(cast(sens["encoder_counts"]), noise_std, sens["derivatives"])
+    u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))
+    m, d = sample_steps(cfg), ctl["delay_samples"]
+    return law, lambda law: DigitalLoop(law, sensors, u_max, T, m, d)
+
+
+def keys_of(cfg: dict) -> Any:
+    """One PRNG key per noise realization (``sensors.seed``, ``sensors.realizations``); None for
+    the ideal loop."""
+    if not cfg["controller"]["sample_period"]:
+        return None
+    return jax.random.split(jax.random.PRNGKey(cfg["sensors"]["seed"]), cfg["sensors"]["realizations"])
+
+
+def reference_of(cfg: dict, dtype) -> Cycloid:
+    """The reference (30) a config describes."""
+    traj = cfg["trajectory"]
+    return Cycloid(*(jnp.asarray(np.asarray(traj[k], dtype=np.float64), dtype) for k in ("start", "end", "duration")))
+
+
+def n_steps(cfg: dict) -> int:
+    """n = round(t_final / dt)."""
+    return max(1, round(cfg["sim"]["t_final"] / cfg["sim"]["dt"]))
+
+
+def build(cfg: dict) -> Problem:
+    """Simulator inputs for a resolved config, in its ``sim.precision``.
+
+    The plants are the linear model's uncertainty realizations (``kind = "linear"``) or one arm
+    per payload (``kind = "arm"``). The initial states are X_d(0) + each ``sim.initial_offset``;
+    the batch is every plant crossed with every initial state, crossed with every noise
+    realization of a digital loop (in that order).
+    """
+    dtype = jnp.dtype(cfg["sim"]["precision"])
+    cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
+    ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
+    reference = reference_of(cfg, dtype)
+    params = controller_of(cfg, dtype)
+    make = controller_factory(cfg, dtype)
+    if plant["kind"] == "arm":
+        plants = arm_sweep(cast(plant["payloads"]))
+    else:
+        plants = uncertain_plants(
+            model["A_rows"], model["B_rows"], plant["uncertainty"], box=box_of(cfg),
+            dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
+        )  # fmt: skip
+        plants = type(plants)(*(cast(x) for x in plants))
+    offsets = np.atleast_2d(np.asarray(cfg["sim"]["initial_offset"], dtype=float))
+    X0s = desired_state(reference(jnp.zeros((), dtype)))[None] + cast(offsets)
+    options = {
+        "n_steps": n_steps(cfg),
+        "integrator": cfg["sim"]["integrator"],
+        "switching": ctl["switching"],
+        "law": ctl["law"],
+        "save_every": cfg["sim"]["save_every"],
+        "divergence_bound": cfg["sim"]["divergence_bound"],
+    }
+    dt = jnp.asarray(cfg["sim"]["dt"], dtype)
+    return Problem(plants, make(params), reference, X0s, dt, options, keys_of(cfg), params, make)
+
+
+#: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:
+#: growth starts between 20 and 50 ms at 1 and 2 kHz alike (tuning/results/truncation.md).
+GRADIENT_WINDOW = 0.02
+
+
+def tuning_problems(cfg: dict):
+    """(plain, train, p0): the :class:`fosmc_jax._search.tune.Problem` of ``[sim]`` (every result
+    is evaluated on it), the training problem (``tune.train_dt``, ``tune.train_t_final``, the
+    scan rematerialised every ``tune.remat_steps``; a digital loop without ``tune.train_dt``
+    trains with dt = ``controller.sample_period``), and the config's values of its kind's
+    parameters (``fosmc_jax._search.tune.SPACES[kind].values``: the FOSMC's :class:`Tunable` of
+    delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2). The problems' ``base`` is what
+    those parameters are fields of: the FOSMC's :class:`Controller`, or the SMC or
+    super-twisting law built with the config's gains."""
+    space = SPACES[cfg["controller"]["kind"]]
+    train_cfg = copy.deepcopy(cfg)
+    for key, sim_key in (("train_dt", "dt"), ("train_t_final", "t_final")):
+        if cfg["tune"][key]:
+            train_cfg["sim"][sim_key] = cfg["tune"][key]
+    if not cfg["tune"]["train_dt"] and cfg["controller"]["sample_period"] > cfg["sim"]["dt"]:
+        # a digital loop trains on one integration step per controller sample: it ranks candidates
+        # like [sim]'s step (tuning/results/fidelity.md: Spearman's rho >= 0.9999 on both axes, the
+        # same front, at 0.12-0.14 of the cost on three configs); results are re-evaluated on [sim]
+        train_cfg["sim"]["dt"] = cfg["controller"]["sample_period"]
+
+    def problem(c: dict, **options) -> _tuning.Problem:
+        b = build(c)
+        if space.kind == "fosmc":
+            base, make = b.params, b.make
+        else:
+            law, loop = _law_and_loop(c, b.dt.dtype)
+            base, make = law(b.params), loop
+        opts = dict(b.options, save_every=0, **options)
+        return _tuning.Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
+
+    plain = problem(cfg)
+    # the gradient follows the loop over windows of tune.gradient_window (truncate_every): over the
+    # whole horizon it grows exponentially on a digital loop that quantizes or differences its
+    # measurements (at tune's start, the near-sign law of the global stage: to 9e226 on
+    # realistic_arm, every step skipped, 4e34 over 1 s with measured rates) and is uphill under the
+    # sign law, while 0.02 s windows give finite gradients that lower the plain loss; in the ideal
+    # loop with a smooth law the whole horizon's is finite and tunes best (tuning/results/truncation.md)
+    window_s = cfg["tune"]["gradient_window"]
+    sensors, period = cfg["sensors"], cfg["controller"]["sample_period"]
+    rough = period > cfg["sim"]["dt"] and (any(n > 0 for n in sensors["encoder_counts"])
+                                           or sensors["derivatives"] == "difference")  # fmt: skip
+    if not window_s and (rough or cfg["controller"]["switching"] == "sign"):
+        window_s = GRADIENT_WINDOW
+    window = int(round(window_s / train_cfg["sim"]["dt"]))
+    remat = {"checkpoint_every": cfg["tune"]["remat_steps"], "truncate_every": window}
+    # no surrogate: the same simulation (the same make and keys tell fosmc_jax._search.front so)
+    train = problem(train_cfg, **remat) if train_cfg != cfg else plain._replace(options=dict(plain.options, **remat))
+    p0 = space.values(*(getattr(plain.base, name) for name in space.names))
+    return plain, train, p0
+
+
+def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
+    """``cfg`` with its controller kind's parameters (the FOSMC's delta, gamma, poles; SMC's
+    k, phi; super-twisting's k1, k2) taken from a ``fosmc tune`` result file (its
+    ``final.params``) or from point ``point`` of a ``fosmc front`` file, and put back into
+    their config keys (``smc_k``, ...), validated like those keys. A file of another kind's
+    parameters is refused."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise ConfigError(f"--params: cannot read {str(path)!r}: {e.strerror or e}") from None
+    except ValueError:
+        raise ConfigError(f"--params: {path} is not JSON") from None
+    if isinstance(data, dict) and "points" in data:
+        if point is None or not 0 <= point < len(data["points"]):
+            raise ConfigError(f"--point: expected an index in [0, {len(data['points'])}) for the front {path}, "
+                              f"got {point}")  # fmt: skip
+        params = data["points"][point]["params"]
+    else:
+        if point is not None:
+            raise ConfigError(f"--point: {path} is a tune result, not a front")
+        try:
+            params = data["final"]["params"]
+        except (KeyError, TypeError):
+            raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params) or front") from None
+    space = next((s for s in SPACES.values() if isinstance(params, dict) and params and set(params) <= set(s.names)),
+                 None)  # fmt: skip
+    if space is None:
+        kinds = "; ".join(f"{k}: {', '.join(s.names)}" for k, s in SPACES.items())
+        raise ConfigError(f"--params: {path}'s params are no controller kind's parameter set ({kinds}), "
+                          f"got {_short(params)}")  # fmt: skip
+    kind = cfg["controller"]["kind"]
+    if space.kind != kind:
+        raise ConfigError(f"--params: {path} holds {space.kind} parameters ({', '.join(space.names)}), but the "
+                          f"config's controller.kind is '{kind}' (set [controller] kind = '{space.kind}')")  # fmt: skip
+    user = copy.deepcopy(cfg)
+    user["controller"].update({p.key: params[p.name] for p in space.params if p.name in params})
+    return resolve(user)

@@ -1,0 +1,643 @@
+"""Pareto fronts of tracking error against chattering (``fosmc front``).
+
+A front is found in three or four stages, within a wall-time budget, over log10 factors z
+that scale the start's parameters per joint (:func:`from_factors`) within the box of the controller
+kind's :class:`fosmc_jax._search.tune.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
+gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
+10^[-2, 2], phi x 10^[-3, 2]; for super-twisting z (6,) scales k1 x 10^[-2, 2], k2 x 10^[-2, 3].
+
+1. global: the start, a log grid of factors common to the joints (g per axis, g^k points for
+   k parameters: the good controllers lie near this k-D family), and per-joint log-uniform
+   draws for the rest (:func:`global_factors`);
+2. CMA-ES: pycma runs from points along the global stage's front, each on the weighted log
+   objective at the front's slope there (:func:`cma_stage`), ``cma_share`` of the search:
+   CMA-ES adapts its steps to the problem's scaling and finds per-joint trade-offs that
+   random local steps miss (tuning/README.md);
+3. local: rounds of one chunk each; a round draws ``points`` parents at random from the
+   non-dominated set of everything evaluated so far and perturbs a random subset of their
+   factors, per joint or common to the joints, by sigma (hi - lo) N(0, 1), clipped to the box,
+   sigma shrinking geometrically over the rounds (:func:`local_factors`);
+4. plain (with a training surrogate only): the points non-dominated on the training metrics
+   are re-evaluated on the plain problem, then ``polish_share`` of the search goes to local
+   rounds on the plain problem from them, with smaller steps (``polish_sigma``): the
+   surrogate ranks points like the plain problem but not to the last few percent of the
+   trade-off (tuning/README.md).
+
+Every evaluation is a vmapped chunk split over the local devices. The front is the
+non-dominated set in (mean ``rms_error``, mean ``chattering_hf``), sorted by chattering, of
+plain metrics: without a training surrogate (``[tune] train_t_final``, ``train_dt``) the
+training metrics are the plain ones; with one, only the plain metrics of stage 4 count.
+With sizes from the budget (``candidates`` or ``steps`` not given) every stage runs until its
+share of the search time is spent: one chunk is timed first (compiled, then warm; its
+candidates join the global stage), which sizes the global stage; CMA-ES, the local rounds and
+the plain rounds then run until their deadlines, their steps shrinking with the stage's time
+spent, and the last stage ends where the final evaluations of the front it has found (the
+plain re-evaluation, the caller's held-out evaluation) still fit before the run's deadline.
+The deadlines are stored in the checkpoint as offsets from the run's start, and a resumed run
+sets its start back by the time already spent, so it ends when the uninterrupted run would
+have. With given sizes (``candidates`` and ``steps``; no CMA-ES or plain rounds unless
+``cma``, ``polish``) nothing depends on time: a resumed run ends where an uninterrupted one
+does (a run killed inside the CMA-ES stage resumes at its start).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import PartitionSpec as Spec
+
+from .._app import config as _config
+from .._design import paper
+from .._io import jsonable, write_text
+from .._simulator.metrics import METRIC_NAMES
+from . import tune as T
+
+#: The two metrics a front is drawn in (means over rollouts and joints).
+AXES = ("rms_error", "chattering_hf")
+_FOSMC = T.SPACES["fosmc"]
+#: Number of the FOSMC's log factors: delta, gamma, poles, one per joint each (a kind's: its Space's dim).
+DIM = _FOSMC.dim
+
+
+class Settings(NamedTuple):
+    points: int = 8  # parents per local round, drawn from the current front
+    budget: float = 300.0  # s, wall time of the whole run (held-out evaluation and references included)
+    candidates: int = 0  # global stage size; 0: from the budget
+    steps: int = 0  # local rounds (one chunk each); 0: from the budget
+    chunk: int = 16  # candidates per vmapped evaluation
+    seed: int = 0
+    # share of the search time spent on the global stage (candidates = 0); 0.15 rather than 0.3:
+    # CMA-ES at equal wall time dominated 3 of 119 front points instead of 34-40 (tuning/README.md)
+    global_share: float = 0.15
+    grid_share: float = 1.0  # share of the global stage on the grid of common factors
+    sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
+    checkpoint_every: int = 5  # local rounds between checkpoints
+    # CMA-ES (pycma) after the global stage: cma_starts runs from points along its front, each on
+    # the weighted log objective at the front's slope there, one generation of a chunk each;
+    # generations (0: from the budget, cma_share of the search time; given sizes: none)
+    cma: int = 0
+    cma_share: float = 0.4
+    cma_starts: int = 4
+    cma_sigma: float = 0.1  # the first step, in shares of each range
+    # with a training surrogate: rounds on the plain problem after the training's front is
+    # re-evaluated (0: from the budget, polish_share of the search time; given sizes: none)
+    polish: int = 0
+    polish_share: float = 0.25
+    polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
+
+
+def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Mask of the points not dominated in (x, y), both minimised (NaN points never kept;
+    equal points kept together). One sort, no Python loop: in (x, y) order a point is
+    dominated exactly when some earlier point that differs from it has y <= its y, i.e. the
+    first of each run of equal points is kept when its y is below every earlier y, and the
+    rest of the run with it."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    keep = np.zeros(x.shape, bool)
+    idx = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    if not idx.size:
+        return keep
+    idx = idx[np.lexsort((y[idx], x[idx]))]
+    xs, ys = x[idx], y[idx]
+    first = np.concatenate([[True], (xs[1:] != xs[:-1]) | (ys[1:] != ys[:-1])])  # a run of equal points starts
+    earlier = np.concatenate([[np.inf], np.minimum.accumulate(ys)[:-1]])  # lowest y before each point
+    run = np.cumsum(first) - 1
+    keep[idx] = (ys < earlier)[first][run]
+    return keep
+
+
+def epsilon(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+    """The multiplicative epsilon indicator I(A, B) of point sets a = (errors, chatterings) and
+    b (Zitzler et al., "Performance assessment of multiobjective optimizers", IEEE TEC 2003):
+    the smallest factor by which every point of A would have to be divided, in both metrics,
+    for A to weakly dominate every point of B. I(A, B) <= 1: no point of B is better than A
+    anywhere; 1.06: some point of B beats A by 6% somewhere, and none by more."""
+    (ae, ac), (be, bc) = (np.asarray(x, float) for x in a), (np.asarray(x, float) for x in b)
+    ratio = np.maximum(ae[:, None] / be[None, :], ac[:, None] / bc[None, :])  # (A, B)
+    return float(np.max(np.min(ratio, axis=0)))
+
+
+def bounds(space: T.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
+    """The search box of the log factors z (space.dim,): each parameter's range, three joints
+    each (the FOSMC's: delta, gamma, poles)."""
+    return space.bounds()
+
+
+def from_factors(p0: T.Params, z: np.ndarray) -> T.Params:
+    """Parameter sets (n,) of p0's kind from log10 factors z (n, 3 k): parameter i of joint j
+    scaled by 10^z[:, 3 i + j] (the FOSMC's delta, gamma, poles: i = 0, 1, 2)."""
+    z = np.atleast_2d(z)
+    scale = lambda x, f: jnp.asarray(np.asarray(x)[None] * (10.0 ** f).reshape(f.shape + (1,) * (np.ndim(x) - 1)),
+                                     jnp.asarray(x).dtype)  # fmt: skip
+    return type(p0)(*(scale(x, z[:, 3 * i : 3 * i + 3]) for i, x in enumerate(p0)))
+
+
+def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
+    """The g^k log factors (g^k, 3 k) of a grid of common factors (the same for every joint)
+    over the k parameters of ``space``: g values per parameter, evenly spaced over its range,
+    ends included."""
+    k = len(space.params)
+    axes = [np.linspace(*p.box, g) for p in space.params]
+    return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
+
+
+def global_factors(n: int, seed: int, grid_share: float = 0.5, space: T.Space = _FOSMC) -> np.ndarray:
+    """``n`` log factors (n, space.dim): 0 (the start itself), then :func:`grid_factors` with
+    g = floor((grid_share n)^(1/k)) for k parameters (no grid below n = 16), then per-joint
+    log-uniform draws."""
+    g = grid_size(n, grid_share, len(space.params))
+    lo, hi = space.bounds()
+    grid = grid_factors(g, space) if g else np.zeros((0, space.dim))
+    draws = np.random.default_rng(seed).uniform(lo, hi, size=(n - 1 - len(grid), space.dim))
+    return np.concatenate([np.zeros((1, space.dim)), grid, draws])
+
+
+def grid_size(n: int, grid_share: float, k: int = 3) -> int:
+    """Values per axis of the grid over k parameters in :func:`global_factors` of size n (0
+    below n = 16)."""
+    g = int((grid_share * n) ** (1 / k) + 1e-9) if n >= 16 else 0
+    return g if 1 + g**k <= n else g - 1
+
+
+def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int,
+                  space: T.Space = _FOSMC) -> np.ndarray:  # fmt: skip
+    """``n`` children (n, space.dim) of the front of the evaluated factors z with metrics m:
+    up to ``points`` parents drawn without replacement from its non-dominated set, children in
+    turn per parent, each its parent + a step sigma (hi - lo) N(0, 1), clipped to the box: for
+    every other child per joint on every coordinate; for the others common to the joints, on
+    a random subset of the parameters (each with probability 1/2, one at least), the same step
+    for the three joints: these keep children in the family of common factors and on the
+    faces of the box, where the grid of the global stage finds the ends of the front."""
+    e, c = _axes(m)
+    idx = np.flatnonzero(nondominated(e, c))
+    rng = np.random.default_rng(seed)
+    parents = rng.choice(idx, size=min(points, len(idx)), replace=False)
+    lo, hi = space.bounds()
+    k = len(space.params)
+    zp = z[parents[np.arange(n) % len(parents)]]
+    joint = rng.standard_normal((n, space.dim))
+    common = np.repeat(rng.standard_normal((n, k)) * _subset(rng, n, k, 1 / 2), 3, axis=1)
+    step = np.where((np.arange(n) % 2 == 0)[:, None], joint, common)
+    return np.clip(zp + sigma * (hi - lo) * step, lo, hi)
+
+
+def _subset(rng: np.random.Generator, n: int, k: int, p: float) -> np.ndarray:
+    """n random masks over k items, each item in with probability p, and one at least."""
+    mask = rng.random((n, k)) < p
+    mask[np.arange(n), rng.integers(0, k, n)] = True
+    return mask
+
+
+def sample_candidates(p0: T.Params, n: int, seed: int) -> T.Params:
+    """``n`` parameter sets of p0's kind around p0 (:func:`global_factors` with a grid of about
+    half). Leading axis n."""
+    return from_factors(p0, global_factors(n, seed, 0.5, space=T.space_of(p0)))
+
+
+def evaluate_many(problem: T.Problem, params: T.Params, chunk: int, log: Callable[[str], None] = print,
+                  what: str = "evaluating", deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+    """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
+    {metric: (n, 3)} and ``diverged`` (n,) counts, in vmapped chunks of ``chunk``; with a
+    ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
+    passes (one at least)."""
+    n = jax.tree.leaves(params)[0].shape[0]
+    run, devices = _chunk_evaluator(problem)
+    padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
+    parts, start, shown = [], time.perf_counter(), -np.inf
+    for i in range(0, n, chunk):
+        if parts and deadline is not None and time.perf_counter() > deadline:
+            break
+        part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
+        size = jax.tree.leaves(part)[0].shape[0]
+        if size < padded:  # pad to the compiled size
+            part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
+        parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
+        now = time.perf_counter()
+        if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
+            log(f"front: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
+            shown = now
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
+                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print
+                 ) -> tuple[T.Params, float]:  # fmt: skip
+    """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
+    (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
+    by ``obj`` on their batch-mean metrics; returns the best and its score."""
+    cands = sample_candidates(p0, n, seed)
+    free = p0._fields if free is None else free
+    cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
+    m = evaluate_many(problem, cands, chunk, log=log, what="global stage")
+    means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
+    J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
+    best = int(np.nanargmin(J))
+    return jax.tree.map(lambda x: x[best], cands), float(J[best])
+
+
+#: Compiled chunk evaluators by problem (the problem kept alive beside its id): a second
+#: ``evaluate_many`` on the same problem reuses the compilation instead of paying it again.
+_EVALUATORS: dict[int, tuple[T.Problem, Callable, int]] = {}
+
+
+def _chunk_evaluator(problem: T.Problem) -> tuple[Callable, int]:
+    """The jitted vmapped evaluation of ``problem`` (compiled once per problem and chunk size)
+    with the candidates split over every local device (on CPU one per core after
+    :func:`fosmc_jax.use_all_cores`: the CLI's default; 2.2x on 2 cores), and that number of
+    devices. Candidates are independent, so the split changes no result."""
+    if id(problem) in _EVALUATORS and _EVALUATORS[id(problem)][0] is problem:
+        return _EVALUATORS[id(problem)][1:]
+    if len(_EVALUATORS) >= 16:
+        _EVALUATORS.pop(next(iter(_EVALUATORS)))
+    devices = jax.local_devices()
+    mesh = Mesh(np.asarray(devices), ("candidates",))
+
+    def one(p):
+        r = problem.simulate(p, checkpoint_every=0)
+        ok = ~r.diverged
+        mean = lambda x: jnp.sum(jnp.where(ok[:, None], x, 0), 0) / jnp.maximum(jnp.sum(ok), 1)
+        out = {name: jnp.where(jnp.any(ok), mean(getattr(r.metrics, name)), jnp.nan) for name in METRIC_NAMES}
+        return dict(out, diverged=jnp.sum(r.diverged))
+
+    # shard_map, not sharded jit: XLA's partitioner would run the native kernel's custom call
+    # (the linear plant's fast path) on every candidate on every device
+    split = Spec("candidates")
+    run = jax.jit(jax.shard_map(jax.vmap(one), mesh=mesh, in_specs=split, out_specs=split, check_vma=False))
+
+    _EVALUATORS[id(problem)] = (problem, run, len(devices))
+    return run, len(devices)
+
+
+def _axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The two axes of evaluated points, NaN (never non-dominated) where some rollout diverged:
+    such a point's metrics are means over the rollouts that survived (unless every point has a
+    diverged rollout)."""
+    e, c = np.mean(m[AXES[0]], axis=-1), np.mean(m[AXES[1]], axis=-1)
+    bad = np.asarray(m.get("diverged", np.zeros(e.shape))) > 0
+    return (e, c) if bad.all() else (np.where(bad, np.nan, e), np.where(bad, np.nan, c))
+
+
+def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``k`` non-dominated points spread evenly by rank along the front, and the
+    front's slope -d log E / d log C at each (weights of the log objective there)."""
+    e, c = _axes(m)
+    idx = np.flatnonzero(nondominated(e, c))
+    idx = idx[np.argsort(c[idx])]
+    if len(idx) > k:
+        idx = idx[np.unique(np.round(np.linspace(0, len(idx) - 1, k)).astype(int))]
+    le, lc = np.log(e[idx]), np.log(c[idx])
+    if len(idx) > 1:
+        slope = -np.gradient(le, lc) if np.all(np.diff(lc) > 0) else np.ones(len(idx))
+    else:
+        slope = np.ones(1)
+    return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
+
+
+def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings: Settings, generations: int,
+              deadline: float | None, log: Callable[[str], None]) -> tuple[np.ndarray, dict, int]:  # fmt: skip
+    """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
+    spread along the front of the evaluated (z, m) (:func:`pick_starts`), run k minimising
+    log E + w_k log C at the front's slope w_k there (the objective of the CMA-ES baseline,
+    :func:`fosmc_jax._search.peers.cma_front`), steps ``cma_sigma`` of each range, within the box;
+    each generation of every run is one vmapped evaluation. Returns (z, m) with every point
+    evaluated appended and the generations run (fewer than ``generations`` when the
+    ``deadline`` passes or every run has stopped)."""
+    import cma  # here, not at the top: importing pycma takes 1-2 s
+
+    space = T.space_of(p0)
+    lo, hi = space.bounds()
+    starts, slopes = pick_starts(m, settings.cma_starts)
+    opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1, "verbose": -9,
+                      "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo)}  # fmt: skip
+    runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
+    t0 = shown = time.perf_counter()
+    for g in range(generations):
+        live = [k for k, es in enumerate(runs) if not es.stop()]
+        if not live or (deadline is not None and time.perf_counter() > deadline):
+            why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
+            log(f"front: CMA-ES stopped after {g} generations: {why}")
+            return z, m, g
+        X = [np.asarray(runs[k].ask()) for k in live]
+        mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
+        e, c = _axes(mr)
+        f = np.log(e) + np.repeat(slopes[live], settings.chunk) * np.log(c) + np.where(mr["diverged"] > 0, 1e3, 0.0)
+        f = np.where(np.isfinite(f), f, 1e30).reshape(len(live), -1)
+        for k, x, fk in zip(live, X, f):
+            runs[k].tell(list(x), list(fk))
+        z, m = np.concatenate([z, *X]), {k: np.concatenate([m[k], mr[k]]) for k in m}
+        if deadline is None or time.perf_counter() - shown > 1.0:  # with a deadline, about once a second
+            shown = time.perf_counter()
+            total = f"/{generations}" if deadline is None else f" ({deadline - shown:.1f} s left)"
+            log(f"front: CMA-ES generation {g + 1}{total}  best {np.round(f.min(axis=1), 3).tolist()}  "
+                f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+    return z, m, generations
+
+
+class _Clock:
+    """Stage deadlines of a run whose sizes come from the budget, as offsets (s) from its start
+    (so that a resumed run keeps them: its start is set back by the time already spent); with
+    given sizes, no deadlines."""
+
+    def __init__(self, start: float, ends: dict[str, float] | None):
+        self.start, self.ends = start, ends
+
+    def end(self, stage: str) -> float | None:
+        return None if self.ends is None else self.start + self.ends[stage]
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+
+def run(
+    train: T.Problem,
+    plain: T.Problem,
+    p0: T.Params,
+    settings: Settings,
+    *,
+    checkpoint: Path | None = None,
+    resume: bool = False,
+    deadline: float | None = None,
+    reserve_per_point: float = 0.0,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Find the front (see module docstring). With sizes from the budget (``settings.candidates``
+    or ``settings.steps`` 0) the run returns by ``deadline`` (a ``time.perf_counter()`` value;
+    None: ``settings.budget`` from now), leaving ``reserve_per_point`` seconds per front point
+    for what follows (the caller's held-out evaluation). Returns {"points": [...], "stages":
+    {...}} with every point's parameters, plain mean metrics and diverged count; non-dominated
+    only, sorted by chattering. The search space is that of ``p0``'s controller kind
+    (:func:`fosmc_jax._search.tune.space_of`)."""
+    t0 = time.perf_counter()
+    space = T.space_of(p0)
+    state: dict[str, Any] = {}
+    if resume and checkpoint is not None and checkpoint.exists():
+        state, leaves = T._load(checkpoint)
+        log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
+    surrogate = not _same_simulation(train, plain)
+    timed = not (settings.candidates and settings.steps)
+    n_cand = state.get("candidates", settings.candidates)
+    rounds, polish = state.get("steps", settings.steps), state.get("polish", settings.polish if surrogate else 0)
+    generations = state.get("cma_generations", settings.cma)
+    clock = _Clock(t0 - state.get("elapsed", 0.0), state.get("ends"))
+    plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
+    z0 = np.zeros((0, space.dim))
+    m0: dict[str, np.ndarray] = {}
+    if timed and not state:  # the stages' deadlines: time one chunk (compiled, then warm), kept as candidates
+        z0 = global_factors(settings.chunk, settings.seed + 1, space=space)
+        t = time.perf_counter()
+        evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+        compile_s = time.perf_counter() - t
+        t = time.perf_counter()
+        m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+        chunk_s = time.perf_counter() - t
+        if surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
+            for _ in range(2):
+                t = time.perf_counter()
+                evaluate_many(plain, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+            plain_point_s = (time.perf_counter() - t) / settings.chunk
+        end = settings.budget if deadline is None else deadline - t0
+        # the search's time, less the final evaluations of a front of a few hundred points
+        search = max(0.0, end - clock.elapsed() - 300 * (reserve_per_point + plain_point_s))
+        now = clock.elapsed()
+        ends = {"global": now + settings.global_share * search}
+        ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
+        ends["local"] = now + (1 - (settings.polish_share if surrogate else 0.0)) * search
+        ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
+        clock = _Clock(clock.start, ends)
+        n_cand = n_cand or max(1, int(settings.global_share * search / chunk_s)) * settings.chunk
+        generations = generations or 10**9
+        rounds, polish = rounds or 10**9, polish or (10**9 if surrogate else 0)
+        log(f"front: one chunk of {settings.chunk} costs {chunk_s:.3f} s (compilation {compile_s - chunk_s:.1f} s): "
+            f"{search:.0f} s of search: {n_cand} global candidates, then CMA-ES, local rounds"
+            f"{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
+
+    def finish_by(stage: str, n_points: int) -> float | None:
+        """The deadline of the last stage: the run's end less the final evaluations of its front."""
+        end = clock.end(stage)
+        return None if end is None else end - n_points * reserve_per_point
+
+    if "round" in state:
+        keys = state["keys"]
+        z, m = leaves[0], dict(zip(keys, leaves[1 : 1 + len(keys)]))
+        r0 = state["round"]
+    else:
+        zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
+        mg = evaluate_many(train, from_factors(p0, zg), settings.chunk, log=log, what="global stage",
+                           deadline=None if settings.candidates else clock.end("global"))  # fmt: skip
+        zg = zg[: len(mg["diverged"])]
+        z, m = np.concatenate([zg, z0]), {k: np.concatenate([mg[k], m0[k]]) if m0 else mg[k] for k in mg}
+        r0 = 0
+    n_global = state.get("global_end", len(z))  # the global stage's evaluations (the probe's among them)
+
+    def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
+        if checkpoint is not None:
+            stage = "polish" if plain_state else "local" if r else "cma" if cma_done else "global"
+            header = {"stage": stage, "round": r, "elapsed": clock.elapsed(), "ends": clock.ends,
+                      "candidates": n_cand, "global_end": n_global, "steps": rounds, "polish": polish, "keys": list(m),
+                      "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma}  # fmt: skip
+            if plain_state:
+                header["polish_round"] = plain_state[0]
+            plain_leaves = [plain_state[1], *plain_state[2].values()] if plain_state else []
+            T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
+
+    cma_done = state.get("cma_done", False)
+    n_cma = state.get("cma_end", n_global)  # evaluations up to the end of the CMA-ES stage
+    if r0 == 0:
+        if not cma_done:
+            save(0, z, m)
+            log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
+        if generations and not cma_done:  # a kill inside this stage resumes at its start
+            z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log)
+            cma_done, n_cma = True, len(z)
+            save(0, z, m)
+
+    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
+        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
+        (None: no deadline) passes, sigma from sigma[0] to sigma[1] over the rounds or, with a
+        deadline, over the stage's time; returns (z, m, rounds run). Parents are drawn from the
+        front, kept as the rounds go (the non-dominated set of the old front and the round's
+        children: a dominated point stays dominated). With a deadline, checkpoints are written
+        at most every 10 s (a round can cost less than writing the archive)."""
+        (s0, s1), begin, shown, saved = sigma, time.perf_counter(), -np.inf, time.perf_counter()
+        keep = nondominated(*_axes(m))
+        fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
+        zs, ms = [z], [m]
+        join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in a}
+        for r in range(r0, n):
+            now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
+            if end is not None and now > end:
+                log(f"front: {what} rounds: {r} run, the stage's time is spent")
+                n = r
+                break
+            progress = r / max(1, n - 1) if end is None else (now - begin) / max(end - begin, 1e-9)
+            sig = s0 * (s1 / s0) ** min(progress, 1.0)
+            zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, space)
+            mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
+            zs.append(zr)
+            ms.append(mr)
+            fz, fm = np.concatenate([fz, zr]), join(fm, mr)
+            keep = nondominated(*_axes(fm))
+            fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
+            if end is None or time.perf_counter() - shown > 1.0:
+                shown = time.perf_counter()
+                total = f"/{n}" if end is None else f" ({end - shown:.1f} s left)"
+                log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(fz)} non-dominated  "
+                    f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
+            due = settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n)
+            if due and (end is None or time.perf_counter() - saved > 10.0):
+                z, m = np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}
+                zs, ms = [z], [m]
+                save_at(r + 1, z, m)
+                saved = time.perf_counter()
+        return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
+
+    seed = settings.seed * 1_000_003
+    if state.get("stage") != "polish":
+        local_end = None if clock.ends is None else (
+            (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n)))  # fmt: skip
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local", save)
+    n_train = len(z)
+    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
+    zp, mp, p_run = z, m, 0
+    if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
+        idx = np.flatnonzero(nondominated(*_axes(m)))
+        if state.get("stage") == "polish":
+            p_run, zp = state["polish_round"], leaves[1 + len(keys)]
+            mp = dict(zip(keys, leaves[2 + len(keys) :]))
+        else:
+            zp = z[idx]
+            mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
+            save(rounds, z, m, (0, zp, mp))
+        save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
+        plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n))
+        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
+                                   plain_end, "plain", save_plain)  # fmt: skip
+        idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
+    if clock.ends is not None:
+        log(f"front: the search ends {clock.end('end') - time.perf_counter():.1f} s before the run's deadline, "
+            f"kept for the final evaluations ({reserve_per_point * 1e3:.1f} ms per point)")  # fmt: skip
+    if generations >= 10**9:  # the CMA-ES stage never started (a spent budget)
+        generations = 0
+    e, c = _axes(mp)
+    keep = np.flatnonzero(nondominated(e, c))
+    keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
+    params = from_factors(p0, zp[keep])
+    points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
+    stages = {"candidates": n_global, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
+              "cma_generations": generations,
+              "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
+              "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
+              "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
+              "from_local": int(np.sum(idx[keep] >= n_cma)),
+              "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
+    return {"axes": list(AXES), "points": points, "stages": stages}
+
+
+def _same_simulation(a: T.Problem, b: T.Problem) -> bool:
+    """Whether two problems simulate the same thing (the training problem is no surrogate)."""
+    opts = lambda p: {k: v for k, v in p.options.items() if k != "checkpoint_every"}
+    return float(a.dt) == float(b.dt) and opts(a) == opts(b) and a.make is b.make and a.keys is b.keys
+
+
+def point_of(p: T.Params, metrics: dict, i: int) -> dict[str, Any]:
+    """A front point as JSON: parameters by name, per-joint mean metrics, diverged count."""
+    return {"params": {k: np.asarray(v).tolist() for k, v in p._asdict().items()},
+            "metrics": {name: np.asarray(metrics[name][i]).tolist() for name in METRIC_NAMES},
+            "diverged": int(metrics["diverged"][i])}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- the study behind ``fosmc front``
+
+
+def held_out_config(cfg: dict) -> dict:
+    """The config's batch with what training did not see: arm payloads between and beside the
+    training ones (1, 3, 5, 7, 9 kg unless trained on; 2.5, 5, 7.5 kg until a front point
+    tuned on 0 and 10 kg was found to lose a joint at 1 and 8 kg, tuning/README.md), fresh
+    box samples (linear ``sample`` / ``vertices``), fresh noise seeds."""
+    held = copy.deepcopy(cfg)
+    plant = held["plant"]
+    if plant["kind"] == "arm":
+        fresh = [p for p in (1.0, 3.0, 5.0, 7.0, 9.0) if p not in plant["payloads"]]
+        plant["payloads"] = fresh or [(plant["payloads"][0] + 5.0) / 2]
+    elif plant["uncertainty"] in ("sample", "vertices"):
+        plant["seed"] += 1
+    held["sensors"]["seed"] += 1
+    return _config.resolve(held)
+
+
+def references(cfg: dict, chunk: int, plain: T.Problem | None = None) -> dict[str, dict]:
+    """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
+    sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
+    batch; Table 1's through ``plain`` (the config's plain problem, its evaluator compiled
+    once for the study) when the config's kind is the FOSMC."""
+    out = {}
+    for label, switching, sets in (("Table 1", cfg["controller"]["switching"], (0, 1, 2)), ("SGN", "sign", (0,))):
+        c = copy.deepcopy(cfg)
+        c["controller"].update(switching=switching, kind="fosmc")
+        if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
+            problem, p0 = plain, T.Tunable(*(getattr(plain.base, k) for k in T.PARAM_NAMES))
+        else:
+            problem, _, p0 = _config.tuning_problems(c)
+        ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
+                       jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
+        m = evaluate_many(problem, ps, chunk if problem is plain else len(sets), log=lambda _: None)
+        for i, k in enumerate(sets):
+            out[f"{label} set {k + 1}" if label == "Table 1" else label] = point_of(
+                jax.tree.map(lambda x, i=i: x[i], ps), m, i)  # fmt: skip
+    return out
+
+
+#: Seconds kept at the end of ``fosmc front``'s budget for writing front.json and drawing front.png.
+WRITE_S = 1.5
+
+
+def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: bool = False,
+          compare: tuple = (), started: float | None = None, log: Callable[[str], None] = print
+          ) -> dict[str, Any]:  # fmt: skip
+    """``fosmc front``: the front of a resolved config's controller kind (its own parameters;
+    training and plain problems as ``fosmc tune`` builds them), each point also evaluated on
+    :func:`held_out_config`'s batch, the FOSMC's Table 1 sets and SGN beside it. The budget
+    counts from ``started`` (a ``time.perf_counter()`` value: the CLI's process start; None:
+    now): the held-out evaluator is compiled first and its cost per point kept out of the
+    search's time. Writes ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when
+    given; returns what ``front.json`` holds."""
+    t0 = time.perf_counter() if started is None else started
+    plain, train, p0 = _config.tuning_problems(cfg)
+    refs = references(cfg, settings.chunk, plain)
+    held_plain = _config.tuning_problems(held_out_config(cfg))[0]
+    one = jax.tree.map(lambda x: jnp.broadcast_to(x, (settings.chunk,) + jnp.shape(x)), p0)
+    evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)  # compiled
+    held_s = np.inf
+    for _ in range(3):  # the held-out evaluation's cost per front point: the least of three warm chunks
+        t = time.perf_counter()
+        evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)
+        held_s = min(held_s, (time.perf_counter() - t) / settings.chunk)
+    log(f"front: the held-out evaluation costs {1e3 * held_s:.1f} ms per front point")
+    checkpoint = None if out is None else Path(out) / "checkpoint.npz"
+    result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
+                 deadline=t0 + settings.budget - WRITE_S, reserve_per_point=1.5 * held_s, log=log)  # fmt: skip
+    params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
+                        for k, x in zip(p0._fields, p0)))  # fmt: skip
+    held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
+    for i, pt in enumerate(result["points"]):
+        pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), held, i)["metrics"]
+    result["references"] = refs
+    result["held_out_batch"] = {k: held_out_config(cfg)["plant"][k] for k in ("kind", "payloads", "seed")}
+    result["config"] = cfg
+    if out is not None:
+        from .._app.plots import plot_front
+
+        write_text(Path(out) / "front.json", json.dumps(jsonable(result), indent=1))
+        plot_front(result, [(Path(c).parent.name or str(c), json.loads(Path(c).read_text())) for c in compare],
+                   Path(out) / "front.png")  # fmt: skip
+        log(f"front: wrote {out}/front.json and {out}/front.png")
+    return result

@@ -1,0 +1,241 @@
+"""The arm's fast path: :func:`fosmc_jax.simulate_batch` of :class:`fosmc_jax.Arm` plants with
+its time loop in one compiled kernel (``arm_kernel.cc``, built by :mod:`fosmc_jax._simulator.native`).
+
+XLA:CPU copies the arm's closed form into every fusion that uses it (an RK4 step of the vmapped
+``simulate`` held about 217 sin/cos pairs where 10 are needed) and runs each of its ~100 fusions
+per step as one more pass over the batch; the arm ran 24-90x below a hand-written C kernel of
+the same loop (issue 21). The kernel runs the loop of :func:`fosmc_jax.simulate` for the two
+controllers the tuner and the presets use:
+
+- :class:`fosmc_jax.FOSMC`, the ideal loop, every switching function and law;
+- :class:`fosmc_jax.DigitalLoop` around :class:`fosmc_jax.DiscreteFOSMC` without Gaussian noise
+  (encoder quantization, measured or differenced rates, a delay of up to 8 samples, the
+  voltage limit, any sample period);
+
+Euler or RK4, float32 or float64. Everything else (other controllers, noise, traces) runs the
+``vmap`` of :func:`fosmc_jax.simulate`, and so does everything where the kernel is not built.
+
+What stays in JAX: the first sample (:func:`fosmc_jax._simulator.rollout.start`, vmapped), everything
+derived from the controller's parameters (K, (CB)^-1, S), the time-only terms (X_d at the stage
+times, Omega, their norms: a table per call, so any reference works) and
+:func:`fosmc_jax._simulator.metrics.finish`. Every parameter (the arm's, the controller's, the loop's) is
+an input per rollout, so a vmapped batch of candidate controllers (``fosmc front``'s chunks) is
+folded into one call (``custom_vmap``). Derivatives (``custom_jvp``, forward mode and reverse
+mode by its transpose) are those of the ``vmap`` path, which the tuner's gradients use anyway.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, reference_terms
+from .._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting
+from .._design.gains import input_matrix_product
+from .._loop.digital import DigitalLoop
+from .._plants.arm import Arm, cast_params
+from .._plants.reference import desired_state
+from . import metrics as _metrics
+from . import native as _native
+
+# The layouts of arm_kernel.cc: lane rows, and where the carry's rows hold the accumulator's
+# fields (10 x 3, field-major), the divergence flag and its time; the delay line after them.
+LANE_ROWS = 139
+METRICS, DIVERGED, DIVERGED_AT, CARRY_ROWS = slice(24, 54), 54, 55, 56
+MAX_DELAY = 8
+# Steps per kernel call: as many as keep the call's time table within 24 KiB (the core's L1).
+TABLE_BYTES = 24 * 1024
+
+
+# The laws the kernel runs, by its code (h.kind in arm_kernel.cc): in the ideal loop, and sampled
+# in a DigitalLoop
+IDEAL = {FOSMC: 0, SMC: 1, ContinuousSuperTwisting: 2}
+SAMPLED = {DiscreteFOSMC: 0, SMC: 1, SuperTwisting: 2}
+
+
+def supports(plants, ctrl, integrator: str) -> bool:
+    """Whether the kernel runs this batch: arms under the FOSMC, SMC or super-twisting, in the
+    ideal loop or in a DigitalLoop without noise, on a CPU where the kernel is built."""
+    if not isinstance(plants, Arm) or integrator not in ("euler", "rk4"):
+        return False
+    if type(ctrl) is DigitalLoop:
+        ok = type(ctrl.law) in SAMPLED and ctrl.sensors.noise_std is None and ctrl.delay <= MAX_DELAY
+    else:
+        ok = type(ctrl) in IDEAL
+    return ok and jax.default_backend() == "cpu" and _native.available()
+
+
+def _law_of(ctrl):
+    """The law inside the loop: the FOSMC or DiscreteFOSMC, SMC or SuperTwisting."""
+    return ctrl.law if type(ctrl) in (DigitalLoop, ContinuousSuperTwisting) else ctrl
+
+
+def _surface_of(law):
+    """(C, a_rows, b_rows) of any of the laws."""
+    q = law.params if isinstance(law, (FOSMC, DiscreteFOSMC)) else law.surface
+    return q.C, q.a_rows, q.b_rows
+
+
+def _law_rows(law, dtype) -> Array:
+    """The law's lane rows of arm_kernel.cc (96), then its period (0 in the ideal loop)."""
+    if isinstance(law, (FOSMC, DiscreteFOSMC)):
+        c, d = law.params, derive(law.params)
+        rows = (c.C, d.S, d.CB_inv, d.K, c.gamma, c.delta)
+    else:
+        C, a_rows, b_rows = _surface_of(law)
+        CB_inv = jnp.linalg.inv(input_matrix_product(C, b_rows))
+        gains = (law.k, law.phi) if type(law) is SMC else (law.k1, law.k2)
+        rows = (C, a_rows, CB_inv, jnp.zeros(27), *gains)
+    period = getattr(law, "period", 0.0)
+    return jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in (*rows, period)])
+
+
+def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
+    """(139, P O): the arm's parameters (each plant O times: plant-major), then the law's and the
+    loop's, as in arm_kernel.cc."""
+    p = cast_params(plants.params, dtype)
+    arm = [plants.payload, p.d2, p.d3, p.l2, p.l3, p.c2, p.c3, p.m2, p.m3, p.I1, p.I2, p.I3, p.Jm, p.F, p.g,
+           p.R, p.L, p.Kt, p.Kb]  # fmt: skip
+    P = plants.payload.shape[0]
+    arm = jnp.concatenate([jnp.asarray(a, dtype).reshape(P, -1) for a in arm], axis=1)  # (P, 35)
+    if type(ctrl) is DigitalLoop:
+        counts = ctrl.sensors.counts
+        on = counts > 0
+        step = jnp.where(on, 2 * jnp.pi / jnp.where(on, counts, 1), 0)  # as fosmc_jax._loop.digital.quantize
+        loop = [jnp.broadcast_to(step, (3,)), jnp.broadcast_to(ctrl.u_max, (3,)), ctrl.period]
+    else:
+        loop = [jnp.zeros(3), jnp.full(3, jnp.inf), 0.0]
+    law = _law_rows(_law_of(ctrl), dtype)
+    rest = jnp.concatenate([law[:-1], *(jnp.ravel(jnp.asarray(x, dtype)) for x in loop), law[-1:]])
+    lanes = jnp.concatenate([jnp.repeat(arm, O, axis=0), jnp.broadcast_to(rest, (P * O, rest.shape[0]))], axis=1)
+    assert lanes.shape[1] == LANE_ROWS, lanes.shape
+    return lanes.T
+
+
+def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
+    """The kernel's carry rows (56 + 3 delay, N) from a batch of :class:`_simulator._Carry`
+    (leading axis N) and the accelerations of its plant states (N, 3)."""
+    ps, cs = carry.plant_state, carry.ctrl_state
+    law = cs.law if digital else cs
+    N = acc3.shape[0]
+    dtype = acc3.dtype
+    col = lambda x: jnp.asarray(x, dtype).reshape(N, -1)
+    w = law.w if hasattr(law, "w") else law.v if hasattr(law, "v") else jnp.zeros((N, 3), dtype)  # SMC: none
+    memory = [cs.memory.theta, cs.memory.dtheta] if digital else [jnp.zeros((N, 6), dtype)]
+    a = carry.acc
+    metrics = [jnp.broadcast_to(col(a.count), (N, 3))] + [col(f) for f in a[1:]]
+    parts = [*ps.theta, *ps.dtheta, *ps.current, acc3, w, carry.U, *memory, *metrics, carry.diverged,
+             carry.diverged_at]  # fmt: skip
+    if digital and delay:
+        parts.append(cs.pending)
+    rows = jnp.concatenate([col(x) for x in parts], axis=1).T
+    assert rows.shape[0] == CARRY_ROWS + 3 * delay, rows.shape
+    return rows
+
+
+def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> Array:
+    """The time-only terms of steps ``k`` (a vector), (len(k), 9 stages + 19): X_d at the stage
+    times, then at t' = (k + 1) dt X_d, Omega (10), ||X_d||, ||Omega||, t', the sample flag and
+    the reference's third derivatives."""
+    X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
+    t = k.astype(dt.dtype) * dt
+    cols = [X_d_at(t)] if stages == 1 else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)] if stages == 3 else []
+    t1 = (k + 1).astype(dt.dtype) * dt
+    refs = jax.vmap(reference)(t1)
+    X_d, Omega, norm_X_d, norm_Omega = jax.vmap(functools.partial(reference_terms, a_rows, b_rows))(refs)
+    flag = ((k + 1) % m == 0).astype(dt.dtype)
+    return jnp.concatenate([*cols, X_d, Omega, jnp.stack([norm_X_d, norm_Omega, t1, flag], 1), refs[:, 3]], axis=1)
+
+
+def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
+    """``n_steps`` steps of the kernel: ``carry`` (R, N) and ``lanes`` (139, N) with any N (padded
+    here to whole blocks), ``shared`` = (reference, a_rows, b_rows, dt, the low-pass's (decay,
+    weight), bound). Calls of a few hundred steps (see TABLE_BYTES) in a scan."""
+    reference, a_rows, b_rows, dt, gain, bound = shared
+    dtype = carry.dtype
+    N = carry.shape[1]
+    pad = (-N) % (_native.LANES if dtype == jnp.float32 else _native.LANES // 2)
+    carry, lanes = (jnp.pad(x, ((0, 0), (0, pad)), mode="edge") for x in (carry, lanes))
+    consts = jnp.stack([dt, *gain, jnp.minimum(bound, jnp.finfo(dtype).max)]).astype(dtype)
+    stages = 0 if digital else 3 if rk4 else 1
+    call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct(carry.shape, dtype), vmap_method="sequential")
+    m = how["m"]  # the sample period in steps: the table's flag; the rest are the kernel's attributes
+    attrs = {name: np.int32(v) for name, v in dict(how, rk4=rk4, digital=digital).items() if name != "m"}
+
+    def chunk(c, k0, length):
+        table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=m)
+        return call(lanes, consts, table.astype(dtype), c, **attrs)
+
+    steps = max(64, TABLE_BYTES // ((9 * stages + 19) * dtype.itemsize))
+    chunks, rest = divmod(n_steps, steps)
+    if chunks:
+        carry = jax.lax.scan(lambda c, i: (chunk(c, i * steps, steps), None), carry, jnp.arange(chunks))[0]
+    if rest:
+        carry = chunk(carry, chunks * steps, rest)
+    return carry[:, :N]
+
+
+def _folded(advance):
+    """``advance`` under ``vmap`` as one call: the mapped axis of ``carry`` and ``lanes`` folded into
+    their lanes (a chunk of candidate controllers becomes one batch), the mapped axis of
+    ``shared`` (a batch of references) run one after the other."""
+    run = jax.custom_batching.custom_vmap(advance)
+
+    @run.def_vmap
+    def rule(axis_size, in_batched, carry, lanes, shared):
+        carry_b, lanes_b, shared_b = in_batched
+        full = lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + x.shape)
+        if any(jax.tree.leaves(shared_b)):
+            shared = jax.tree.map(full, shared, shared_b)
+            return jax.lax.map(lambda a: run(*a), (full(carry, carry_b), full(lanes, lanes_b), shared)), True
+        fold = lambda x, b: jnp.moveaxis(full(x, b), 0, -2).reshape(x.shape[-2], -1)
+        out = run(fold(carry, carry_b), fold(lanes, lanes_b), shared)
+        return jnp.moveaxis(out.reshape(out.shape[0], axis_size, -1), 1, 0), True
+
+    return run
+
+
+def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, divergence_bound, chattering_cutoff):
+    from .rollout import Result, start
+
+    dtype = X0s.dtype
+    dt = jnp.asarray(dt, dtype)
+    P, O = plants.payload.shape[0], X0s.shape[0]
+    N = P * O
+    digital = type(ctrl) is DigitalLoop
+    bound = jnp.asarray(divergence_bound, dtype)
+    one = lambda plant, X0: start(plant, ctrl, reference, X0, None, bound)
+    carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
+    carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
+    acc3 = jax.vmap(lambda plant, state: plant.accelerations(state), (0, 0))(
+        jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
+    )
+    delay = ctrl.delay if digital else 0
+    law = _law_of(ctrl)
+    fosmc = isinstance(law, (FOSMC, DiscreteFOSMC))
+    how = dict(kind=(SAMPLED if digital else IDEAL)[type(law if digital else ctrl)], delay=delay,
+               switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
+               difference=digital and ctrl.sensors.derivatives == "difference",
+               m=ctrl.sample_steps if digital else 1)  # fmt: skip
+    gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
+    shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
+    advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
+    out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
+    fields = out[METRICS].reshape(10, 3, N)
+    acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))
+    acc = acc._replace(count=acc.count[:, :1])
+    metrics = _metrics.finish(acc, n_steps * dt)
+    return Result(metrics, out[DIVERGED] != 0, out[DIVERGED_AT], None)
+
+
+def simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **options) -> Result:  # noqa: F821
+    """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold); derivatives are
+    those of ``vmap_path(plants, ctrl, reference, X0s, dt)``, the ``vmap`` of ``simulate``."""
+    native = {k: options[k] for k in ("n_steps", "integrator", "divergence_bound", "chattering_cutoff")}
+    run = jax.custom_jvp(functools.partial(_native_batch, **native))
+    run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
+    return run(plants, ctrl, reference, X0s, dt)

@@ -1,0 +1,162 @@
+"""The fast paths' time loops in compiled kernels (``kernel.cc``: linear plants; ``arm_kernel.cc``:
+the arm, called by :mod:`fosmc_jax._simulator.arm_native`; both on ``kernel.h``), called from XLA.
+
+XLA:CPU runs every step of a ``lax.scan`` as a few dozen separate kernels, each a pass over the
+batch in memory; the loop body of :func:`fosmc_jax._simulator.rollout._linear_batch` costs about 0.7 us
+per kernel, which held the package at 3-7% of the hand-written SIMD anchor (BENCHMARKS.md,
+issue 13). ``kernel.cc`` is that body written once in C++ with the time loop inside, the
+rollouts in SIMD lanes and the batch spread over XLA's intra-op thread pool (every core, with
+or without sharding), registered as an XLA FFI target (``jax.ffi``).
+
+It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
+headers come with jaxlib) for this CPU (``-march=native``) and cached under
+``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``, :func:`fosmc_jax._simulator.cache.cache_dir`), as one
+library (the sources compiled in parallel), keyed by the sources, the flags, the
+compiler's version, jaxlib's and the CPU. Where no compiler works, or with
+``FOSMC_JAX_NATIVE=0``, the linear fast path runs its ``lax.scan`` and the arm ``vmap`` of
+``simulate``, as before, with a one-line warning in the first case. Results equal those paths'
+to rounding (tests/test_performance_paths.py, tests/test_arm_native.py), and so do derivatives,
+which are theirs (``custom_jvp``).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import jaxlib
+import numpy as np
+from jax import Array
+
+from .._controllers.fosmc import LAWS, SWITCHING
+from .cache import cache_dir
+
+TARGET = "fosmc_advance"
+ARM_TARGET = "fosmc_arm_advance"
+LANES = 16  # rollouts per SIMD block (kW in kernel.cc): the batch is padded to a multiple
+ROWS = 47  # carry rows (see kernel.cc)
+# Steps per kernel call: as many as keep the call's time table within 24 KiB, in the core's
+# L1 cache (267 Euler float32 steps; 512 steps per call ran slower by hand), at least 64.
+TABLE_BYTES = 24 * 1024
+_HERE = Path(__file__).parent
+_SOURCES = [_HERE / "kernel.cc", _HERE / "arm_kernel.cc"]  # one library; both include kernel.h
+_HEADER = _HERE / "kernel.h"
+_FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
+
+
+def _cpu() -> str:
+    """What ``-march=native`` depends on: the CPU's model and flags."""
+    try:
+        info = Path("/proc/cpuinfo").read_text().splitlines()
+        return "".join(sorted({line for line in info if line.startswith(("model name", "flags"))}))
+    except OSError:
+        return platform.processor() + platform.machine()
+
+
+def _compiler() -> str | None:
+    for cxx in (os.environ.get("CXX"), "c++", "g++", "clang++"):
+        if cxx and shutil.which(cxx):
+            return cxx
+    return None
+
+
+def _version(cmd: list[str]) -> str:
+    try:
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=30).stdout.split("\n")[0]
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def _build() -> Path:
+    """The kernel's shared library, compiled once per source, flags, compiler, jaxlib and CPU."""
+    cxx = _compiler()
+    if cxx is None:
+        raise OSError("no C++ compiler found (set CXX)")
+    # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (benchmarks/arm_levers.py's ablations); in the cache key
+    cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}"]
+    text = [path.read_text() for path in (*_SOURCES, _HEADER)]
+    key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
+    cache = cache_dir()
+    lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
+    if not lib.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
+            out = Path(tmp) / lib.name
+            # each source compiled in its own process (the two kernels at once on two cores), then linked
+            objects = [Path(tmp) / f"{path.stem}.o" for path in _SOURCES]
+            jobs = [subprocess.Popen([*cmd, "-c", str(src), "-o", str(obj)], stderr=subprocess.PIPE, text=True)
+                    for src, obj in zip(_SOURCES, objects)]  # fmt: skip
+            errors = [job.communicate(timeout=600)[1] for job in jobs]
+            for job, err in zip(jobs, errors):
+                _check(cxx, job.returncode, err)
+            link = subprocess.run(
+                [*cmd, *map(str, objects), "-o", str(out)], capture_output=True, text=True, timeout=600
+            )
+            _check(cxx, link.returncode, link.stderr)
+            os.replace(out, lib)
+    return lib
+
+
+def _check(cxx: str, returncode: int, stderr: str) -> None:
+    if returncode:
+        errors = [line for line in stderr.splitlines() if "error" in line] or [f"exit {returncode}"]
+        raise OSError(f"{cxx} failed: {errors[0].strip()}")
+
+
+def _load() -> ctypes.CDLL:
+    """The built kernel, loaded; a cached library that does not load is rebuilt once."""
+    path = _build()
+    try:
+        return ctypes.cdll.LoadLibrary(str(path))
+    except OSError:
+        path.unlink(missing_ok=True)
+        return ctypes.cdll.LoadLibrary(str(_build()))
+
+
+@functools.cache
+def available() -> bool:
+    """Whether the kernel is built and registered (built on the first call)."""
+    if os.environ.get("FOSMC_JAX_NATIVE", "1") == "0":
+        return False
+    try:
+        lib = _load()
+        jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.FosmcAdvance), platform="cpu")
+        jax.ffi.register_ffi_target(ARM_TARGET, jax.ffi.pycapsule(lib.FosmcArmAdvance), platform="cpu")
+    except Exception as e:  # any failure leaves the scan loop, which needs none of this
+        warnings.warn(f"fosmc_jax: the native kernel is not available ({e}); the fast path runs lax.scan", stacklevel=2)
+        return False
+    return True
+
+
+def advance(carry: Array, ab: Array, consts: Array, table, k0: Array, n_steps: int, *, rk4: bool, switching: str,
+            law: str) -> Array:  # fmt: skip
+    """``n_steps`` steps of the kernel from step ``k0``: ``carry`` (ROWS, N) and ``ab`` (36, N),
+    N a multiple of LANES, ``consts`` (100,) as in ``kernel.cc``, all of one dtype;
+    ``table(k)`` gives the rows of steps ``k`` (a vector of step indices), (len(k), R). Calls
+    of a few hundred steps (see TABLE_BYTES) in a scan."""
+    call = jax.ffi.ffi_call(TARGET, jax.ShapeDtypeStruct(carry.shape, carry.dtype), vmap_method="sequential")
+    # the kernel's codes are the positions in these tuples (its Sw and Law template arguments)
+    attrs = dict(rk4=np.int32(rk4), switching=np.int32(SWITCHING.index(switching)), law=np.int32(LAWS.index(law)))
+
+    def chunk(c, k, length):
+        return call(ab, consts, table(k + jnp.arange(length)), c, **attrs)
+
+    row = (27 if rk4 else 9) + 14  # X_d at the stage times, then X_d, Omega, rho_ref, t'
+    steps = max(64, TABLE_BYTES // (row * carry.dtype.itemsize))
+    chunks, rest = divmod(n_steps, steps)
+    if chunks:
+        body = lambda c, i: (chunk(c, k0 + i * steps, steps), None)
+        carry = jax.lax.scan(body, carry, jnp.arange(chunks))[0]
+    if rest:
+        carry = chunk(carry, k0 + chunks * steps, rest)
+    return carry

@@ -1,0 +1,581 @@
+"""The closed-loop simulator: one rollout, a ``lax.scan`` in time; ``vmap`` outside.
+
+Time stepping. Samples are t_k = k dt, k = 0..n. The controller runs at every m-th sample
+(m = ``controller.sample_steps``, 1 by default): at t_k it reads the plant's X(t_k) and
+returns the control applied over [t_k, t_{k+m}) (zero-order hold). Between its samples the
+plant is integrated with a fixed-step ``euler`` or ``rk4`` scheme, together with the
+controller's continuous-time state if it has one (the ideal FOSMC's integral of (14)); the
+reference is evaluated at the scheme's stage times.
+
+A controller is any pytree with the shape optax gives optimizers:
+``init(X0, r0, key) -> state`` and ``update(state, Y, r, t) -> (U, state)``, called at each
+controller sample with the measurement Y (9,), the reference sample r = reference(t) (4, 3)
+and t; optionally ``derivative(state, X, r, t) -> state'`` (continuous-time state), and the
+attributes ``sample_steps`` (static int m) and ``u_max`` ((3,) actuator limit, for the
+``saturation_fraction`` metric). See :class:`fosmc_jax.FOSMC`, :class:`fosmc_jax.DiscreteFOSMC`
+and :class:`fosmc_jax.DigitalLoop`. The FOSMC parameters :class:`fosmc_jax.Controller` alone
+run as the paper's ideal loop.
+
+A plant is any pytree with methods ``init(X0) -> state``, ``observe(state) -> X (9,)`` and
+``derivative(state, U) -> state'`` (see :class:`fosmc_jax.LinearPlant`). A reference is any
+pytree callable ``ref(t) -> (4, 3)`` (see :class:`fosmc_jax.Cycloid`; wrap a plain function in
+``jax.tree_util.Partial``).
+
+Rollouts that blow up (a non-finite value, or |X| beyond ``divergence_bound``) are frozen at
+their last finite state and flagged, so one bad rollout never spoils a batch.
+"""
+
+from __future__ import annotations
+
+import functools
+import operator
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from .._controllers.fosmc import FOSMC, Controller, derive, reference_terms, safe_sqrt, switch
+from .._plants.linear import LinearPlant
+from .._plants.reference import desired_state
+from . import arm_native as _arm_native
+from . import metrics as _metrics
+from . import native as _native
+
+INTEGRATORS = ("euler", "rk4")
+
+
+class Trace(NamedTuple):
+    """Decimated samples of a rollout, each with a leading time axis of length m."""
+
+    t: Array  # (m,) s
+    X: Array  # (m, 9) plant state [theta, theta', theta''] per joint
+    X_d: Array  # (m, 9) desired state
+    U: Array  # (m, 3) applied control, V
+    s: Array  # (m, 3) sliding variable (14) at the last controller sample (NaN if the controller has none)
+
+
+class Result(NamedTuple):
+    """One rollout's outcome (leading batch axes when vmapped)."""
+
+    metrics: _metrics.Metrics
+    diverged: Array  # bool
+    diverged_at: Array  # time (s) of the first bad step, +inf if none
+    trace: Trace | None
+
+
+#: The carries' fields through which a state's derivative flows to the next step (``truncate_every``).
+_DYNAMIC = ("plant_state", "ctrl_state", "U")
+
+
+class _Carry(NamedTuple):
+    k: Array
+    plant_state: Any
+    ctrl_state: Any
+    U: Array  # the applied control held over the coming step
+    acc: _metrics.Accumulator
+    diverged: Array
+    diverged_at: Array
+
+
+def _euler(f, t, y, dt):
+    return jax.tree.map(lambda a, da: a + dt * da, y, f(t, y))
+
+
+def _rk4(f, t, y, dt):
+    axpy = lambda a, x, y: jax.tree.map(lambda xi, yi: yi + a * xi, x, y)
+    k1 = f(t, y)
+    k2 = f(t + dt / 2, axpy(dt / 2, k1, y))
+    k3 = f(t + dt / 2, axpy(dt / 2, k2, y))
+    k4 = f(t + dt, axpy(dt, k3, y))
+    incr = jax.tree.map(lambda a, b, c, d: (a + 2 * b + 2 * c + d) / 6, k1, k2, k3, k4)
+    return axpy(dt, incr, y)
+
+
+_STEPPERS = {"euler": _euler, "rk4": _rk4}
+
+
+def _guard(diverged, diverged_at, ok, t, old, fresh):
+    """Freeze rollouts that have diverged or fail ``ok`` now: keep ``old`` there, ``fresh``
+    elsewhere; returns (kept, diverged, time of the first failure)."""
+    keep = diverged | ~ok
+    kept = jax.tree.map(lambda a, b: jnp.where(keep, a, b), old, fresh)
+    return kept, keep, jnp.where(~diverged & ~ok, t, diverged_at)
+
+
+def _scan_steps(body, carry, steps: int, unroll: int = 1):
+    """``steps`` iterations of the scan ``body`` (none when 0), ``unroll`` per loop trip."""
+    return carry if steps == 0 else jax.lax.scan(body, carry, None, length=steps, unroll=min(unroll, steps))[0]
+
+
+def _in_blocks(advance, carry, n_steps: int, detach, checkpoint_every: int = 0, truncate_every: int = 0):
+    """``advance(carry, steps)`` over ``n_steps``, in blocks where the options ask for them.
+
+    ``truncate_every``: blocks of that many steps, the dynamic state ``detach``-ed (its
+    gradient stopped, the metric sums kept) at each block's start: the gradient flows
+    through the closed loop over at most one block (truncated backpropagation through time;
+    values unchanged). ``checkpoint_every``: blocks of that many steps (or the truncation's
+    blocks) rematerialised with ``jax.checkpoint``."""
+    block = truncate_every or checkpoint_every
+    if not block or block >= n_steps:
+        return advance(carry, n_steps)
+    cut = detach if truncate_every else (lambda c: c)
+    run = lambda c, _: (advance(cut(c), block), None)
+    blocks, rest = divmod(n_steps, block)
+    carry = jax.lax.scan(jax.checkpoint(run) if checkpoint_every else run, carry, None, length=blocks)[0]
+    return advance(cut(carry), rest)
+
+
+def _finite_and_bounded(tree, X, bound) -> Array:
+    leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+    return finite & jnp.all(jnp.abs(X) <= bound)
+
+
+def as_controller(controller, switching: str = "ratio", law: str = "paper"):
+    """A :class:`Controller` (FOSMC parameters) as the ideal-loop :class:`FOSMC`; any other
+    controller as it is."""
+    return FOSMC(controller, switching, law) if isinstance(controller, Controller) else controller
+
+
+def _sliding_variable(state, dtype) -> Array:
+    """The sliding variable kept in a controller's state (a wrapped law's too), else NaN."""
+    while not hasattr(state, "s") and hasattr(state, "law"):
+        state = state.law
+    return state.s if hasattr(state, "s") else jnp.full(3, jnp.nan, dtype)
+
+
+def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
+    """The carry at t = 0: the plant's state from X0, the controller's first sample, the
+    metrics' first sample; flagged diverged (at 0) where any of it is not finite."""
+    dtype = X0.dtype
+    plant_state = plant.init(X0)
+    X = plant.observe(plant_state)
+    r = reference(jnp.zeros((), dtype))
+    ctrl_state = ctrl.init(X, r, key)
+    U, ctrl_state = ctrl.update(ctrl_state, X, r, jnp.zeros((), dtype))
+    bad = ~_finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
+    return _Carry(
+        jnp.zeros((), jnp.int32),
+        plant_state,
+        ctrl_state,
+        U,
+        _metrics.start(X[0::3] - r[0], U, getattr(ctrl, "u_max", None)),
+        bad,
+        jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
+    )
+
+
+_STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def simulate(
+    plant,
+    controller,
+    reference,
+    X0: Array,
+    dt: Array,
+    *,
+    n_steps: int,
+    integrator: str = "rk4",
+    switching: str = "ratio",
+    law: str = "paper",
+    save_every: int = 0,
+    checkpoint_every: int = 0,
+    truncate_every: int = 0,
+    divergence_bound: float = 1e6,
+    key: Array | None = None,
+    chattering_cutoff: float = _metrics.CHATTERING_CUTOFF,
+) -> Result:
+    """Simulate one closed-loop rollout of ``controller`` on ``plant`` from X(0) = ``X0``.
+
+    The controller runs every m = ``controller.sample_steps`` (default 1) simulation steps:
+    at t_k, k a multiple of m, it reads the plant's X(t_k) and returns the applied voltage,
+    held until its next sample; between samples the plant (and the controller's
+    continuous-time state, if it has a ``derivative``) is integrated with ``integrator``.
+
+    Args:
+      plant: plant pytree (see module docstring), e.g. ``LinearPlant`` or ``Arm``.
+      controller: a controller (see module docstring): :class:`FOSMC`, :class:`DiscreteFOSMC`,
+        :class:`DigitalLoop`, your own; or a :class:`Controller` (FOSMC parameters), which
+        runs as ``FOSMC(controller, switching, law)``, the paper's ideal loop.
+      reference: pytree callable t -> (4, 3) desired angles and derivatives.
+      X0: (9,) initial state [theta, theta', theta''] per joint.
+      dt: step (s). The dtype of ``X0`` sets the precision of the run.
+      n_steps: number of steps n; t_final = n dt. Static.
+      integrator: ``euler`` or ``rk4``. Static.
+      switching: ``sign``, ``ratio`` (28), ``sat`` or ``tanh``, for a :class:`Controller`. Static.
+      law: ``paper`` (23) or ``equivalent``, for a :class:`Controller`. Static.
+      save_every: keep every ``save_every``-th sample (and the last) in ``Result.trace``;
+        0 keeps none; a multiple of m. Static.
+      checkpoint_every: for reverse-mode gradients, rematerialise blocks of this many steps
+        (rounded up to a multiple of m) with ``jax.checkpoint``, so memory grows with
+        n / checkpoint_every + checkpoint_every instead of n; 0 stores every step. Ignored
+        when ``save_every`` is set. Static.
+      truncate_every: truncated backpropagation through time: derivatives follow the closed
+        loop over blocks of this many steps (rounded up to a multiple of m) only, the state's
+        dependence on earlier blocks cut (the metric sums keep theirs), so that a gradient
+        stays finite and informative where the full-horizon one grows exponentially (a
+        switching, quantized loop); values are unchanged; 0: the full horizon. Ignored when
+        ``save_every`` is set. Static.
+      divergence_bound: a rollout with some |X_i| above it is frozen and flagged.
+      key: PRNG key handed to ``controller.init`` (sensor noise); default ``PRNGKey(0)``.
+      chattering_cutoff: cutoff (Hz) of the ``chattering_hf`` metric's low-pass filter.
+
+    Returns:
+      :class:`Result` with the metrics of :mod:`fosmc_jax._simulator.metrics`.
+    """
+    if integrator not in _STEPPERS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    ctrl = as_controller(controller, switching, law)
+    m = getattr(ctrl, "sample_steps", 1)
+    if save_every % m:
+        raise ValueError(f"save_every = {save_every} must be a multiple of the controller's sample_steps = {m}")
+    u_max = getattr(ctrl, "u_max", None)
+    flows = hasattr(ctrl, "derivative")
+    dtype = X0.dtype
+    dt = jnp.asarray(dt, dtype)
+    a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
+    theta = slice(0, 9, 3)
+    stepper = _STEPPERS[integrator]
+
+    def integrate(plant_state, ctrl_state, U, t):
+        if not flows:
+            return stepper(lambda t, y: plant.derivative(y, U), t, plant_state, dt), ctrl_state
+
+        def f(t, y):
+            ps, cs = y
+            return plant.derivative(ps, U), ctrl.derivative(cs, plant.observe(ps), reference(t), t)
+
+        return stepper(f, t, (plant_state, ctrl_state), dt)
+
+    def step(c: _Carry, sample: bool) -> _Carry:
+        """One simulation step; at its end a controller sample when ``sample``."""
+        plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt)
+        k = c.k + 1
+        t = k.astype(dtype) * dt
+        X = plant.observe(plant_state)
+        r = reference(t)
+        U = c.U
+        if sample:
+            U, ctrl_state = ctrl.update(ctrl_state, X, r, t)
+        ok = _finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
+        acc = _metrics.add(c.acc, X[theta] - r[0], U, c.U, a, u_max)
+        kept, diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, t, (c.plant_state, c.ctrl_state, c.U, c.acc),
+            (plant_state, ctrl_state, U, acc),
+        )  # fmt: skip
+        return _Carry(k, *kept, diverged, diverged_at)
+
+    def held(c: _Carry, _) -> tuple[_Carry, None]:
+        return step(c, sample=False), None
+
+    def period(c: _Carry, _) -> tuple[_Carry, None]:
+        """m steps: m - 1 with the control held, then one ending with a controller sample."""
+        return step(_scan_steps(held, c, m - 1), sample=True), None
+
+    def advance(c: _Carry, steps: int) -> _Carry:
+        """``steps`` simulation steps from a controller sample."""
+        periods, rest = divmod(steps, m)
+        return _scan_steps(held, _scan_steps(period, c, periods), rest)
+
+    carry = start(plant, ctrl, reference, X0, key, divergence_bound)
+
+    def snapshot(c: _Carry):
+        return c.k, plant.observe(c.plant_state), c.U, _sliding_variable(c.ctrl_state, dtype)
+
+    trace = None
+    if save_every:
+        blocks, rest = divmod(n_steps, save_every)
+
+        def block(c, _):
+            c = advance(c, save_every)
+            return c, snapshot(c)
+
+        first = snapshot(carry)
+        carry, samples = jax.lax.scan(block, carry, None, length=blocks)
+        carry = advance(carry, rest)
+        stack = lambda head, body, tail: jnp.concatenate([head[None], body] + ([tail[None]] if rest else []))
+        ks, Xs, Us, ss = jax.tree.map(stack, first, samples, snapshot(carry))
+        ts = ks.astype(dtype) * dt
+        X_ds = jax.vmap(lambda t: desired_state(reference(t)))(ts)
+        trace = Trace(ts, Xs, X_ds, Us, ss)
+    else:
+        whole = lambda steps: -(-steps // m) * m
+        detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in _DYNAMIC})
+        carry = _in_blocks(advance, carry, n_steps, detach, whole(checkpoint_every), whole(truncate_every))
+
+    metrics = _metrics.finish(carry.acc, n_steps * dt)
+    return Result(metrics, carry.diverged, carry.diverged_at, trace)
+
+
+# ---------------------------------------------------------------------------- fast path
+#
+# The same closed loop for a batch of LinearPlants, written structure-of-arrays: the batch
+# is the trailing (minor) axis of every array, and each matrix-vector product is written out
+# row by row on (batch,) vectors with the matrix entries as scalars (or, for the plants, as
+# (batch,) vectors). A step is then a few fused elementwise loops over the batch; ``vmap`` of
+# :func:`simulate` instead makes (batch, 3, 9) x (batch, 9) dot_generals, one small kernel
+# each. The reference, X_d, Omega and everything derived from the controller depend on t
+# only: computed once per step for the whole batch. Only rows 3, 6, 9 of the plant carry
+# dynamics. Same operations as :func:`simulate`, so the same results to rounding
+# (tests/test_performance_paths.py). Where the host has a C++ compiler the time loop runs in
+# fosmc_jax/_simulator/kernel.cc instead (:func:`_kernel_advance`), the same operations again; the
+# scan stays for derivatives and for hosts without a compiler.
+
+
+def _rows(a: Array, lead: int = 1) -> Any:
+    """The first ``lead`` axes of ``a`` unpacked into nested tuples."""
+    if lead == 0:
+        return a
+    return tuple(_rows(a[i], lead - 1) for i in range(a.shape[0]))
+
+
+def _mv(M: tuple, v: tuple) -> tuple:
+    """M @ v for M given as rows of entries and v as a tuple of entries."""
+    return tuple(functools.reduce(operator.add, (m * x for m, x in zip(row, v))) for row in M)
+
+
+def _add(*vectors: tuple) -> tuple:
+    return tuple(functools.reduce(operator.add, entries) for entries in zip(*vectors))
+
+
+def _sub(a: tuple, b: tuple) -> tuple:
+    return tuple(x - y for x, y in zip(a, b))
+
+
+class _Batch(NamedTuple):
+    k: Array
+    x: tuple  # 9 entries (P, O): the plant state X
+    w: tuple  # 3 entries (P, O): the integral state of (14)
+    U: tuple  # 3 entries (P, O): the control held over the coming step
+    acc: tuple  # per joint, an Accumulator with entries (P, O)
+    diverged: Array  # (P, O)
+    diverged_at: Array  # (P, O)
+
+
+def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Array, Array]:
+    """X_d (9,), Omega (3,) and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
+    X_d, Omega, norm_X_d, norm_Omega = reference_terms(controller.a_rows, controller.b_rows, reference(t))
+    return X_d, Omega, controller.gamma[1] * norm_X_d + controller.gamma[2] * norm_Omega
+
+
+def _linear_batch(
+    plants: LinearPlant,
+    controller: Controller,
+    reference,
+    X0s: Array,
+    dt: Array,
+    *,
+    n_steps: int,
+    integrator: str = "rk4",
+    switching: str = "ratio",
+    law: str = "paper",
+    checkpoint_every: int = 0,
+    truncate_every: int = 0,
+    divergence_bound: float = 1e6,
+    chattering_cutoff: float = _metrics.CHATTERING_CUTOFF,
+    native: bool = False,
+) -> Result:
+    """:func:`simulate_batch` without a trace for plants (P,) of :class:`LinearPlant` and
+    X0s (O, 9); results with a leading axis P * O, plant-major. With ``native`` the time loop
+    runs in the compiled kernel of :mod:`fosmc_jax._simulator.native` (forward only), else in
+    ``lax.scan``."""
+    if integrator not in _STEPPERS:
+        raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    dtype = X0s.dtype
+    dt = jnp.asarray(dt, dtype)
+    P, O = plants.a_rows.shape[0], X0s.shape[0]
+    gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
+    derived = derive(controller)
+    C, S, CB_inv, K = (_rows(m, 2) for m in (controller.C, derived.S, derived.CB_inv, derived.K))
+    # Every batch vector has the shape ``lanes``, (P, O), or (P,) when O = 1: a trailing axis
+    # of length 1 leaves XLA:CPU a loop it does not vectorise (2.7x slower at P = 4,096,
+    # O = 1, the CLI's ``uncertainty = "sample"`` batch; issue 13).
+    lanes = (P, O) if O > 1 else (P,)
+    col = (lambda a: a[..., None]) if O > 1 else (lambda a: a)
+    A = _rows(col(jnp.moveaxis(plants.a_rows, 0, -1)), 2)  # entries (P, 1), or (P,)
+    B = _rows(col(jnp.moveaxis(plants.b_rows, 0, -1)), 2)
+    gamma, delta = _rows(controller.gamma), _rows(controller.delta)
+    # XLA:CPU fuses each output separately and would recompute shared terms in each; an
+    # optimization_barrier does not survive its pipeline, but a conditional's outputs are
+    # always materialised: ``once`` runs ``fn`` under an always-true cond, so that every
+    # stage's result is a (P, O) vector computed once per step.
+    always = jnp.isfinite(dt)
+
+    def once(fn):
+        return lambda *args: jax.lax.cond(always, fn, fn, *args)
+
+    def sample(x, w, t):
+        X_d, Omega, rho_ref = _time_terms(controller, reference, t)
+        Z = _sub(x, _rows(X_d))
+        s = _sub(_mv(C, Z), w)
+        rho = gamma[0] * safe_sqrt(functools.reduce(operator.add, (z * z for z in Z))) + rho_ref
+        f = tuple(rho * switch(si, di, switching) for si, di in zip(s, delta))
+        U = _sub(_rows(Omega), _mv(CB_inv, f))
+        if law == "equivalent":
+            U = _add(U, _mv(K, Z))
+        return U, s, tuple(x[i] - X_d[i] for i in (0, 3, 6))
+
+    def field(U):
+        def f(t, y):
+            x, _ = y
+            jerk = _add(_mv(A, x), _mv(B, U))
+            dx = (x[1], x[2], jerk[0], x[4], x[5], jerk[1], x[7], x[8], jerk[2])
+            return dx, _mv(S, _sub(x, _rows(desired_state(reference(t)))))
+
+        return once(f)
+
+    def ok_of(x, w, U, s):
+        finite = functools.reduce(operator.and_, (jnp.isfinite(v) for v in x + w + U + s))
+        return functools.reduce(operator.and_, (jnp.abs(v) <= divergence_bound for v in x), finite)
+
+    step = _STEPPERS[integrator]
+
+    def body(c: _Batch, _) -> tuple[_Batch, None]:
+        t = c.k.astype(dtype) * dt
+        x, w = once(lambda y: step(field(c.U), t, y, dt))((c.x, c.w))
+        k = c.k + 1
+        U, s, e = once(sample)(x, w, k.astype(dtype) * dt)
+        ok = ok_of(x, w, U, s)
+        acc = tuple(_metrics.add(a, ej, uj, pj, gain) for a, ej, uj, pj in zip(c.acc, e, U, c.U))
+        kept, diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, k.astype(dtype) * dt, (c.x, c.w, c.U, c.acc), (x, w, U, acc)
+        )
+        return _Batch(k, *kept, diverged, diverged_at), None
+
+    # Two steps per loop trip: 1.02-1.09x at batch 1,024-4,096 (benchmarks/loop_variants.py,
+    # BENCHMARKS.md, issue 13); a packed carry, more unrolling, no ``once`` or blocks of the
+    # batch were slower or no faster.
+    advance = functools.partial(_scan_steps, body, unroll=2)
+
+    x = tuple(jnp.broadcast_to(X0s[:, i], lanes) for i in range(9))
+    w = (jnp.zeros(lanes, dtype),) * 3
+    U, s, e = sample(x, w, jnp.zeros((), dtype))
+    bad = ~ok_of(x, w, U, s)
+    acc = tuple(_metrics.start(ej, uj) for ej, uj in zip(e, U))
+    acc = tuple(a._replace(count=jnp.ones(lanes, dtype)) for a in acc)
+    carry = _Batch(
+        jnp.zeros((), jnp.int32),
+        x,
+        w,
+        U,
+        acc,
+        bad,
+        jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
+    )
+    if native:
+        carry = _kernel_advance(carry, n_steps, A, B, controller, derived, reference, dt, gain, divergence_bound,
+                                rk4=integrator == "rk4", switching=switching, law=law)  # fmt: skip
+    else:
+        detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in ("x", "w", "U")})
+        carry = _in_blocks(advance, carry, n_steps, detach, checkpoint_every, truncate_every)
+
+    acc = jax.tree.map(lambda *joints: jnp.stack(joints, axis=-1), *carry.acc)
+    acc = acc._replace(count=carry.acc[0].count[..., None])
+    metrics = _metrics.finish(acc, n_steps * dt)
+    flat = lambda a: a.reshape((P * O,) + a.shape[len(lanes) :])
+    return Result(jax.tree.map(flat, metrics), flat(carry.diverged), flat(carry.diverged_at), None)
+
+
+def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **how) -> _Batch:
+    """``n_steps`` of ``body`` in :mod:`fosmc_jax._simulator.native`'s kernel: the carry packed into
+    rows of lanes (padded to a multiple of its block), the time-only terms in a table; every
+    input in the carry's dtype (the widest of the inputs', as the scan promotes them)."""
+    lanes = c.diverged.shape
+    n = c.diverged.size
+    pad = (-n) % _native.LANES
+
+    def rows(entries, dtype=None):
+        flat = [jnp.broadcast_to(e, lanes).reshape(n) for e in entries]
+        flat = flat if dtype is None else [e.astype(dtype) for e in flat]
+        return jnp.pad(jnp.stack(flat), ((0, 0), (0, pad)), mode="edge")
+
+    acc = [field for fields in zip(*c.acc) for field in fields]  # field-major, joint-minor
+    carry = rows([*c.x, *c.w, *c.U, *acc, c.diverged_at])
+    dtype = carry.dtype
+    carry = jnp.concatenate([carry[:45], rows([c.diverged], dtype), carry[45:]])
+    ab = rows([e for row in A + B for e in row], dtype)
+    bound = jnp.minimum(jnp.asarray(bound, dtype), jnp.finfo(dtype).max)  # |x| <= bound also means finite
+    consts = jnp.concatenate([jnp.ravel(m).astype(dtype) for m in (controller.C, derived.S, derived.CB_inv, derived.K,
+                              controller.gamma, controller.delta, dt, *gain, bound)])  # fmt: skip
+    X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
+
+    def table(k):
+        t = k.astype(dt.dtype) * dt
+        stages = [X_d_at(t)] if not how["rk4"] else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)]
+        t1 = (k + 1).astype(dt.dtype) * dt
+        X_d, Omega, rho_ref = jax.vmap(functools.partial(_time_terms, controller, reference))(t1)
+        return jnp.concatenate([*stages, X_d, Omega, rho_ref[:, None], t1[:, None]], axis=1).astype(dtype)
+
+    out = _native.advance(carry, ab, consts, table, c.k, n_steps, **how)[:, :n].reshape((-1, *lanes))
+    x, w, U, acc, div, div_at = out[:9], out[9:12], out[12:15], out[15:45], out[45], out[46]
+    acc = tuple(_metrics.Accumulator(*acc[j::3]) for j in range(3))
+    return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
+
+
+def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
+    """:func:`_linear_batch` with its time loop in the native kernel where that is built;
+    derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
+    the ``lax.scan`` loop. The kernel is the CPU's: on a GPU (the default backend) the scan
+    runs."""
+    if jax.default_backend() != "cpu" or not _native.available():
+        return _linear_batch(plants, controller, reference, X0s, dt, **options)
+    scan = lambda *args: _linear_batch(*args, **options)
+    run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=True, **options))
+    run.defjvp(lambda primals, tangents: jax.jvp(scan, primals, tangents))
+    return run(plants, controller, reference, X0s, dt)
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC + ("fast",))
+def simulate_batch(
+    plants, controller, reference, X0s: Array, dt: Array, *, keys: Array | None = None, fast: bool = True, **options
+) -> Result:
+    """Every plant in ``plants`` (leading axis P) crossed with every initial state in ``X0s``
+    (O, 9), and with every key in ``keys`` (R keys, e.g. ``jax.random.split(key, R)``; one
+    noise realization each): P x O (x R) rollouts of :func:`simulate`, returned flattened in
+    plant, offset, realization order, shape (P*O*R, ...). ``options`` are :func:`simulate`'s
+    keyword arguments (``key`` too, when ``keys`` is None).
+
+    With ``fast`` (static), two batches without a trace (``save_every`` = 0) run a fast path
+    with the same results to rounding: :class:`LinearPlant` under the ideal-loop FOSMC (its
+    time loop one compiled kernel on every core, :mod:`fosmc_jax._simulator.native`, or, where that
+    cannot be built, a structure-of-arrays ``lax.scan``), and :class:`fosmc_jax.Arm` under the
+    FOSMC, SMC or super-twisting in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`
+    (:mod:`fosmc_jax._simulator.arm_native`, where the kernel is built); anything else runs ``vmap`` of
+    :func:`simulate`. Derivatives of the fast path (forward and reverse mode) are those of
+    the ``lax.scan``; in reverse mode it compiles several times slower and runs slower than
+    the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``. The arm's
+    derivatives are the ``vmap`` path's."""
+    ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
+    one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
+    if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
+        options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
+        options.update(switching=ctrl.switching, law=ctrl.law)
+        return _fast_batch(plants, ctrl.params, reference, X0s, dt, **options)
+    key = options.pop("key", None)
+    if keys is None:
+        keys = (jax.random.PRNGKey(0) if key is None else key)[None]
+
+    def vmap_path(plants, ctrl, reference, X0s, dt):
+        one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, **options)
+        batched = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))
+        result = batched(plants, X0s, keys)
+        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
+
+    options.setdefault("integrator", "rk4")
+    arm_fast = fast and keys.shape[0] == 1 and not options.get("save_every")
+    if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
+        return _arm_native.simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **_native_options(options))
+    return vmap_path(plants, ctrl, reference, X0s, dt)
+
+
+def _native_options(options: dict) -> dict:
+    """simulate's options that the arm's kernel reads, with simulate's defaults."""
+    return dict(
+        n_steps=options["n_steps"],
+        integrator=options["integrator"],
+        divergence_bound=options.get("divergence_bound", 1e6),
+        chattering_cutoff=options.get("chattering_cutoff", _metrics.CHATTERING_CUTOFF),
+    )
