@@ -5,7 +5,7 @@ without and with the native kernel, one command:
     python benchmarks/tuner_cost.py --chunk 16 --chunks 2 --out /tmp/tuner_cost.json
     python benchmarks/tuner_cost.py --t-final 0.1 --chunk 8 --chunks 1 --grads 1   # a short trial
 
-- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax._search.front.study`` builds
+- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax._app.study.study`` builds
   it (``_config.tuning_problems``; the search stages evaluate the training problem), candidates
   drawn as its global stage draws them (``global_factors`` with the front's ``grid_share``,
   ``from_factors``), evaluated by ``evaluate_many`` in chunks of ``--chunk`` (the compiled

@@ -2,9 +2,10 @@
 controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class of Uncertain
 Dynamical System", for a 3-DOF direct-drive arm."""
 
+from ._app.certify import certify
 from ._app.commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
 from ._app.config import ConfigError
-from ._certificate.certify import Certificate, certify
+from ._certificate.hitting import Certificate
 from ._controllers.fosmc import (
     FOSMC,
     LAWS,

@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from fosmc_jax._app import config as _config
-from fosmc_jax._certificate.certify import (
+from fosmc_jax._app.certify import certify, report
+from fosmc_jax._certificate.hitting import (
     box_max_hitting,
-    certify,
     hitting,
-    report,
     s_directions,
     vertex_codes,
     vertices_from_codes,

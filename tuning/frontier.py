@@ -2,7 +2,7 @@
 
 For one config, each method gets the same wall time on the same machine, one after the other
 (the baselines get what the front actually took, its references and held-out evaluation
-included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._search.front.study`),
+included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._app.study.study`),
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
 and a log grid over the same search space (:mod:`fosmc_jax._search.peers`), and with ``--peers`` NSGA-II,
 pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: ``pip install -e .[peers]``; each generation of
@@ -38,6 +38,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax._app import study as front_study  # noqa: E402
 from fosmc_jax._io import jsonable, write_text  # noqa: E402
 from fosmc_jax._search import front as F  # noqa: E402
 from fosmc_jax._search import peers as S  # noqa: E402
@@ -138,7 +139,7 @@ def main(argv=None) -> None:
         value = parsed[0] if len(parsed) == 1 else parsed
         settings = settings._replace(**{key: type(getattr(settings, key))(value)})
     out["settings"] = settings._asdict()
-    front = F.study(cfg, settings, out=front_dir, log=log)
+    front = front_study.study(cfg, settings, out=front_dir, log=log)
     out["methods"]["fosmc front"] = {"wall_s": time.perf_counter() - start, "points": front["points"],
                                      "evaluations": front["stages"]["evaluations"],
                                      "load": [load, os.getloadavg()[0]]}  # fmt: skip

@@ -322,11 +322,11 @@ def run_certify(
     for the arm; and the verdicts on the gamma bounds (24)-(26) of each convention.
 
     SGN switching unless ``configured_switching`` (then ``controller.switching``).
-    Returns ``fosmc_jax._certificate.certify.report``'s dict (``max_hitting``, ``holds``,
+    Returns ``fosmc_jax._app.certify.report``'s dict (``max_hitting``, ``holds``,
     ``points_checked``, ``evaluations``, ``where``, ``vertices``, ``plant``, ``envelope``,
     ``gamma_bounds``): what ``--json`` prints.
     """
-    from .._certificate import certify as _certify
+    from . import certify as _certify
     cfg = config_of(config)
     switching = cfg["controller"]["switching"] if configured_switching else "sign"
     opts = {"switching": switching, "seed": seed}
@@ -471,7 +471,7 @@ def run_front(
     ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time, over the
     parameters of the config's ``controller.kind`` (every kind is tunable: the FOSMC's delta,
     gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
-    kind's box, ``fosmc_jax._search.tune.SPACES``), by ``fosmc_jax._search.front.study``: ``points``
+    kind's box, ``fosmc_jax._search.tune.SPACES``), by ``fosmc_jax._app.study.study``: ``points``
     parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
     the local rounds, default from the budget; ``seed``: of the search's draws. ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
@@ -486,6 +486,8 @@ def run_front(
     ``stages.wall_time_s``.
     """
     from .._search import front as F
+    from . import study
+
     cfg = config_of(config)
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
@@ -503,4 +505,4 @@ def run_front(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
-    return F.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
+    return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)

@@ -42,8 +42,6 @@ does (a run killed inside the CMA-ES stage resumes at its start).
 
 from __future__ import annotations
 
-import copy
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -55,9 +53,6 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as Spec
 
-from .._app import config as _config
-from .._design import paper
-from .._io import jsonable, write_text
 from .._simulator.metrics import METRIC_NAMES
 from . import tune as T
 
@@ -553,91 +548,3 @@ def point_of(p: T.Params, metrics: dict, i: int) -> dict[str, Any]:
     return {"params": {k: np.asarray(v).tolist() for k, v in p._asdict().items()},
             "metrics": {name: np.asarray(metrics[name][i]).tolist() for name in METRIC_NAMES},
             "diverged": int(metrics["diverged"][i])}  # fmt: skip
-
-
-# ---------------------------------------------------------------------------- the study behind ``fosmc front``
-
-
-def held_out_config(cfg: dict) -> dict:
-    """The config's batch with what training did not see: arm payloads between and beside the
-    training ones (1, 3, 5, 7, 9 kg unless trained on; 2.5, 5, 7.5 kg until a front point
-    tuned on 0 and 10 kg was found to lose a joint at 1 and 8 kg, tuning/README.md), fresh
-    box samples (linear ``sample`` / ``vertices``), fresh noise seeds."""
-    held = copy.deepcopy(cfg)
-    plant = held["plant"]
-    if plant["kind"] == "arm":
-        fresh = [p for p in (1.0, 3.0, 5.0, 7.0, 9.0) if p not in plant["payloads"]]
-        plant["payloads"] = fresh or [(plant["payloads"][0] + 5.0) / 2]
-    elif plant["uncertainty"] in ("sample", "vertices"):
-        plant["seed"] += 1
-    held["sensors"]["seed"] += 1
-    return _config.resolve(held)
-
-
-def references(cfg: dict, chunk: int, plain: T.Problem | None = None) -> dict[str, dict]:
-    """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
-    sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
-    batch; Table 1's through ``plain`` (the config's plain problem, its evaluator compiled
-    once for the study) when the config's kind is the FOSMC."""
-    out = {}
-    for label, switching, sets in (("Table 1", cfg["controller"]["switching"], (0, 1, 2)), ("SGN", "sign", (0,))):
-        c = copy.deepcopy(cfg)
-        c["controller"].update(switching=switching, kind="fosmc")
-        if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
-            problem, p0 = plain, T.Tunable(*(getattr(plain.base, k) for k in T.PARAM_NAMES))
-        else:
-            problem, _, p0 = _config.tuning_problems(c)
-        ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
-                       jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
-        m = evaluate_many(problem, ps, chunk if problem is plain else len(sets), log=lambda _: None)
-        for i, k in enumerate(sets):
-            out[f"{label} set {k + 1}" if label == "Table 1" else label] = point_of(
-                jax.tree.map(lambda x, i=i: x[i], ps), m, i)  # fmt: skip
-    return out
-
-
-#: Seconds kept at the end of ``fosmc front``'s budget for writing front.json and drawing front.png.
-WRITE_S = 1.5
-
-
-def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: bool = False,
-          compare: tuple = (), started: float | None = None, log: Callable[[str], None] = print
-          ) -> dict[str, Any]:  # fmt: skip
-    """``fosmc front``: the front of a resolved config's controller kind (its own parameters;
-    training and plain problems as ``fosmc tune`` builds them), each point also evaluated on
-    :func:`held_out_config`'s batch, the FOSMC's Table 1 sets and SGN beside it. The budget
-    counts from ``started`` (a ``time.perf_counter()`` value: the CLI's process start; None:
-    now): the held-out evaluator is compiled first and its cost per point kept out of the
-    search's time. Writes ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when
-    given; returns what ``front.json`` holds."""
-    t0 = time.perf_counter() if started is None else started
-    plain, train, p0 = _config.tuning_problems(cfg)
-    refs = references(cfg, settings.chunk, plain)
-    held_plain = _config.tuning_problems(held_out_config(cfg))[0]
-    one = jax.tree.map(lambda x: jnp.broadcast_to(x, (settings.chunk,) + jnp.shape(x)), p0)
-    evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)  # compiled
-    held_s = np.inf
-    for _ in range(3):  # the held-out evaluation's cost per front point: the least of three warm chunks
-        t = time.perf_counter()
-        evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)
-        held_s = min(held_s, (time.perf_counter() - t) / settings.chunk)
-    log(f"front: the held-out evaluation costs {1e3 * held_s:.1f} ms per front point")
-    checkpoint = None if out is None else Path(out) / "checkpoint.npz"
-    result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
-                 deadline=t0 + settings.budget - WRITE_S, reserve_per_point=1.5 * held_s, log=log)  # fmt: skip
-    params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
-                        for k, x in zip(p0._fields, p0)))  # fmt: skip
-    held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
-    for i, pt in enumerate(result["points"]):
-        pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), held, i)["metrics"]
-    result["references"] = refs
-    result["held_out_batch"] = {k: held_out_config(cfg)["plant"][k] for k in ("kind", "payloads", "seed")}
-    result["config"] = cfg
-    if out is not None:
-        from .._app.plots import plot_front
-
-        write_text(Path(out) / "front.json", json.dumps(jsonable(result), indent=1))
-        plot_front(result, [(Path(c).parent.name or str(c), json.loads(Path(c).read_text())) for c in compare],
-                   Path(out) / "front.png")  # fmt: skip
-        log(f"front: wrote {out}/front.json and {out}/front.png")
-    return result

@@ -1,0 +1,223 @@
+"""``fosmc certify`` and its API: the hitting condition (20) checked numerically for a resolved
+config (:mod:`fosmc_jax._certificate.hitting` does the numerics), and the verdicts on the gamma
+bounds (24)-(26)."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._certificate.hitting import (
+    Certificate,
+    argmax,
+    arm_values,
+    box_max_hitting,
+    box_values,
+    code_of,
+    s_directions,
+    vertex_codes,
+    vertex_values,
+    vertices_from_codes,
+    z_samples,
+)
+from .._design.gains import CONVENTIONS, summarize
+from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE
+from .config import ConfigError, box_of, controller_of, reference_of
+
+
+def certify(
+    cfg: dict,
+    *,
+    gamma=None,
+    plant: str | None = None,
+    switching: str = "sign",
+    law: str | None = None,
+    n_times: int | None = None,
+    n_z: int | None = None,
+    z_scales=(0.05, 0.5, 5.0),
+    n_s: int = 38,
+    s_norms=None,
+    vertices: str | int = "all",
+    n_payloads: int = 11,
+    seed: int = 0,
+) -> Certificate:
+    """Check the hitting condition (20) numerically for a resolved config (``_config.resolve``)
+    of the paper's ideal loop (a digital loop's config is refused with a ``ConfigError``).
+
+    Sampled points (defaults: ``n_times`` 81, ``n_z`` 200 on the linear plant, 21 and 30 on the
+    arm, whose rows cost a model evaluation per point): ``n_times`` instants evenly over
+    [0, sim.t_final]; tracking errors Z from
+    :func:`z_samples` with ``n_z`` random ones inside the envelope |Z_i| <= scale of its state
+    component (``z_scales`` = (theta rad, theta' rad/s, theta'' rad/s^2), same for each joint);
+    s directions from :func:`s_directions` (26 sign patterns + ``n_s - 26`` random), times each
+    norm in ``s_norms`` (default (1,) for ``sign``, where |s| does not matter; else
+    (0.1, 1, 10, 100) x max(delta)). Plants: ``plant`` (default the config's plant.kind):
+    ``linear``: the config's box around model.A_rows/B_rows, ``vertices = "all"`` (exact,
+    closed form) or an int N (N explicit vertices, seeded sample); ``arm``: the arm of
+    :mod:`fosmc_jax._plants.arm` at ``n_payloads`` payloads evenly over PAYLOAD_RANGE, its true rows
+    ``third_order_rows`` at X = X_d + Z. ``switching`` defaults to ``sign`` (the theorem's law;
+    pass the config's ``controller.switching`` to check what is simulated); ``law`` defaults to
+    the config's. ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
+    Runs in float64.
+    """
+    if cfg["controller"]["kind"] != "fosmc":
+        raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
+                          f"'{cfg['controller']['kind']}'")  # fmt: skip
+    if cfg["controller"]["sample_period"]:
+        raise ConfigError(
+            "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "
+            "loop; a digital loop (sample_period > 0: sampling, sensors, delay, saturation) cannot be certified "
+            "this way (set sample_period = 0)"
+        )
+    plant = plant or cfg["plant"]["kind"]
+    law = law or cfg["controller"]["law"]
+    if plant not in ("linear", "arm"):
+        raise ValueError(f"plant must be 'linear' or 'arm', got {plant!r}")
+    if n_s < 26:
+        raise ValueError(f"n_s must be at least 26 (the sign patterns), got {n_s}")
+    n_times = n_times if n_times is not None else (81 if plant == "linear" else 21)
+    n_z = n_z if n_z is not None else (200 if plant == "linear" else 30)
+    rng = np.random.default_rng(seed)
+    scales = np.tile(np.asarray(z_scales, dtype=np.float64), 3)
+    with jax.enable_x64(True):
+        ctrl, ref = controller_of(cfg, jnp.float64, gamma), reference_of(cfg, jnp.float64)
+        if s_norms is None:
+            s_norms = (1.0,) if switching == "sign" else tuple(float(np.max(ctrl.delta)) * k for k in (0.1, 1, 10, 100))
+        times = np.linspace(0.0, cfg["sim"]["t_final"], n_times)
+        Zs = z_samples(n_z, scales, rng)
+        dirs = s_directions(n_s - 26, rng)
+        S = np.concatenate([r * dirs for r in s_norms])
+        envelope = {
+            "times": f"{n_times} evenly over [0, {cfg['sim']['t_final']:g}] s",
+            "Z": f"0, +-scale_i e_i and {n_z} uniform-radius points of the ellipsoid with semi-axes "
+            f"{list(z_scales)} (theta rad, theta' rad/s, theta'' rad/s^2) per joint",
+            "s": f"{len(dirs)} directions (26 sign patterns + {n_s - 26} random) x norms {list(s_norms)}",
+            "switching": switching,
+            "law": law,
+            "gamma": np.asarray(ctrl.gamma).tolist(),
+            "seed": seed,
+        }
+        derivs = jax.vmap(ref)(jnp.asarray(times))  # (T, 4, 3)
+        Zj, Sj = jnp.asarray(Zs), jnp.asarray(S)
+        n_pts = len(times) * len(Zs) * len(S)
+        if plant == "linear":
+            box = box_of(cfg)
+            m = int(sum(np.count_nonzero(hi - lo > 0) for lo, hi in (box[:2], box[2:])))
+            if vertices == "all":
+                boxj = tuple(jnp.asarray(b) for b in box)
+                values = box_values(ctrl, derivs, Zj, Sj, boxj, switching, law)  # (T, nZ, nS)
+                vmax, k = argmax(values)
+                it, iz, i_s = np.unravel_index(int(k), values.shape)
+                _, a_v, b_v = box_max_hitting(ctrl, derivs[it], Zj[iz], Sj[i_s], boxj, switching, law)
+                a_v, b_v = np.asarray(a_v), np.asarray(b_v)
+                code = code_of(
+                    np.concatenate([a_v, b_v], 1),
+                    np.concatenate(box[::2], 1),
+                    np.concatenate(box[1::2], 1),
+                )
+                where = {"vertex_code": code, "A_rows": a_v.tolist(), "B_rows": b_v.tolist()}
+                label = f"all 2^{m} vertices (exact closed-form maximum over the box)"
+                points, evaluations = n_pts * 2**m, n_pts
+            else:
+                lo, hi = np.concatenate(box[::2], 1), np.concatenate(box[1::2], 1)
+                codes = vertex_codes(m, int(vertices), rng)
+                V = vertices_from_codes(codes, lo, hi)
+                values = vertex_values(ctrl, derivs, Zj, Sj, jnp.asarray(V[:, :, :9]), jnp.asarray(V[:, :, 9:]),
+                                        switching, law)  # fmt: skip
+                vmax, k = argmax(values)
+                iv, it, iz, i_s = np.unravel_index(int(k), values.shape)
+                where = {
+                    "vertex_code": int(codes[iv]),
+                    "A_rows": V[iv, :, :9].tolist(),
+                    "B_rows": V[iv, :, 9:].tolist(),
+                }
+                label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
+                points = evaluations = n_pts * codes.size
+        else:
+            payloads = np.linspace(*PAYLOAD_RANGE, n_payloads)
+            params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float64), ARM_PARAMS)
+            values = arm_values(ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law)  # (P, T, nZ, nS)
+            vmax, k = argmax(values)
+            ip, it, iz, i_s = np.unravel_index(int(k), values.shape)
+            where = {"payload": float(payloads[ip])}
+            label = f"arm at {n_payloads} payloads evenly over {PAYLOAD_RANGE} kg"
+            points = evaluations = n_pts * n_payloads
+        vmax = float(vmax)
+        where = {"t": float(times[it]), "Z": Zs[iz].tolist(), "s": S[i_s].tolist(), **where}
+    return Certificate(vmax, bool(vmax < 0), int(points), int(evaluations), where, label, plant, envelope)
+
+
+# ---------------------------------------------------------------------------- gamma bounds
+
+
+class BoundVerdict(NamedTuple):
+    """Whether the gamma bound of one convention was sufficient / necessary in this example."""
+
+    convention: str
+    bound: list[float]  # (3,) lower bounds (24)-(26)
+    max_hitting_above: float  # at gamma = (1 + eps) bound
+    max_hitting_below: float  # at gamma = (1 - eps) bound
+    sufficient: bool  # (20) held at every point checked with gamma = (1 + eps) bound
+    necessary: bool  # (20) failed somewhere with gamma = (1 - eps) bound
+    verdict: str  # "sufficient and necessary", "sufficient, not necessary", "necessary, not sufficient", "neither"
+
+
+def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, float], list[BoundVerdict]]:
+    """For each convention of (24)-(26) (``CONVENTIONS``), :func:`certify` at gamma = (1 +- eps)
+    times the bound computed from the config's box (alpha, beta by vertex enumeration), the
+    model and the poles. ``options`` go to :func:`certify`. Returns ({alpha, beta}, verdicts).
+
+    "Sufficient in this example" = no violation found above the bound (a sampled check, not a
+    proof); "necessary" = a violation found just below it.
+    """
+    box = box_of(cfg)
+    d = summarize(
+        cfg["model"]["A_rows"],
+        cfg["model"]["B_rows"],
+        box,
+        cfg["controller"]["C"],
+        cfg["controller"]["poles"],
+    )
+    out = []
+    for c in CONVENTIONS:
+        bound = np.asarray(d.gamma_min[c], dtype=np.float64)
+        above = certify(cfg, gamma=(1 + eps) * bound, **options)
+        below = certify(cfg, gamma=(1 - eps) * bound, **options)
+        suff, nec = above.holds, not below.holds
+        verdict = {
+            (True, True): "sufficient and necessary",
+            (True, False): "sufficient, not necessary",
+            (False, True): "necessary, not sufficient",
+            (False, False): "neither",
+        }[(suff, nec)]  # fmt: skip
+        out.append(BoundVerdict(c, bound.tolist(), above.max_hitting, below.max_hitting, suff, nec, verdict))
+    return {"alpha": d.alpha.value, "beta": d.beta.value}, out
+
+
+def critical_scale(cfg: dict, direction, lo: float = 0.0, hi: float = 64.0, iters: int = 12, **options) -> float:
+    """Smallest lambda in [lo, hi] (bisection, ``iters`` steps) such that :func:`certify` holds
+    with gamma = lambda * ``direction`` (3,); +inf if it fails at ``hi``. Assumes the check is
+    monotone in lambda along the ray (it is for ``sign`` where larger gamma only adds a term
+    that the sampled worst points oppose; the bisection does not verify this)."""
+    direction = np.asarray(direction, dtype=np.float64)
+    if not certify(cfg, gamma=hi * direction, **options).holds:
+        return float("inf")
+    for _ in range(iters):
+        mid = (lo + hi) / 2
+        lo, hi = (lo, mid) if certify(cfg, gamma=mid * direction, **options).holds else (mid, hi)
+    return hi
+
+
+def report(cfg: dict, eps: float = 0.01, verdicts: bool = True, **options) -> dict[str, Any]:
+    """JSON-ready summary for ``fosmc certify``: :func:`certify` at the config's gamma (keys
+    ``max_hitting``, ``holds``, ``points_checked``, ``evaluations``, ``where``, ``vertices``,
+    ``plant``, ``envelope``) and, if ``verdicts``, ``gamma_bounds``: alpha, beta and one
+    :class:`BoundVerdict` per convention (:func:`gamma_verdicts` with the same ``options``)."""
+    out = certify(cfg, **options)._asdict()
+    if verdicts:
+        ab, vs = gamma_verdicts(cfg, eps, **options)
+        out["gamma_bounds"] = {**ab, "eps": eps, "conventions": [v._asdict() for v in vs]}
+    return out

@@ -1,0 +1,54 @@
+"""The package's layers import one way, from the application down to the design data, and the
+study scripts use public names only."""
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+PKG = ROOT / "fosmc_jax"
+
+#: Bottom to top: a module may import from its own layer and the layers below it.
+LAYERS = ("_io", "_design", "_plants", "_controllers", "_loop", "_simulator", "_certificate", "_search", "_app")
+
+
+def _layer(parts: tuple[str, ...]) -> int:
+    """Rank of a module given by its path parts under fosmc_jax (top-level files: the package's face)."""
+    head = parts[0].removesuffix(".py")
+    return LAYERS.index(head) if head in LAYERS else len(LAYERS)
+
+
+def _imports(path: pathlib.Path):
+    """(line, target parts under fosmc_jax) of every import of the package in a file."""
+    rel = path.relative_to(PKG).parts
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:  # relative: resolve against the file's package
+                base = list(rel[:-1])[: len(rel) - node.level]
+                target = base + (node.module.split(".") if node.module else [])
+                names = [target + [a.name] for a in node.names] if not node.module else [target]
+            elif node.module and node.module.split(".")[0] == "fosmc_jax":
+                names = [node.module.split(".")[1:]]
+            else:
+                continue
+            for t in names:
+                if t:
+                    yield node.lineno, tuple(t)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name.split(".")[0] == "fosmc_jax" and "." in a.name:
+                    yield node.lineno, tuple(a.name.split(".")[1:])
+
+
+def test_the_layer_list_is_the_folder_listing():
+    found = {p.name for p in PKG.iterdir() if p.name.startswith("_") and not p.name.startswith("__")}
+    assert found - {"__pycache__"} == {"_io.py"} | set(LAYERS[1:])
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_no_import_runs_back_up(path):
+    rank = _layer(path.relative_to(PKG).parts)
+    upward = [f"{path.relative_to(ROOT)}:{line} imports fosmc_jax.{'.'.join(t)}"
+              for line, t in _imports(path) if _layer(t) > rank]  # fmt: skip
+    assert not upward, "\n".join(upward)
