@@ -12,12 +12,11 @@ from fosmc_jax._certificate.hitting import (
     box_max_hitting,
     hitting,
     s_directions,
-    vertex_codes,
-    vertices_from_codes,
     z_samples,
 )
 from fosmc_jax._controllers.fosmc import Controller
 from fosmc_jax._design import paper as _paper
+from fosmc_jax._design.box import vertex_codes, vertices_from_codes
 from fosmc_jax._design.gains import gain_from_poles
 from fosmc_jax._plants.reference import Cycloid
 

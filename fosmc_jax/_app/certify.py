@@ -16,13 +16,11 @@ from .._certificate.hitting import (
     arm_values,
     box_max_hitting,
     box_values,
-    code_of,
     s_directions,
-    vertex_codes,
     vertex_values,
-    vertices_from_codes,
     z_samples,
 )
+from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS, summarize
 from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE
 from .config import ConfigError, box_of, controller_of, reference_of

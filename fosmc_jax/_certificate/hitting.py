@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .._controllers.fosmc import Controller, Derived, derive, safe_norm, switch
+from .._controllers.fosmc import Controller, Derived, derive, safe_norm, switch, switching_gain
 from .._design import paper as _paper
 from .._plants.arm import Arm, third_order_rows
 from .._plants.reference import desired_state, feedforward
@@ -56,7 +56,7 @@ def terms(ctrl: Controller, derived: Derived, derivatives: Array, Z: Array, law:
     tracking error ``Z`` (9,), with the controller's nominal model for Omega (10)."""
     X_d = desired_state(derivatives)
     Omega = feedforward(ctrl.a_rows, ctrl.b_rows, derivatives)
-    rho = ctrl.gamma[0] * safe_norm(Z) + ctrl.gamma[1] * safe_norm(X_d) + ctrl.gamma[2] * safe_norm(Omega)
+    rho = switching_gain(ctrl.gamma, safe_norm(Z), safe_norm(X_d), safe_norm(Omega))
     U0 = Omega + derived.K @ Z if law == "equivalent" else Omega
     r = derivatives[3] + (ctrl.a_rows + ctrl.b_rows @ derived.K) @ Z
     return Terms(X_d + Z, rho, U0, r)
@@ -132,32 +132,6 @@ def z_samples(n_random: int, scales: np.ndarray, rng: np.random.Generator) -> np
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     rand = scales * rng.uniform(0.0, 1.0, (n_random, 1)) * u
     return np.concatenate([np.zeros((1, 9)), axes, rand])
-
-
-def vertex_codes(m: int, n: int, rng: np.random.Generator) -> np.ndarray:
-    """All 2^m vertex codes if 2^m <= n, else n distinct ones drawn with ``rng`` (int64)."""
-    if 2**m <= n:
-        return np.arange(2**m, dtype=np.int64)
-    codes = np.unique(rng.integers(0, 2**m, size=2 * n, dtype=np.int64))
-    while codes.size < n:
-        codes = np.unique(np.concatenate([codes, rng.integers(0, 2**m, size=n, dtype=np.int64)]))
-    return rng.permutation(codes)[:n]
-
-
-def vertices_from_codes(codes: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Box vertices (len(codes), *lower.shape): bit j of a code sets free entry j (the j-th entry,
-    in C order, with lower < upper) to its upper bound."""
-    free = np.flatnonzero((upper - lower).ravel() > 0)
-    bits = (codes[:, None] >> np.arange(free.size)) & 1
-    out = np.broadcast_to(lower.ravel(), (codes.size, lower.size)).copy()
-    out[:, free] = np.where(bits == 1, upper.ravel()[free], lower.ravel()[free])
-    return out.reshape((codes.size,) + lower.shape)
-
-
-def code_of(vertex: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> int:
-    free = np.flatnonzero((upper - lower).ravel() > 0)
-    v, hi = vertex.ravel()[free], upper.ravel()[free]
-    return int(sum(1 << j for j in range(free.size) if v[j] == hi[j]))
 
 
 # ---------------------------------------------------------------------------- certificate

@@ -100,6 +100,13 @@ def sliding_surface(ctrl: Controller, Z: Array, w: Array) -> Array:
     return ctrl.C @ Z - w
 
 
+def switching_gain(gamma: Array, norm_Z: Array, norm_X_d: Array, norm_Omega: Array) -> Array:
+    """The switching gain of (23), rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + gamma_3 ||Omega||, from
+    the three norms (a batched path passes a reference part computed once per time step with
+    ``norm_Z = 0``)."""
+    return gamma[0] * norm_Z + gamma[1] * norm_X_d + gamma[2] * norm_Omega
+
+
 def control_law(
     ctrl: Controller,
     derived: Derived,
@@ -117,7 +124,7 @@ def control_law(
     with rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + gamma_3 ||Omega||. The ``equivalent`` law adds
     the nominal equivalent control (18) with H = E = 0, which (23) leaves to the switching term.
     """
-    rho = ctrl.gamma[0] * safe_norm(Z) + ctrl.gamma[1] * safe_norm(X_d) + ctrl.gamma[2] * safe_norm(Omega)
+    rho = switching_gain(ctrl.gamma, safe_norm(Z), safe_norm(X_d), safe_norm(Omega))
     U = Omega - derived.CB_inv @ (rho * switch(s, ctrl.delta, switching))
     if law == "equivalent":
         return U + derived.K @ Z

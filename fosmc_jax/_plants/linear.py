@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .._design.box import vertex_codes, vertices_from_codes
+
 #: How the uncertainty dA, dB of (3) is realised.
 UNCERTAINTY = ("none", "fixed", "sample", "vertices")
 
@@ -41,19 +43,8 @@ class LinearPlant(NamedTuple):
 
 def _box_vertices(rng: np.random.Generator, lower: np.ndarray, upper: np.ndarray, n: int) -> np.ndarray:
     """n distinct vertices of the box (all of them if it has no more than n), shape (n', *shape)."""
-    free = np.flatnonzero((upper - lower).ravel() > 0)
-    m = free.size
-    if 2**m <= n:
-        codes = np.arange(2**m)
-    else:
-        codes = np.unique(rng.integers(0, 2**m, size=2 * n, dtype=np.int64))
-        codes = rng.permutation(codes)[:n]
-        while codes.size < n:  # astronomically rare: too many repeats
-            codes = np.unique(np.concatenate([codes, rng.integers(0, 2**m, size=n, dtype=np.int64)]))[:n]
-    bits = (codes[:, None] >> np.arange(m)) & 1
-    out = np.broadcast_to(lower, (codes.size,) + lower.shape).copy().reshape(codes.size, -1)
-    out[:, free] = np.where(bits == 1, upper.ravel()[free], lower.ravel()[free])
-    return out.reshape((codes.size,) + lower.shape)
+    m = int(np.count_nonzero((upper - lower).ravel() > 0))
+    return vertices_from_codes(vertex_codes(m, n, rng), lower, upper)
 
 
 def uncertain_plants(

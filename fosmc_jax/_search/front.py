@@ -53,7 +53,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as Spec
 
-from .._simulator.metrics import METRIC_NAMES
+from .._simulator.metrics import METRIC_NAMES, mean_over_survivors
 from . import tune as T
 
 #: The two metrics a front is drawn in (means over rollouts and joints).
@@ -258,9 +258,7 @@ def _chunk_evaluator(problem: T.Problem) -> tuple[Callable, int]:
 
     def one(p):
         r = problem.simulate(p, checkpoint_every=0)
-        ok = ~r.diverged
-        mean = lambda x: jnp.sum(jnp.where(ok[:, None], x, 0), 0) / jnp.maximum(jnp.sum(ok), 1)
-        out = {name: jnp.where(jnp.any(ok), mean(getattr(r.metrics, name)), jnp.nan) for name in METRIC_NAMES}
+        out = {name: mean_over_survivors(getattr(r.metrics, name), r.diverged) for name in METRIC_NAMES}
         return dict(out, diverged=jnp.sum(r.diverged))
 
     # shard_map, not sharded jit: XLA's partitioner would run the native kernel's custom call

@@ -49,6 +49,7 @@ import optax
 from .._controllers.fosmc import Controller
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
+from .._simulator.metrics import mean_over_survivors
 from .._simulator.rollout import simulate_batch
 from .._simulator.sharding import replicated, simulate_split
 
@@ -286,9 +287,9 @@ def evaluate(problem: Problem, p: Params) -> dict[str, Any]:
     """Plain-simulator metrics of physical parameters ``p``, averaged over the non-diverged
     rollouts of the batch; plus the number of diverged rollouts."""
     r = problem.simulate(p, checkpoint_every=0)
-    ok = ~np.asarray(r.diverged)
-    out = {name: np.asarray(v)[ok].mean(axis=0).tolist() for name, v in r.metrics._asdict().items()}
-    return {"metrics": out, "diverged": int((~ok).sum()), "rollouts": int(ok.size)}
+    diverged = np.asarray(r.diverged)
+    out = {name: mean_over_survivors(np.asarray(v), diverged).tolist() for name, v in r.metrics._asdict().items()}
+    return {"metrics": out, "diverged": int(diverged.sum()), "rollouts": int(diverged.size)}
 
 
 # ---------------------------------------------------------------------------- optimizer loop

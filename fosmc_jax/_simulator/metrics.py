@@ -33,6 +33,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from .._controllers.fosmc import safe_sqrt
@@ -138,15 +139,25 @@ def finish(acc: Accumulator, t_final: Array) -> Metrics:
     )
 
 
+def mean_over_survivors(x: Array, diverged: Array) -> Array:
+    """Mean of ``x`` (B, ...) over the rollouts (leading axis) that did not diverge
+    (``diverged`` (B,) bool); NaN where all did. A diverged rollout's metrics are partial sums
+    up to its divergence and never enter a mean. Traceable (the front's evaluator runs it under
+    ``vmap``); NumPy arrays in, NumPy out (reports keep their float64 where JAX's x64 is off)."""
+    xp = np if isinstance(x, np.ndarray) and isinstance(diverged, np.ndarray) else jnp
+    ok = ~xp.asarray(diverged, bool)
+    w = ok.reshape(ok.shape + (1,) * (xp.ndim(x) - 1))
+    mean = xp.sum(xp.where(w, x, 0), 0) / xp.maximum(xp.sum(ok), 1)
+    return xp.where(xp.any(ok), mean, xp.nan)
+
+
 def batch_summary(metrics: Metrics, diverged) -> dict:
     """Mean and worst (max) of each metric over the rollouts of a batch that did not diverge
     (leading batch axis), with the number excluded. NumPy, for reports."""
-    import numpy as np
-
     ok = ~np.asarray(diverged, dtype=bool)
     out = {"rollouts": int(ok.size), "diverged_excluded": int((~ok).sum()), "mean": {}, "max": {}}
     for name in METRIC_NAMES:
-        v = np.asarray(getattr(metrics, name))[ok]
-        out["mean"][name] = v.mean(axis=0).tolist() if v.size else [float("nan")] * 3
-        out["max"][name] = v.max(axis=0).tolist() if v.size else [float("nan")] * 3
+        v = np.asarray(getattr(metrics, name))
+        out["mean"][name] = np.asarray(mean_over_survivors(v, ~ok)).tolist()
+        out["max"][name] = v[ok].max(axis=0).tolist() if ok.any() else [float("nan")] * 3
     return out

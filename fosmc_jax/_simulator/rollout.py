@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .._controllers.fosmc import FOSMC, Controller, derive, reference_terms, safe_sqrt, switch
+from .._controllers.fosmc import FOSMC, Controller, derive, reference_terms, safe_sqrt, switch, switching_gain
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import arm_native as _arm_native
@@ -358,7 +358,7 @@ class _Batch(NamedTuple):
 def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Array, Array]:
     """X_d (9,), Omega (3,) and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
     X_d, Omega, norm_X_d, norm_Omega = reference_terms(controller.a_rows, controller.b_rows, reference(t))
-    return X_d, Omega, controller.gamma[1] * norm_X_d + controller.gamma[2] * norm_Omega
+    return X_d, Omega, switching_gain(controller.gamma, 0.0, norm_X_d, norm_Omega)
 
 
 def _linear_batch(
@@ -411,6 +411,7 @@ def _linear_batch(
         X_d, Omega, rho_ref = _time_terms(controller, reference, t)
         Z = _sub(x, _rows(X_d))
         s = _sub(_mv(C, Z), w)
+        # switching_gain's Z part; its reference part is rho_ref
         rho = gamma[0] * safe_sqrt(functools.reduce(operator.add, (z * z for z in Z))) + rho_ref
         f = tuple(rho * switch(si, di, switching) for si, di in zip(s, delta))
         U = _sub(_rows(Omega), _mv(CB_inv, f))
