@@ -39,9 +39,9 @@ from ._loop.digital import DERIVATIVES, DigitalLoop, Sensors, measure, quantize,
 from ._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
 from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
-from ._search import tune as tuning
 from ._simulator.cache import use_compilation_cache
 from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
+from ._simulator.native import available as kernel_available
 from ._simulator.rollout import INTEGRATORS, Result, Trace, simulate, simulate_batch
 from ._simulator.sharding import simulate_sharded, use_all_cores, use_host_devices
 
@@ -66,9 +66,12 @@ __all__ = [
     "stable_step",
     "summarize",
     "third_order_rows",
-    "tuning",
+    "config",
+    "io",
+    "search",
     "use_all_cores",
     "use_compilation_cache",
+    "kernel_available",
     "use_host_devices",
     "CHATTERING_CUTOFF",
     "SMC",
@@ -120,3 +123,16 @@ __all__ = [
     "uncertain_plants",
 ]
 __version__ = "0.1.0"
+
+from . import config, io, search  # noqa: E402  (the public namespaces, after the names they build on)
+
+
+def __getattr__(name: str):
+    if name == "tuning":  # the search layer's old public name, kept for one release
+        import warnings
+
+        from ._search import tune
+
+        warnings.warn("fosmc_jax.tuning is deprecated: use fosmc_jax.search", DeprecationWarning, stacklevel=2)
+        return tune
+    raise AttributeError(f"module 'fosmc_jax' has no attribute {name!r}")

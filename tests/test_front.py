@@ -10,6 +10,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._app import study as front_study
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
+from fosmc_jax.search import epsilon, nondominated
 
 TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
@@ -28,7 +29,7 @@ def study(tmp_path_factory):
 def test_nondominated_by_hand():
     x = np.array([1.0, 2.0, 3.0, 2.0, np.nan, 0.5])
     y = np.array([3.0, 2.0, 1.0, 3.0, 0.1, 5.0])
-    np.testing.assert_array_equal(F.nondominated(x, y), [True, True, True, False, False, True])
+    np.testing.assert_array_equal(nondominated(x, y), [True, True, True, False, False, True])
 
 
 def test_front_is_nondominated_sorted_and_written(study):
@@ -38,7 +39,7 @@ def test_front_is_nondominated_sorted_and_written(study):
     e = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
     c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in pts])
     assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0)  # sorted by chattering, hence error falls
-    assert F.nondominated(e, c).all()
+    assert nondominated(e, c).all()
     for p in pts:
         assert set(p["params"]) == {"delta", "gamma", "poles"} and len(p["metrics"]["rms_error"]) == 3
         assert len(p["held_out"]["rms_error"]) == 3
@@ -244,13 +245,13 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
 def test_epsilon_indicator_by_hand():
     """I(A, B): the factor by which A must shrink, in both metrics, to weakly dominate B."""
     a = (np.array([1.0, 4.0]), np.array([4.0, 1.0]))
-    assert F.epsilon(a, a) == 1.0
-    assert F.epsilon(a, (np.array([2.0, 8.0]), np.array([8.0, 2.0]))) == 0.5  # B is A doubled
+    assert epsilon(a, a) == 1.0
+    assert epsilon(a, (np.array([2.0, 8.0]), np.array([8.0, 2.0]))) == 0.5  # B is A doubled
     # a point in A's gap: (2, 2) needs A's (1, 4) shrunk by 2 (or (4, 1) by 2)
-    assert F.epsilon(a, (np.array([2.0]), np.array([2.0]))) == 2.0
+    assert epsilon(a, (np.array([2.0]), np.array([2.0]))) == 2.0
     # B beats A's second point by 10% in error only: A's best cover of it is 4 / 3.6
-    assert np.isclose(F.epsilon(a, (np.array([3.6]), np.array([1.0]))), 4 / 3.6)
-    assert F.epsilon((np.array([3.6]), np.array([1.0])), a) == 3.6  # covering (1, 4) takes (3.6, 1) / 3.6
+    assert np.isclose(epsilon(a, (np.array([3.6]), np.array([1.0]))), 4 / 3.6)
+    assert epsilon((np.array([3.6]), np.array([1.0])), a) == 3.6  # covering (1, 4) takes (3.6, 1) / 3.6
 
 
 def test_nondominated_equals_the_pairwise_definition():
@@ -271,7 +272,7 @@ def test_nondominated_equals_the_pairwise_definition():
         if n:
             x[rng.integers(0, n)] = np.nan
             y[rng.integers(0, n)] = np.inf
-        np.testing.assert_array_equal(F.nondominated(x, y), pairwise(x, y))
+        np.testing.assert_array_equal(nondominated(x, y), pairwise(x, y))
 
 
 def test_rounds_from_the_budget_stop_when_it_is_spent():

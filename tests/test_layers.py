@@ -52,3 +52,4 @@ def test_no_import_runs_back_up(path):
     upward = [f"{path.relative_to(ROOT)}:{line} imports fosmc_jax.{'.'.join(t)}"
               for line, t in _imports(path) if _layer(t) > rank]  # fmt: skip
     assert not upward, "\n".join(upward)
+

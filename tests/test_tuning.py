@@ -51,7 +51,7 @@ def test_gradient_matches_central_differences(mode):
     loss = T.make_loss(prob, obj, None)
     p0 = T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles)
     u0 = T.to_internal(p0, prob.base)
-    (_, _), grad = T._value_and_grad(loss, mode)(u0)
+    (_, _), grad = T.value_and_grad(loss, mode)(u0)
     flat, unravel = jax.flatten_util.ravel_pytree(u0)
     g = jax.flatten_util.ravel_pytree(grad)[0]
     f = jax.jit(lambda x: loss(unravel(x))[0])

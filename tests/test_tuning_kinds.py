@@ -13,6 +13,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
 from fosmc_jax._search import tune as T
+from fosmc_jax.search import nondominated
 
 #: (kind, [controller] extras, [tune] params): SMC in the ideal loop with all its parameters,
 #: super-twisting in a digital loop (sampled at 2 steps, one sample of delay) with k2 alone free.
@@ -88,7 +89,7 @@ def test_front_is_nondominated_sorted_with_the_kinds_params(front, capsys):
     assert res["stages"]["grid_per_axis"] == 3  # 1 + 3^2 of 16 on the grid of two parameters (three: 1 + 2^3)
     e = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
     c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in pts])
-    assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0) and F.nondominated(e, c).all()
+    assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0) and nondominated(e, c).all()
     space = T.SPACES[kind]
     base = _config.load(path)["controller"]
     lo, hi = space.bounds()

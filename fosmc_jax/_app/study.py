@@ -19,7 +19,7 @@ import numpy as np
 from .._design import paper
 from .._io import jsonable, write_text
 from .._search import tune as T
-from .._search.front import Settings, evaluate_many, point_of, run
+from .._search.front import Evaluator, Settings, point_of, run
 from . import config as _config
 
 
@@ -39,7 +39,7 @@ def held_out_config(cfg: dict) -> dict:
     return _config.resolve(held)
 
 
-def references(cfg: dict, chunk: int, plain: T.Problem | None = None) -> dict[str, dict]:
+def references(cfg: dict, chunk: int, plain: Evaluator | None = None) -> dict[str, dict]:
     """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
     sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
     batch; Table 1's through ``plain`` (the config's plain problem, its evaluator compiled
@@ -49,12 +49,13 @@ def references(cfg: dict, chunk: int, plain: T.Problem | None = None) -> dict[st
         c = copy.deepcopy(cfg)
         c["controller"].update(switching=switching, kind="fosmc")
         if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
-            problem, p0 = plain, T.Tunable(*(getattr(plain.base, k) for k in T.PARAM_NAMES))
+            problem, p0 = plain, T.Tunable(*(getattr(plain.problem.base, k) for k in T.PARAM_NAMES))
         else:
             problem, _, p0 = _config.tuning_problems(c)
+            problem = Evaluator(problem)
         ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
                        jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
-        m = evaluate_many(problem, ps, chunk if problem is plain else len(sets), log=lambda _: None)
+        m = problem(ps, chunk if problem is plain else len(sets), log=lambda _: None)
         for i, k in enumerate(sets):
             out[f"{label} set {k + 1}" if label == "Table 1" else label] = point_of(
                 jax.tree.map(lambda x, i=i: x[i], ps), m, i)  # fmt: skip
@@ -77,14 +78,15 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     given; returns what ``front.json`` holds."""
     t0 = time.perf_counter() if started is None else started
     plain, train, p0 = _config.tuning_problems(cfg)
+    plain = Evaluator(plain)  # compiled once: for the references and the search
     refs = references(cfg, settings.chunk, plain)
-    held_plain = _config.tuning_problems(held_out_config(cfg))[0]
+    held = Evaluator(_config.tuning_problems(held_out_config(cfg))[0])
     one = jax.tree.map(lambda x: jnp.broadcast_to(x, (settings.chunk,) + jnp.shape(x)), p0)
-    evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)  # compiled
+    held(one, settings.chunk, log=lambda _: None)  # compiled
     held_s = np.inf
     for _ in range(3):  # the held-out evaluation's cost per front point: the least of three warm chunks
         t = time.perf_counter()
-        evaluate_many(held_plain, one, settings.chunk, log=lambda _: None)
+        held(one, settings.chunk, log=lambda _: None)
         held_s = min(held_s, (time.perf_counter() - t) / settings.chunk)
     log(f"front: the held-out evaluation costs {1e3 * held_s:.1f} ms per front point")
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
@@ -92,9 +94,9 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
                  deadline=t0 + settings.budget - WRITE_S, reserve_per_point=1.5 * held_s, log=log)  # fmt: skip
     params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
                         for k, x in zip(p0._fields, p0)))  # fmt: skip
-    held = evaluate_many(held_plain, params, settings.chunk, log=log, what="held-out evaluation")
+    mh = held(params, settings.chunk, log=log, what="held-out evaluation")
     for i, pt in enumerate(result["points"]):
-        pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), held, i)["metrics"]
+        pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)["metrics"]
     result["references"] = refs
     result["held_out_batch"] = {k: held_out_config(cfg)["plant"][k] for k in ("kind", "payloads", "seed")}
     result["config"] = cfg

@@ -55,6 +55,7 @@ from jax.sharding import PartitionSpec as Spec
 
 from .._simulator.metrics import METRIC_NAMES, mean_over_survivors
 from . import tune as T
+from .pareto import nondominated
 
 #: The two metrics a front is drawn in (means over rollouts and joints).
 AXES = ("rms_error", "chattering_hf")
@@ -90,37 +91,6 @@ class Settings(NamedTuple):
     polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
 
 
-def nondominated(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Mask of the points not dominated in (x, y), both minimised (NaN points never kept;
-    equal points kept together). One sort, no Python loop: in (x, y) order a point is
-    dominated exactly when some earlier point that differs from it has y <= its y, i.e. the
-    first of each run of equal points is kept when its y is below every earlier y, and the
-    rest of the run with it."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    keep = np.zeros(x.shape, bool)
-    idx = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
-    if not idx.size:
-        return keep
-    idx = idx[np.lexsort((y[idx], x[idx]))]
-    xs, ys = x[idx], y[idx]
-    first = np.concatenate([[True], (xs[1:] != xs[:-1]) | (ys[1:] != ys[:-1])])  # a run of equal points starts
-    earlier = np.concatenate([[np.inf], np.minimum.accumulate(ys)[:-1]])  # lowest y before each point
-    run = np.cumsum(first) - 1
-    keep[idx] = (ys < earlier)[first][run]
-    return keep
-
-
-def epsilon(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
-    """The multiplicative epsilon indicator I(A, B) of point sets a = (errors, chatterings) and
-    b (Zitzler et al., "Performance assessment of multiobjective optimizers", IEEE TEC 2003):
-    the smallest factor by which every point of A would have to be divided, in both metrics,
-    for A to weakly dominate every point of B. I(A, B) <= 1: no point of B is better than A
-    anywhere; 1.06: some point of B beats A by 6% somewhere, and none by more."""
-    (ae, ac), (be, bc) = (np.asarray(x, float) for x in a), (np.asarray(x, float) for x in b)
-    ratio = np.maximum(ae[:, None] / be[None, :], ac[:, None] / bc[None, :])  # (A, B)
-    return float(np.max(np.min(ratio, axis=0)))
-
-
 def bounds(space: T.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
     """The search box of the log factors z (space.dim,): each parameter's range, three joints
     each (the FOSMC's: delta, gamma, poles)."""
@@ -141,8 +111,8 @@ def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
     over the k parameters of ``space``: g values per parameter, evenly spaced over its range,
     ends included."""
     k = len(space.params)
-    axes = [np.linspace(*p.box, g) for p in space.params]
-    return np.repeat(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
+    ticks = [np.linspace(*p.box, g) for p in space.params]
+    return np.repeat(np.stack(np.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
 
 
 def global_factors(n: int, seed: int, grid_share: float = 0.5, space: T.Space = _FOSMC) -> np.ndarray:
@@ -172,7 +142,7 @@ def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, see
     a random subset of the parameters (each with probability 1/2, one at least), the same step
     for the three joints: these keep children in the family of common factors and on the
     faces of the box, where the grid of the global stage finds the ends of the front."""
-    e, c = _axes(m)
+    e, c = axes(m)
     idx = np.flatnonzero(nondominated(e, c))
     rng = np.random.default_rng(seed)
     parents = rng.choice(idx, size=min(points, len(idx)), replace=False)
@@ -198,29 +168,70 @@ def sample_candidates(p0: T.Params, n: int, seed: int) -> T.Params:
     return from_factors(p0, global_factors(n, seed, 0.5, space=T.space_of(p0)))
 
 
-def evaluate_many(problem: T.Problem, params: T.Params, chunk: int, log: Callable[[str], None] = print,
+class Evaluator:
+    """Mean metrics of many parameter sets of one problem, in jitted, vmapped chunks split over
+    every local device (on CPU one per core after :func:`fosmc_jax.use_all_cores`: the CLI's
+    default; 2.2x on 2 cores); candidates are independent, so the split changes no result. The
+    object owns its compilation (one per chunk size): a second call reuses it; a fresh
+    evaluator of the same problem pays it again (the studies' equal-cost comparisons)."""
+
+    def __init__(self, problem: T.Problem):
+        self.problem = problem
+        self.devices = len(jax.local_devices())
+        self._run: Callable | None = None
+
+    def compiled(self) -> Callable:
+        """The jitted evaluation of a chunk (built on first use)."""
+        if self._run is not None:
+            return self._run
+        mesh = Mesh(np.asarray(jax.local_devices()), ("candidates",))
+
+        def one(p):
+            r = self.problem.simulate(p, checkpoint_every=0)
+            out = {name: mean_over_survivors(getattr(r.metrics, name), r.diverged) for name in METRIC_NAMES}
+            return dict(out, diverged=jnp.sum(r.diverged))
+
+        # shard_map, not sharded jit: XLA's partitioner would run the native kernel's custom call
+        # (the linear plant's fast path) on every candidate on every device
+        split = Spec("candidates")
+        self._run = jax.jit(jax.shard_map(jax.vmap(one), mesh=mesh, in_specs=split, out_specs=split, check_vma=False))
+        return self._run
+
+    def __call__(self, params: T.Params, chunk: int, log: Callable[[str], None] = print, what: str = "evaluating",
+                 deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+        """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
+        {metric: (n, 3)} and ``diverged`` (n,) counts, in chunks of ``chunk``; with a
+        ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
+        passes (one at least)."""
+        n = jax.tree.leaves(params)[0].shape[0]
+        run, devices = self.compiled(), self.devices
+        padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
+        parts, start, shown = [], time.perf_counter(), -np.inf
+        for i in range(0, n, chunk):
+            if parts and deadline is not None and time.perf_counter() > deadline:
+                break
+            part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
+            size = jax.tree.leaves(part)[0].shape[0]
+            if size < padded:  # pad to the compiled size
+                part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
+            parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
+            now = time.perf_counter()
+            if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
+                log(f"front: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
+                shown = now
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def evaluator(problem: T.Problem | Evaluator) -> Evaluator:
+    """``problem``'s :class:`Evaluator` (an evaluator is returned as it is)."""
+    return problem if isinstance(problem, Evaluator) else Evaluator(problem)
+
+
+def evaluate_many(problem: T.Problem | Evaluator, params: T.Params, chunk: int, log: Callable[[str], None] = print,
                   what: str = "evaluating", deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
-    """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
-    {metric: (n, 3)} and ``diverged`` (n,) counts, in vmapped chunks of ``chunk``; with a
-    ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
-    passes (one at least)."""
-    n = jax.tree.leaves(params)[0].shape[0]
-    run, devices = _chunk_evaluator(problem)
-    padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
-    parts, start, shown = [], time.perf_counter(), -np.inf
-    for i in range(0, n, chunk):
-        if parts and deadline is not None and time.perf_counter() > deadline:
-            break
-        part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
-        size = jax.tree.leaves(part)[0].shape[0]
-        if size < padded:  # pad to the compiled size
-            part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
-        parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
-        now = time.perf_counter()
-        if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
-            log(f"front: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
-            shown = now
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    """:class:`Evaluator`'s call: a problem is compiled afresh for this call, an evaluator reuses
+    its compilation."""
+    return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline)
 
 
 def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
@@ -239,38 +250,7 @@ def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, 
     return jax.tree.map(lambda x: x[best], cands), float(J[best])
 
 
-#: Compiled chunk evaluators by problem (the problem kept alive beside its id): a second
-#: ``evaluate_many`` on the same problem reuses the compilation instead of paying it again.
-_EVALUATORS: dict[int, tuple[T.Problem, Callable, int]] = {}
-
-
-def _chunk_evaluator(problem: T.Problem) -> tuple[Callable, int]:
-    """The jitted vmapped evaluation of ``problem`` (compiled once per problem and chunk size)
-    with the candidates split over every local device (on CPU one per core after
-    :func:`fosmc_jax.use_all_cores`: the CLI's default; 2.2x on 2 cores), and that number of
-    devices. Candidates are independent, so the split changes no result."""
-    if id(problem) in _EVALUATORS and _EVALUATORS[id(problem)][0] is problem:
-        return _EVALUATORS[id(problem)][1:]
-    if len(_EVALUATORS) >= 16:
-        _EVALUATORS.pop(next(iter(_EVALUATORS)))
-    devices = jax.local_devices()
-    mesh = Mesh(np.asarray(devices), ("candidates",))
-
-    def one(p):
-        r = problem.simulate(p, checkpoint_every=0)
-        out = {name: mean_over_survivors(getattr(r.metrics, name), r.diverged) for name in METRIC_NAMES}
-        return dict(out, diverged=jnp.sum(r.diverged))
-
-    # shard_map, not sharded jit: XLA's partitioner would run the native kernel's custom call
-    # (the linear plant's fast path) on every candidate on every device
-    split = Spec("candidates")
-    run = jax.jit(jax.shard_map(jax.vmap(one), mesh=mesh, in_specs=split, out_specs=split, check_vma=False))
-
-    _EVALUATORS[id(problem)] = (problem, run, len(devices))
-    return run, len(devices)
-
-
-def _axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
+def axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
     """The two axes of evaluated points, NaN (never non-dominated) where some rollout diverged:
     such a point's metrics are means over the rollouts that survived (unless every point has a
     diverged rollout)."""
@@ -282,7 +262,7 @@ def _axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
 def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``k`` non-dominated points spread evenly by rank along the front, and the
     front's slope -d log E / d log C at each (weights of the log objective there)."""
-    e, c = _axes(m)
+    e, c = axes(m)
     idx = np.flatnonzero(nondominated(e, c))
     idx = idx[np.argsort(c[idx])]
     if len(idx) > k:
@@ -295,8 +275,9 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
 
 
-def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings: Settings, generations: int,
-              deadline: float | None, log: Callable[[str], None]) -> tuple[np.ndarray, dict, int]:  # fmt: skip
+def cma_stage(problem: T.Problem | Evaluator, p0: T.Params, z: np.ndarray, m: dict, settings: Settings,
+              generations: int, deadline: float | None, log: Callable[[str], None]
+              ) -> tuple[np.ndarray, dict, int]:  # fmt: skip
     """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
     spread along the front of the evaluated (z, m) (:func:`pick_starts`), run k minimising
     log E + w_k log C at the front's slope w_k there (the objective of the CMA-ES baseline,
@@ -304,6 +285,7 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
     each generation of every run is one vmapped evaluation. Returns (z, m) with every point
     evaluated appended and the generations run (fewer than ``generations`` when the
     ``deadline`` passes or every run has stopped)."""
+    problem = evaluator(problem)  # compiled once for every generation
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
     space = T.space_of(p0)
@@ -321,7 +303,7 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
             return z, m, g
         X = [np.asarray(runs[k].ask()) for k in live]
         mr = evaluate_many(problem, from_factors(p0, np.concatenate(X)), settings.chunk, log=lambda _: None)
-        e, c = _axes(mr)
+        e, c = axes(mr)
         f = np.log(e) + np.repeat(slopes[live], settings.chunk) * np.log(c) + np.where(mr["diverged"] > 0, 1e3, 0.0)
         f = np.where(np.isfinite(f), f, 1e30).reshape(len(live), -1)
         for k, x, fk in zip(live, X, f):
@@ -331,7 +313,7 @@ def cma_stage(problem: T.Problem, p0: T.Params, z: np.ndarray, m: dict, settings
             shown = time.perf_counter()
             total = f"/{generations}" if deadline is None else f" ({deadline - shown:.1f} s left)"
             log(f"front: CMA-ES generation {g + 1}{total}  best {np.round(f.min(axis=1), 3).tolist()}  "
-                f"{int(nondominated(*_axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+                f"{int(nondominated(*axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
     return z, m, generations
 
 
@@ -351,8 +333,8 @@ class _Clock:
 
 
 def run(
-    train: T.Problem,
-    plain: T.Problem,
+    train: T.Problem | Evaluator,
+    plain: T.Problem | Evaluator,
     p0: T.Params,
     settings: Settings,
     *,
@@ -375,7 +357,8 @@ def run(
     if resume and checkpoint is not None and checkpoint.exists():
         state, leaves = T._load(checkpoint)
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
-    surrogate = not _same_simulation(train, plain)
+    train, plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
+    surrogate = not _same_simulation(train.problem, plain.problem)
     timed = not (settings.candidates and settings.steps)
     n_cand = state.get("candidates", settings.candidates)
     rounds, polish = state.get("steps", settings.steps), state.get("polish", settings.polish if surrogate else 0)
@@ -447,7 +430,7 @@ def run(
     if r0 == 0:
         if not cma_done:
             save(0, z, m)
-            log(f"front: global stage done, {int(nondominated(*_axes(m)).sum())} non-dominated of {len(z)}")
+            log(f"front: global stage done, {int(nondominated(*axes(m)).sum())} non-dominated of {len(z)}")
         if generations and not cma_done:  # a kill inside this stage resumes at its start
             z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log)
             cma_done, n_cma = True, len(z)
@@ -461,7 +444,7 @@ def run(
         children: a dominated point stays dominated). With a deadline, checkpoints are written
         at most every 10 s (a round can cost less than writing the archive)."""
         (s0, s1), begin, shown, saved = sigma, time.perf_counter(), -np.inf, time.perf_counter()
-        keep = nondominated(*_axes(m))
+        keep = nondominated(*axes(m))
         fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
         zs, ms = [z], [m]
         join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in a}
@@ -478,7 +461,7 @@ def run(
             zs.append(zr)
             ms.append(mr)
             fz, fm = np.concatenate([fz, zr]), join(fm, mr)
-            keep = nondominated(*_axes(fm))
+            keep = nondominated(*axes(fm))
             fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
             if end is None or time.perf_counter() - shown > 1.0:
                 shown = time.perf_counter()
@@ -502,7 +485,7 @@ def run(
     idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
     zp, mp, p_run = z, m, 0
     if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
-        idx = np.flatnonzero(nondominated(*_axes(m)))
+        idx = np.flatnonzero(nondominated(*axes(m)))
         if state.get("stage") == "polish":
             p_run, zp = state["polish_round"], leaves[1 + len(keys)]
             mp = dict(zip(keys, leaves[2 + len(keys) :]))
@@ -520,7 +503,7 @@ def run(
             f"kept for the final evaluations ({reserve_per_point * 1e3:.1f} ms per point)")  # fmt: skip
     if generations >= 10**9:  # the CMA-ES stage never started (a spent budget)
         generations = 0
-    e, c = _axes(mp)
+    e, c = axes(mp)
     keep = np.flatnonzero(nondominated(e, c))
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     params = from_factors(p0, zp[keep])

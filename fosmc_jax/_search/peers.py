@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from . import tune as T
-from .front import DIM, bounds, evaluate_many, from_factors, grid_factors, nondominated
+from .front import DIM, bounds, evaluate_many, evaluator, from_factors, grid_factors, nondominated
 
 __all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "nsga2", "optuna_nsga2", "random_search"]
 
@@ -49,6 +49,7 @@ def random_search(problem: T.Problem, p0: T.Params, budget: float, chunk: int = 
                   log=print) -> dict[str, Any]:  # fmt: skip
     """Uniform draws of the log factors over the search box, a chunk at a time (at least one),
     until the wall-time ``budget`` (s) is spent."""
+    problem = evaluator(problem)  # compiled once for every chunk
     space = T.space_of(p0)
     lo, hi = space.bounds()
     rng = np.random.default_rng(seed)
@@ -90,6 +91,7 @@ def cma_front(problem: T.Problem, p0: T.Params, weights, budget: float, popsize:
               log=print) -> dict[str, Any]:  # fmt: skip
     """CMA-ES on the weighted log objective log E + w log C (:mod:`fosmc_jax._search.tune`) for
     each weight in turn, the budget split evenly; every evaluation is kept."""
+    problem = evaluator(problem)  # compiled once for every chunk
     space = T.space_of(p0)
     lo, hi = space.bounds()
     zs, ms = [], []
@@ -131,6 +133,7 @@ def _generations(problem: T.Problem, p0: T.Params, budget: float, popsize: int, 
     ``ask() -> (z (popsize, dim), handle)``, the generation evaluated in one
     :func:`evaluate_many` call, ``tell(handle, metrics)``. Returns every candidate evaluated
     and their metrics."""
+    problem = evaluator(problem)  # compiled once for every chunk
     start, zs, ms, front = time.perf_counter(), [], [], np.zeros((0, 2))
     while not zs or time.perf_counter() - start < budget:
         z, handle = ask()

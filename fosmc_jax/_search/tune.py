@@ -321,7 +321,7 @@ def make_optimizer(s: Settings, labels: Params) -> optax.GradientTransformation:
     return optax.multi_transform({"free": adam, "frozen": optax.set_to_zero()}, labels)
 
 
-def _value_and_grad(loss, mode: str):
+def value_and_grad(loss, mode: str):
     if mode == "reverse":
         return jax.jit(jax.value_and_grad(loss, has_aux=True))
 
@@ -392,7 +392,7 @@ def run(
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
     candidates = ("reverse", "forward") if mode == "auto" else (mode,)
-    compiled = {m: _value_and_grad(loss, m) for m in candidates}
+    compiled = {m: value_and_grad(loss, m) for m in candidates}
     if mode == "auto":
         timings = {}
         for m, f in compiled.items():
@@ -403,7 +403,7 @@ def run(
         mode = min(timings, key=timings.get)
         log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
             f"forward {timings['forward']:.3f} s)")  # fmt: skip
-    value_and_grad = compiled[mode]  # the timed function itself: no second compilation
+    step_fn = compiled[mode]  # the timed function itself: no second compilation
 
     @jax.jit
     def update(u, state, grad):
@@ -412,7 +412,7 @@ def run(
 
     t_start = time.perf_counter()
     for step in range(start_step, settings.steps):
-        (value, (err, chat)), grad = value_and_grad(u)
+        (value, (err, chat)), grad = step_fn(u)
         gnorm = _norm(grad)
         finite = bool(np.isfinite(float(value))) and np.isfinite(gnorm)
         history["params"].append([np.asarray(x).tolist() for x in u])
@@ -434,7 +434,7 @@ def run(
             _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
     # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
     # cost) rather than a jit of the loss alone, which would compile a second program
-    (last, _), _ = value_and_grad(u)
+    (last, _), _ = step_fn(u)
     losses = np.asarray(history["loss"] + [float(last)], float)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     if best < len(history["params"]):

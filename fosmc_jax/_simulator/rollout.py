@@ -529,9 +529,18 @@ def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
     return run(plants, controller, reference, X0s, dt)
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC + ("fast",))
+@functools.partial(jax.jit, static_argnames=_STATIC + ("fast", "native"))
 def simulate_batch(
-    plants, controller, reference, X0s: Array, dt: Array, *, keys: Array | None = None, fast: bool = True, **options
+    plants,
+    controller,
+    reference,
+    X0s: Array,
+    dt: Array,
+    *,
+    keys: Array | None = None,
+    fast: bool = True,
+    native: bool = True,
+    **options,
 ) -> Result:
     """Every plant in ``plants`` (leading axis P) crossed with every initial state in ``X0s``
     (O, 9), and with every key in ``keys`` (R keys, e.g. ``jax.random.split(key, R)``; one
@@ -548,12 +557,16 @@ def simulate_batch(
     :func:`simulate`. Derivatives of the fast path (forward and reverse mode) are those of
     the ``lax.scan``; in reverse mode it compiles several times slower and runs slower than
     the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``. The arm's
-    derivatives are the ``vmap`` path's."""
+    derivatives are the ``vmap`` path's. ``native=False`` (static) keeps the compiled kernels
+    out: the linear fast path runs its ``lax.scan``, the arm the ``vmap`` path (the benchmarks'
+    scan-only timings; ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
     if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
         options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
         options.update(switching=ctrl.switching, law=ctrl.law)
+        if not native:
+            return _linear_batch(plants, ctrl.params, reference, X0s, dt, **options)
         return _fast_batch(plants, ctrl.params, reference, X0s, dt, **options)
     key = options.pop("key", None)
     if keys is None:
@@ -566,7 +579,7 @@ def simulate_batch(
         return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
 
     options.setdefault("integrator", "rk4")
-    arm_fast = fast and keys.shape[0] == 1 and not options.get("save_every")
+    arm_fast = fast and native and keys.shape[0] == 1 and not options.get("save_every")
     if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
         return _arm_native.simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **_native_options(options))
     return vmap_path(plants, ctrl, reference, X0s, dt)

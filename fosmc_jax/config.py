@@ -1,0 +1,39 @@
+"""Configs for research scripts: a TOML file or a dict, checked and completed with the
+defaults (every key is documented in docs/configuration.md), turned into the objects the
+simulator and the tuner take. Errors are one-line :class:`ConfigError`\\ s naming the key.
+
+    import fosmc_jax.config as fc
+    cfg = fc.load("tuning/configs/realistic_arm.toml")  # or fc.resolve({"plant": {...}})
+    sim = fc.build(cfg)  # plants, controller, reference, initial states, dt, options, keys
+    plain, train, p0 = fc.tuning_problems(cfg)  # what fosmc tune and fosmc front search on
+"""
+
+from ._app.config import (
+    GRADIENT_WINDOW,
+    ConfigError,
+    box_of,
+    build,
+    defaults,
+    load,
+    resolve,
+    sample_steps,
+    tuning_problems,
+    with_params,
+)
+from ._app.study import held_out_config, references, study
+
+__all__ = [
+    "GRADIENT_WINDOW",
+    "ConfigError",
+    "box_of",
+    "build",
+    "defaults",
+    "held_out_config",
+    "load",
+    "references",
+    "resolve",
+    "sample_steps",
+    "study",
+    "tuning_problems",
+    "with_params",
+]

@@ -1,0 +1,107 @@
+"""Search and tuning, the layer behind ``fosmc tune`` and ``fosmc front``, for research
+scripts: tuning problems and objectives, the gradient tuner, the front's staged search and its
+pieces, the peers it is compared with (CMA-ES, NSGA-II), and the Pareto indicators a front is
+judged by. The problems come from a config: :func:`fosmc_jax.config.tuning_problems`.
+
+    import fosmc_jax.config as fc, fosmc_jax.search as fs
+    plain, train, p0 = fc.tuning_problems(fc.load("tuning/configs/realistic_arm.toml"))
+    evaluate = fs.Evaluator(plain)  # compiled once, on first use
+    m = evaluate(fs.from_factors(p0, fs.global_factors(64, seed=0)), chunk=16)
+    e, c = fs.axes(m)  # mean rms_error (rad), chattering_hf (V) per candidate
+    front = fs.nondominated(e, c)
+"""
+
+from ._search.front import (
+    AXES,
+    DIM,
+    Evaluator,
+    axes,
+    bounds,
+    cma_stage,
+    evaluate_many,
+    from_factors,
+    global_factors,
+    global_stage,
+    grid_factors,
+    local_factors,
+    pick_starts,
+    point_of,
+    sample_candidates,
+)
+from ._search.front import Settings as FrontSettings
+from ._search.front import run as front_search
+from ._search.pareto import additive_epsilon, dominated_by, epsilon, hypervolume, nondominated
+from ._search.peers import cma_es, cma_front, log_grid, nsga2, optuna_nsga2, random_search
+from ._search.tune import (
+    SPACES,
+    GammaFloor,
+    Objective,
+    Params,
+    Problem,
+    Space,
+    Tunable,
+    aggregate,
+    evaluate,
+    make_loss,
+    objective_of,
+    rollout_costs,
+    space_of,
+    to_internal,
+    to_physical,
+    value_and_grad,
+)
+from ._search.tune import Settings as TuneSettings
+from ._search.tune import run as tune
+
+__all__ = [
+    # Pareto indicators (fosmc_jax._search.pareto)
+    "additive_epsilon",
+    "dominated_by",
+    "epsilon",
+    "hypervolume",
+    "nondominated",
+    # tuning problems, objectives and the gradient tuner (fosmc_jax._search.tune)
+    "SPACES",
+    "GammaFloor",
+    "Objective",
+    "Params",
+    "Problem",
+    "Space",
+    "Tunable",
+    "TuneSettings",
+    "aggregate",
+    "evaluate",
+    "make_loss",
+    "objective_of",
+    "rollout_costs",
+    "space_of",
+    "to_internal",
+    "to_physical",
+    "tune",
+    "value_and_grad",
+    # the front's search (fosmc_jax._search.front)
+    "AXES",
+    "DIM",
+    "Evaluator",
+    "FrontSettings",
+    "axes",
+    "bounds",
+    "cma_stage",
+    "evaluate_many",
+    "from_factors",
+    "front_search",
+    "global_factors",
+    "global_stage",
+    "grid_factors",
+    "local_factors",
+    "pick_starts",
+    "point_of",
+    "sample_candidates",
+    # the peers (fosmc_jax._search.peers)
+    "cma_es",
+    "cma_front",
+    "log_grid",
+    "nsga2",
+    "optuna_nsga2",
+    "random_search",
+]
