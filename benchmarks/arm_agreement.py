@@ -22,7 +22,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax._app import config as _config  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
 
 PRESET = "fosmc_jax/_app/presets/realistic_arm.toml"
 IDEAL = {"controller.sample_period": 0.0, "controller.delay_samples": 0, "sensors.encoder_counts": [0, 0, 0],

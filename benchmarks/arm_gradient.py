@@ -8,10 +8,10 @@ The problem is ``fosmc tune``'s on ``tuning/configs/arm_ideal_set2.toml`` (the i
 arm, Table 1 set 2, ratio switching, dt = 1e-4) with ``[sim]`` changed to RK4, float64 and
 ``t_final = steps x dt`` (the config itself says Euler and 4 s), and the batch enlarged to 64
 rollouts: 8 payloads in [0, 10] kg x 8 initial offsets (``bench.problem(64)``'s: uniform in
-+-0.05, seed 1). It is built as ``fosmc_jax._app.commands.run_tune`` builds it:
-``_config.tuning_problems`` (the training problem: the scan rematerialised every
-``tune.remat_steps`` steps, default 100), the objective's scales from ``_tuning.evaluate`` at the
-config's parameters, the loss ``_tuning.make_loss`` (``simulate_batch(fast=False)``, the
++-0.05, seed 1). It is built as ``fosmc_jax.run_tune`` builds it:
+``fosmc_jax.config.tuning_problems`` (the training problem: the scan rematerialised every
+``tune.remat_steps`` steps, default 100), the objective's scales from ``fosmc_jax.search.evaluate`` at the
+config's parameters, the loss ``fosmc_jax.search.make_loss`` (``simulate_batch(fast=False)``, the
 ``vmap`` of ``simulate``, split over the devices) in unconstrained coordinates of delta (3),
 gamma (3) and the poles (3 x 3): 15 numbers. The process is set up as the CLI sets itself up
 (``use_all_cores()``: one CPU device per core; float64 available).
@@ -20,10 +20,10 @@ Timed, each compiled first (``jit(...).lower(u).compile()``, the compile time re
 ``--rounds`` rounds of as many calls as last ``--round-s`` at least, the median round's time per
 call (the 1-minute load average recorded with every round):
 
-- **reverse**: ``_tuning._value_and_grad(loss, "reverse")`` (``jax.value_and_grad``) with the
+- **reverse**: ``fosmc_jax.search.value_and_grad(loss, "reverse")`` (``jax.value_and_grad``) with the
   scan rematerialised every ``checkpoint_every`` steps, for each of ``--checkpoint-every``
   (default: the tuner's ``remat_steps``, 100, and 1,000);
-- **forward**: ``_tuning._value_and_grad(loss, "forward")`` (``jax.jacfwd``: one tangent per
+- **forward**: ``fosmc_jax.search.value_and_grad(loss, "forward")`` (``jax.jacfwd``: one tangent per
   unconstrained parameter, 15);
 - **fast forward**: the same loss's value through the native kernel (``fast=True``, as
   ``make_loss`` builds it otherwise: split over the devices), and through one unsplit
@@ -60,7 +60,7 @@ def problems(path: Path, steps: int):
     ``tuning_problems`` (plain, train, p0) and the resolved config."""
     import numpy as np
 
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import config as _config
 
     cfg = _config.load(path)
     offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (OFFSETS, 9))  # bench.problem(64)'s
@@ -124,22 +124,22 @@ def main(argv=None):
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    from fosmc_jax._search import tune as T
-    from fosmc_jax._simulator import native as _native
+    from fosmc_jax import kernel_available
+    from fosmc_jax import search as fs
 
     cfg, plain, train, p0 = problems(Path(args.config), args.steps)
     if cfg["tune"]["keep_gamma_bound"]:
         raise SystemExit("arm_gradient.py: tune.keep_gamma_bound is not supported here (no gamma floor)")
     remat = train.options["checkpoint_every"]
     every = [int(x) for x in args.checkpoint_every.split(",") if x] or [remat, 1000]
-    obj = T.objective_of(cfg["tune"], T.evaluate(plain, p0)["metrics"])  # the objective's scales, as run_tune
-    u0 = T.to_internal(p0, plain.base)
+    obj = fs.objective_of(cfg["tune"], fs.evaluate(plain, p0)["metrics"])  # the objective's scales, as run_tune
+    u0 = fs.to_internal(p0, plain.base)
     n_params = sum(int(np.size(x)) for x in u0)
     rollouts = jax.tree.leaves(train.plants)[0].shape[0] * train.X0s.shape[0]
     info.update(config=str(args.config), rollouts=rollouts, payloads=PAYLOADS, offsets=OFFSETS,
                 steps=args.steps, dt=float(train.dt), integrator=train.options["integrator"],
                 precision=str(train.dt.dtype), remat_steps=remat, params=list(u0._fields), tangents=n_params,
-                devices=jax.local_device_count(), cores=os.cpu_count(), native_kernel=_native.available(),
+                devices=jax.local_device_count(), cores=os.cpu_count(), native_kernel=kernel_available(),
                 objective=obj._asdict(), rounds=args.rounds, round_s=args.round_s, jax=jax.__version__)  # fmt: skip
     print(f"{rollouts} rollouts x {args.steps} steps, RK4, float64, {n_params} parameters, "
           f"{jax.local_device_count()} devices, native kernel {'on' if info['native_kernel'] else 'OFF'}", flush=True)  # fmt: skip
@@ -148,19 +148,19 @@ def main(argv=None):
         """The loss's value as make_loss computes it, with ``options`` to simulate."""
 
         def value(u):
-            r = problem.simulate(T.to_physical(u, problem.base), **options)
-            J, e, c = T.rollout_costs(r.metrics, r.diverged, obj)
-            return T.aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
+            r = problem.simulate(fs.to_physical(u, problem.base), **options)
+            J, e, c = fs.rollout_costs(r.metrics, r.diverged, obj)
+            return fs.aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
 
         return jax.jit(value)
 
-    loss_of = lambda ce: T.make_loss(train._replace(options=dict(train.options, checkpoint_every=ce)), obj, None)
+    loss_of = lambda ce: fs.make_loss(train._replace(options=dict(train.options, checkpoint_every=ce)), obj, None)
     todo = {"fast forward (kernel, split over the devices)": value_of(train, split=True, fast=True),
             "fast forward (kernel, one simulate_batch call)": value_of(train, split=False, fast=True),
-            "vmap forward (make_loss: fast=False, split)": jax.jit(T.make_loss(train, obj, None))}  # fmt: skip
+            "vmap forward (make_loss: fast=False, split)": jax.jit(fs.make_loss(train, obj, None))}  # fmt: skip
     for ce in every:
-        todo[f"reverse, checkpoint every {ce}"] = T._value_and_grad(loss_of(ce), "reverse")
-    todo[f"forward mode ({n_params} tangents)"] = T._value_and_grad(T.make_loss(train, obj, None), "forward")
+        todo[f"reverse, checkpoint every {ce}"] = fs.value_and_grad(loss_of(ce), "reverse")
+    todo[f"forward mode ({n_params} tangents)"] = fs.value_and_grad(fs.make_loss(train, obj, None), "forward")
     res = {}
     for name, fn in todo.items():
         res[name] = timed(fn, u0, args.rounds, args.round_s)

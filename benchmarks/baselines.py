@@ -249,8 +249,8 @@ def _arm_accel(p, payload, theta, dtheta, current, h=1e-4):
 
 def numpy_arm(payloads, X0, dt, n):
     """NumPy vectorised over the batch (payloads (N,), X0 (N, 9)), Python loop in time, Euler:
-    the arm of fosmc_jax._plants.arm under the same controller; returns the mean RMS tracking error."""
-    from fosmc_jax._plants.arm import ARM_PARAMS
+    the arm (fosmc_jax.ARM_PARAMS) under the same controller; returns the mean RMS tracking error."""
+    from fosmc_jax import ARM_PARAMS
 
     dtype = X0.dtype
     p = {k: np.asarray(v, dtype) for k, v in ARM_PARAMS._asdict().items()}

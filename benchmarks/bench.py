@@ -41,7 +41,6 @@ not counted):
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import platform
@@ -55,9 +54,8 @@ if __name__ == "__main__" and "--pin-child" in sys.argv[1:]:
     # the arm table's one-core column (arm_package): this process on CPU 0 before JAX is
     # imported, so that no thread of it (XLA's pools included) can run on another core
     os.sched_setaffinity(0, {0})
-from fosmc_jax._app.plots import save_figure  # noqa: E402
-from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._simulator.sharding import simulate_sharded, use_host_devices  # noqa: E402
+from fosmc_jax import simulate_sharded, use_host_devices  # noqa: E402
+from fosmc_jax.io import save_figure, write_text  # noqa: E402
 
 use_host_devices(2)
 
@@ -71,8 +69,7 @@ import baselines  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
 from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._search import tune as _tuning  # noqa: E402
-from fosmc_jax._simulator import rollout as _simulator  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
 
 FLOPS = {"euler": 303, "rk4": 810}
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -97,13 +94,11 @@ def problem(batch: int, dtype, arm: bool = False):
     P = int(2 ** np.ceil(np.log2(batch) / 2))
     O = batch // P
     c = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype)
-    ctrl = fj.Controller(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(paper.DELTA_SETS[0]),
+    ctrl = fj.FOSMCParams(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(paper.DELTA_SETS[0]),
                          c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
     ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
     if arm:
-        from fosmc_jax._plants.arm import arm_sweep
-
-        plants = arm_sweep(c(np.linspace(0.0, 10.0, P)))
+        plants = fj.arm_sweep(c(np.linspace(0.0, 10.0, P)))
     else:
         p = fj.uncertain_plants(paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=P, seed=0)
         plants = fj.LinearPlant(c(p.a_rows), c(p.b_rows))
@@ -133,6 +128,8 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast
     opts = dict(n_steps=steps, integrator=integrator)
     if not fast:
         opts["fast"] = False
+    if scan:
+        opts["native"] = False
     if devices:
         fn = lambda: simulate_sharded(*args, devices=devices, **opts)
         t0 = time.perf_counter()
@@ -141,8 +138,7 @@ def time_jax(batch, dtype, integrator, steps, arm=False, devices=0, loop=0, fast
         first = time.perf_counter() - t0
     else:
         t0 = time.perf_counter()
-        run = jax.jit(functools.partial(_simulator._linear_batch, **opts)) if scan else fj.simulate_batch
-        compiled = run.lower(*args, **({} if scan else opts)).compile()
+        compiled = fj.simulate_batch.lower(*args, **opts).compile()
         compile_s = time.perf_counter() - t0
         fn = lambda: compiled(*args)
         first = None
@@ -210,9 +206,9 @@ def arm_gradient(batch, steps, big_batch, big_steps):
     def one(b, n):
         plants, ctrl, ref, X0s, dt = problem(b, np.float32, arm=True)
         opts = dict(n_steps=n, integrator="euler", checkpoint_every=100)
-        prob = _tuning.Problem(plants, ctrl, ref, X0s, dt, opts)
-        u = _tuning.to_internal(_tuning.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
-        loss = _tuning.make_loss(prob, _tuning.Objective(), None)
+        prob = fs.Problem(plants, ctrl, ref, X0s, dt, opts)
+        u = fs.to_internal(fs.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
+        loss = fs.make_loss(prob, fs.Objective(), None)
         t0 = time.perf_counter()
         vg = jax.jit(jax.value_and_grad(loss, has_aux=True)).lower(u).compile()
         compile_s = time.perf_counter() - t0
@@ -229,16 +225,16 @@ def arm_gradient(batch, steps, big_batch, big_steps):
 
 
 def gradient(batch, steps, checkpoint_every, horizons, plain_horizons=()):
-    """The tuner's path exactly: _tuning.make_loss (simulate_batch fast=False, vmap of simulate),
+    """The tuner's path exactly: fosmc_jax.search.make_loss (simulate_batch fast=False, vmap of simulate),
     Euler float32, reverse mode, scan checkpointed every ``checkpoint_every`` steps (the CLI's
     default remat_steps = 100). One value_and_grad against one forward call of the same loss,
     both compiled; XLA temp memory of the compiled value_and_grad at each horizon (with and,
     for ``plain_horizons``, without checkpointing)."""
     plants, ctrl, ref, X0s, dt = problem(batch, np.float32)
     opts = dict(n_steps=steps, integrator="euler", checkpoint_every=checkpoint_every)
-    prob = _tuning.Problem(plants, ctrl, ref, X0s, dt, opts)
-    u = _tuning.to_internal(_tuning.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
-    loss_of = lambda **o: _tuning.make_loss(prob._replace(options=dict(opts, **o)), _tuning.Objective(), None)
+    prob = fs.Problem(plants, ctrl, ref, X0s, dt, opts)
+    u = fs.to_internal(fs.Tunable(ctrl.delta, ctrl.gamma, ctrl.poles), ctrl)
+    loss_of = lambda **o: fs.make_loss(prob._replace(options=dict(opts, **o)), fs.Objective(), None)
     vg_of = lambda **o: jax.jit(jax.value_and_grad(loss_of(**o), has_aux=True)).lower(u).compile()
     t0 = time.perf_counter()
     vgc = vg_of()
@@ -308,7 +304,11 @@ ARM_STEPS = 1000
 ARM_CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fschedule-insns", "-fsched-pressure", "-fopenmp"]
 #: Largest relative difference of the package's and the anchor's mean rms error of joint 1.
 ARM_RMS_TOL = {"float32": 1e-4, "float64": 1e-9}
-PRESET = Path(fj.__file__).resolve().parent / "presets" / "realistic_arm.toml"
+#: The realistic preset (the package's own copy, fosmc_jax/_app/presets/realistic_arm.toml, is the
+#: same file: tests/test_digital_loop.py checks it).
+PRESET = Path(__file__).resolve().parents[1] / "tuning" / "configs" / "realistic_arm.toml"
+#: simulate_batch's static options (compiled in); the others are traced arguments of the compiled call.
+STATIC_OPTIONS = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
 
 
 def split(batch: int) -> tuple[int, int]:
@@ -327,13 +327,13 @@ def read_case(path, batch: int, dtype):
 
 
 def realistic(batch: int, dtype, steps: int):
-    """The realistic preset (fosmc_jax/_app/presets/realistic_arm.toml: DigitalLoop around the
+    """The realistic preset (:data:`PRESET`: DigitalLoop around the
     DiscreteFOSMC, 2,621,440-count encoders, differenced rates, one sample of delay, 24 V, RK4,
     dt = 1e-4, a sample every 10 steps) through the config path as ``run_simulate`` takes it
     (``_config.load``, ``resolve``, ``build``), its batch enlarged to P payloads in [0, 10] kg
     x O initial offsets (problem()'s P, O and offsets), ``steps`` steps, in ``dtype``.
     Returns (positional arguments, dynamic keyword arguments, static options) of simulate_batch."""
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import config as _config
 
     P, O = split(batch)
     cfg = _config.load(PRESET)
@@ -342,7 +342,7 @@ def realistic(batch: int, dtype, steps: int):
     cfg["sim"].update(t_final=steps * DT, precision=np.dtype(dtype).name, initial_offset=offsets.tolist())
     prob = _config.build(_config.resolve(cfg))
     assert prob.options["n_steps"] == steps and prob.X0s.shape[0] * P == batch
-    static = {k: v for k, v in prob.options.items() if k in _simulator._STATIC}
+    static = {k: v for k, v in prob.options.items() if k in STATIC_OPTIONS}
     dynamic = {k: v for k, v in prob.options.items() if k not in static}
     return prob.args, dict(dynamic, keys=prob.keys), static
 
@@ -356,10 +356,8 @@ def arm_cell_inputs(cell: dict):
         return realistic(cell["batch"], dtype, cell["steps"])
     plants, ctrl, ref, X0s, dt = problem(cell["batch"], dtype, arm=True)
     if cell.get("case"):
-        from fosmc_jax._plants.arm import arm_sweep
-
         payloads, x0 = read_case(cell["case"], cell["batch"], dtype)
-        plants, X0s = arm_sweep(jnp.asarray(payloads)), jnp.asarray(x0)
+        plants, X0s = fj.arm_sweep(jnp.asarray(payloads)), jnp.asarray(x0)
     return (plants, ctrl, ref, X0s, dt), {}, dict(n_steps=cell["steps"], integrator=cell["integrator"])
 
 
@@ -486,7 +484,7 @@ def arm_table(quick: bool) -> dict:
     import statistics
     import tempfile
 
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import config as _config
 
     preset_integrator = _config.load(PRESET)["sim"]["integrator"]
     batches = (1024,) if quick else (1024, 4096)
@@ -687,16 +685,11 @@ def main(argv=None):
     for output in ("json", "npz"):
         for d in (1, 2):
             rows.append(cli(4 * head, steps, d, output)), say(rows[-1])
-    try:
-        import fosmc_jax._plants.arm  # noqa: F401
-
-        arm_steps = 1000 if q else steps
-        for batch in (1, 64) if q else (1, 64, 1024):
-            rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
-        rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
-        info["arm_table"] = arm_table(q)
-    except ImportError:
-        print("arm: fosmc_jax._plants.arm not available, skipped")
+    arm_steps = 1000 if q else steps
+    for batch in (1, 64) if q else (1, 64, 1024):
+        rows.append(time_jax(batch, np.float32, "euler", arm_steps, arm=True)), say(rows[-1])
+    rows.append(arm_baseline(64, np.float32, 100 if q else 1000)), say(rows[-1])
+    info["arm_table"] = arm_table(q)
     base_steps = 100 if q else 1000
     for integrator in ("euler", "rk4"):
         rows.append(baseline("numpy_vectorised", head, np.float32, integrator, base_steps)), say(rows[-1])

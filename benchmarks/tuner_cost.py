@@ -5,17 +5,17 @@ without and with the native kernel, one command:
     python benchmarks/tuner_cost.py --chunk 16 --chunks 2 --out /tmp/tuner_cost.json
     python benchmarks/tuner_cost.py --t-final 0.1 --chunk 8 --chunks 1 --grads 1   # a short trial
 
-- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax._app.study.study`` builds
-  it (``_config.tuning_problems``; the search stages evaluate the training problem), candidates
+- **front:** ``fosmc front``'s evaluator: the problem built as ``fosmc_jax.config.study`` builds
+  it (``fosmc_jax.config.tuning_problems``; the search stages evaluate the training problem), candidates
   drawn as its global stage draws them (``global_factors`` with the front's ``grid_share``,
-  ``from_factors``), evaluated by ``evaluate_many`` in chunks of ``--chunk`` (the compiled
-  ``_chunk_evaluator``: vmap over the candidates, split over every local device). The first
+  ``from_factors``), evaluated by an ``Evaluator`` in chunks of ``--chunk`` (compiled
+  once: vmap over the candidates, split over every local device). The first
   chunk compiles: its time less a warm chunk's is the compile time. Then ``--chunks`` warm
   chunks: the cost per candidate is their median / ``--chunk``.
-- **tune:** one value-and-grad of ``fosmc tune``'s loss as ``fosmc_jax._app.commands.run_tune``
-  builds it and ``_tuning.run`` compiles it (``_tuning.make_loss`` on the training problem,
-  the objective's scales from ``_tuning.evaluate`` at the config's parameters,
-  ``_tuning._value_and_grad`` per gradient mode; ``tune.mode = "auto"`` compiles both and
+- **tune:** one value-and-grad of ``fosmc tune``'s loss as ``fosmc_jax.run_tune``
+  builds it and ``fosmc_jax.search.tune`` compiles it (``make_loss`` on the training problem,
+  the objective's scales from ``evaluate`` at the config's parameters,
+  ``value_and_grad`` per gradient mode; ``tune.mode = "auto"`` compiles both and
   keeps the faster): the first call less a warm one is the compile time, then the median
   of ``--grads`` warm calls.
 
@@ -49,7 +49,7 @@ def load() -> float:
 
 def config(path: str, t_final: float | None) -> dict:
     """The resolved config (``t_final``: ``[sim] t_final`` replaced, for short trials)."""
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import config as _config
 
     cfg = _config.load(path)
     if t_final:
@@ -73,19 +73,19 @@ def front_cost(cfg: dict, chunk: int, chunks: int, seed: int = 0, which: str = "
     which every result is re-evaluated)."""
     import jax
 
-    from fosmc_jax._app import config as _config
-    from fosmc_jax._search import front as F
-    from fosmc_jax._search import tune as T
+    from fosmc_jax import config as _config
+    from fosmc_jax import search as fs
 
     plain, train, p0 = _config.tuning_problems(cfg)
     train = plain if which == "plain" else train
-    space = T.space_of(p0)
-    params = F.from_factors(p0, F.global_factors(chunk * (chunks + 1), seed, F.Settings().grid_share, space))
+    evaluate = fs.Evaluator(train)  # compiled by the first chunk
+    space = fs.space_of(p0)
+    params = fs.from_factors(p0, fs.global_factors(chunk * (chunks + 1), seed, fs.FrontSettings().grid_share, space))
     times, loads = [], []
     for i in range(chunks + 1):
         part = jax.tree.map(lambda x, i=i: x[i * chunk : (i + 1) * chunk], params)
         t0 = time.perf_counter()
-        m = F.evaluate_many(train, part, chunk, log=lambda _: None)
+        m = evaluate(part, chunk, log=lambda _: None)
         times.append(time.perf_counter() - t0)
         loads.append(load())
         print(f"  front: chunk {i + 1}/{chunks + 1} of {chunk}: {times[-1]:.2f} s{' (compiles)' if i == 0 else ''}  "
@@ -106,28 +106,28 @@ def tune_cost(cfg: dict, grads: int) -> dict:
     ``tune.mode`` lets it try: compile time and warm cost."""
     import jax
 
-    from fosmc_jax._app import config as _config
-    from fosmc_jax._search import tune as T
+    from fosmc_jax import config as _config
+    from fosmc_jax import search as fs
 
     tcfg = cfg["tune"]
     plain, problem, p0 = _config.tuning_problems(cfg)
     floor = None
     if tcfg["keep_gamma_bound"]:  # as run_tune
-        from fosmc_jax._design.gains import summarize
+        from fosmc_jax import summarize
 
         d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], _config.box_of(cfg), cfg["controller"]["C"],
                       cfg["controller"]["poles"])  # fmt: skip
-        floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+        floor = fs.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     t0 = time.perf_counter()
-    obj = T.objective_of(tcfg, T.evaluate(problem, p0)["metrics"])  # the objective's scales, as run_tune
+    obj = fs.objective_of(tcfg, fs.evaluate(problem, p0)["metrics"])  # the objective's scales, as run_tune
     scales_s = time.perf_counter() - t0
-    u0 = T.to_internal(p0, plain.base, floor)
-    loss = T.make_loss(problem, obj, floor)
+    u0 = fs.to_internal(p0, plain.base, floor)
+    loss = fs.make_loss(problem, obj, floor)
     out = {"n_steps": problem.options["n_steps"], "rollouts": rollouts(problem), "devices": jax.local_device_count(),
            "checkpoint_every": problem.options.get("checkpoint_every"), "mode": tcfg["mode"],
            "objective_scales_s": scales_s, "modes": {}}  # fmt: skip
     for mode in ("reverse", "forward") if tcfg["mode"] == "auto" else (tcfg["mode"],):
-        f = T._value_and_grad(loss, mode)
+        f = fs.value_and_grad(loss, mode)
         t0 = time.perf_counter()
         jax.block_until_ready(f(u0))
         first = time.perf_counter() - t0

@@ -25,9 +25,8 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._search import front as F  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
 
 
 def best_of(fn, n: int = 3) -> float:
@@ -43,15 +42,16 @@ def best_of(fn, n: int = 3) -> float:
 def main() -> None:
     print(f"devices: {jax.local_device_count()}", flush=True)
     _, train, p0 = _config.tuning_problems(_config.load("tuning/configs/realistic_arm_short_training.toml"))
-    cands = F.from_factors(p0, F.global_factors(64, seed=1))
-    s = best_of(lambda: F.evaluate_many(train, cands, 16, log=lambda _: None))
+    cands = fs.from_factors(p0, fs.global_factors(64, seed=1))
+    train = fs.Evaluator(train)
+    s = best_of(lambda: train(cands, 16, log=lambda _: None))
     print(f"front: 64 evaluations of the 2 s realistic problem: {s:.2f} s", flush=True)
 
     cfg = _config.load("tuning/configs/arm_ideal_set2.toml")
     plain, problem, p0 = _config.tuning_problems(cfg)
-    obj = T.objective_of(cfg["tune"], T.evaluate(problem, p0)["metrics"])
-    step = jax.jit(jax.value_and_grad(T.make_loss(problem, obj, None), has_aux=True))
-    u0 = T.to_internal(p0, plain.base, None)
+    obj = fs.objective_of(cfg["tune"], fs.evaluate(problem, p0)["metrics"])
+    step = jax.jit(jax.value_and_grad(fs.make_loss(problem, obj, None), has_aux=True))
+    u0 = fs.to_internal(p0, plain.base, None)
     s = best_of(lambda: step(u0))
     print(f"tune: one value-and-gradient, arm, 2 payloads x {problem.options['n_steps']} steps: {s:.2f} s")
 

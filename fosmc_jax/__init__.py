@@ -6,12 +6,13 @@ from ._app.certify import certify
 from ._app.commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
 from ._app.config import ConfigError
 from ._certificate.hitting import Certificate
+from ._controllers.base import ContinuousLaw, ControlLaw, HasSlidingVariable, SampledLoop
 from ._controllers.fosmc import (
     FOSMC,
     LAWS,
     SWITCHING,
-    Controller,
     DiscreteFOSMC,
+    FOSMCParams,
     FOSMCState,
     control_law,
     safe_norm,
@@ -37,6 +38,7 @@ from ._design.gains import (
 )
 from ._loop.digital import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
 from ._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
+from ._plants.base import Plant
 from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._simulator.cache import use_compilation_cache
@@ -95,7 +97,12 @@ __all__ = [
     "SWITCHING",
     "UNCERTAINTY",
     "BoxBound",
-    "Controller",
+    "FOSMCParams",
+    "ControlLaw",
+    "ContinuousLaw",
+    "HasSlidingVariable",
+    "SampledLoop",
+    "Plant",
     "Cycloid",
     "DesignError",
     "LinearPlant",
@@ -126,13 +133,25 @@ __version__ = "0.1.0"
 
 from . import config, io, search  # noqa: E402  (the public namespaces, after the names they build on)
 
+#: Old public names, kept for one release: name -> (new name, what it is now).
+_DEPRECATED = {
+    "tuning": ("fosmc_jax.search", lambda: _tune_module()),
+    "Controller": ("fosmc_jax.FOSMCParams (the name Controller is the interface's, fosmc_jax.ControlLaw)",
+                   lambda: FOSMCParams),
+}  # fmt: skip
+
+
+def _tune_module():
+    from ._search import tune
+
+    return tune
+
 
 def __getattr__(name: str):
-    if name == "tuning":  # the search layer's old public name, kept for one release
+    if name in _DEPRECATED:
         import warnings
 
-        from ._search import tune
-
-        warnings.warn("fosmc_jax.tuning is deprecated: use fosmc_jax.search", DeprecationWarning, stacklevel=2)
-        return tune
+        new, get = _DEPRECATED[name]
+        warnings.warn(f"fosmc_jax.{name} is deprecated: use {new}", DeprecationWarning, stacklevel=2)
+        return get()
     raise AttributeError(f"module 'fosmc_jax' has no attribute {name!r}")

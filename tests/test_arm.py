@@ -174,7 +174,7 @@ def test_more_payload_more_inertia():
 
 def _controller(delta=paper.DELTA_SETS[0]):
     c = lambda x: jnp.asarray(x, jnp.float64)
-    return fj.Controller(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
+    return fj.FOSMCParams(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
 
 
 def _reference():

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.skipif(_native._compiler() is None, reason="no C++ comp
 
 def controller(dtype=np.float64, delta=paper.DELTA_SETS[0], gamma=paper.GAMMA):
     c = lambda x: jnp.asarray(x, dtype)
-    return fj.Controller(c(paper.C), c(paper.POLES), c(gamma), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
+    return fj.FOSMCParams(c(paper.C), c(paper.POLES), c(gamma), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
 
 
 def cycloid(dtype=np.float64):

@@ -14,7 +14,7 @@ from fosmc_jax._certificate.hitting import (
     s_directions,
     z_samples,
 )
-from fosmc_jax._controllers.fosmc import Controller
+from fosmc_jax._controllers.fosmc import FOSMCParams
 from fosmc_jax._design import paper as _paper
 from fosmc_jax._design.box import vertex_codes, vertices_from_codes
 from fosmc_jax._design.gains import gain_from_poles
@@ -25,7 +25,7 @@ SMALL = dict(n_times=5, n_z=6, n_s=28)
 
 def paper_controller(gamma=_paper.GAMMA, delta=_paper.DELTA_SETS[0]):
     f = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64))
-    ctrl = Controller(f(_paper.C), f(_paper.POLES), f(gamma), f(delta), f(_paper.A_ROWS), f(_paper.B_ROWS))
+    ctrl = FOSMCParams(f(_paper.C), f(_paper.POLES), f(gamma), f(delta), f(_paper.A_ROWS), f(_paper.B_ROWS))
     ref = Cycloid(f(_paper.THETA_START), f(_paper.THETA_END), f(_paper.TAU))
     return ctrl, ref
 

@@ -20,7 +20,7 @@ from fosmc_jax._loop.digital import SensorMemory, measure, quantize
 
 P = fj.paper
 REF = fj.Cycloid(jnp.array(P.THETA_START), jnp.array(P.THETA_END), jnp.array(P.TAU))
-PARAMS = fj.Controller(jnp.array(P.C), jnp.array(P.POLES), jnp.array(P.GAMMA), jnp.array(P.DELTA_SETS[0]),
+PARAMS = fj.FOSMCParams(jnp.array(P.C), jnp.array(P.POLES), jnp.array(P.GAMMA), jnp.array(P.DELTA_SETS[0]),
                        jnp.array(P.A_ROWS), jnp.array(P.B_ROWS))  # fmt: skip
 PLANTS = fj.uncertain_plants(P.A_ROWS, P.B_ROWS, "sample", box=(P.A_LOWER, P.A_UPPER, P.B_LOWER, P.B_UPPER),
                              samples=3, seed=1)  # fmt: skip

@@ -53,3 +53,27 @@ def test_no_import_runs_back_up(path):
               for line, t in _imports(path) if _layer(t) > rank]  # fmt: skip
     assert not upward, "\n".join(upward)
 
+
+#: White-box benchmarks of the simulator's internal variants (they time alternatives to private
+#: loop bodies and kernel builds that no user chooses between, so no public switch is owed).
+WHITE_BOX = {"benchmarks/loop_variants.py", "benchmarks/arm_levers.py"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    sorted(p for folder in ("tuning", "benchmarks") for p in (ROOT / folder).glob("*.py")),
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_studies_use_public_names_only(path):
+    rel = str(path.relative_to(ROOT))
+    private = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        names = []
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "fosmc_jax":
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            names = [a.name for a in node.names if a.name.split(".")[0] == "fosmc_jax"]
+        private += [f"{rel}:{node.lineno} {n}" for n in names if any(part.startswith("_") for part in n.split("."))]
+    if rel in WHITE_BOX:
+        return
+    assert not private, "\n".join(private)

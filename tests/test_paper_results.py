@@ -37,7 +37,7 @@ def runs():
     """{integrator: (SGN metrics, Table 1 metrics with a leading set axis)}, NumPy."""
     plant = fj.LinearPlant(jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS))
     ref = fj.Cycloid(jnp.asarray(paper.THETA_START), jnp.asarray(paper.THETA_END), jnp.asarray(paper.TAU))
-    ctrl = fj.Controller(
+    ctrl = fj.FOSMCParams(
         *(
             jnp.asarray(x)
             for x in (

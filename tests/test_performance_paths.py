@@ -23,7 +23,7 @@ BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
 
 def setup(P=3, O=4, dtype=np.float64, gamma=paper.GAMMA):
     c = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype)
-    ctrl = fj.Controller(c(paper.C), c(paper.POLES), c(gamma), c(paper.DELTA_SETS[0]),
+    ctrl = fj.FOSMCParams(c(paper.C), c(paper.POLES), c(gamma), c(paper.DELTA_SETS[0]),
                          c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
     ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
     p = fj.uncertain_plants(paper.A_ROWS, paper.B_ROWS, "sample", box=BOX, samples=P, seed=3)

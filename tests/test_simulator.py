@@ -137,7 +137,7 @@ def np_chattering_hf(U, dt, t_final, cutoff=10.0):
 
 def controller(gamma=paper.GAMMA, delta=SET1, poles=paper.POLES, dtype=np.float64):
     c = lambda x: jnp.asarray(np.asarray(x, np.float64), dtype)
-    return fj.Controller(c(paper.C), c(poles), c(gamma), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
+    return fj.FOSMCParams(c(paper.C), c(poles), c(gamma), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
 
 
 def cycloid(start=paper.THETA_START, end=paper.THETA_END, tau=paper.TAU, dtype=np.float64):

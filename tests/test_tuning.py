@@ -14,7 +14,7 @@ P = fj.paper
 
 def problem(n_steps=200, dt=2e-3, samples=3):
     ref = fj.Cycloid(jnp.array(P.THETA_START), jnp.array(P.THETA_END), jnp.array(0.5))
-    base = fj.Controller(*(jnp.asarray(x) for x in (P.C, P.POLES, P.GAMMA, P.DELTA_SETS[1], P.A_ROWS, P.B_ROWS)))
+    base = fj.FOSMCParams(*(jnp.asarray(x) for x in (P.C, P.POLES, P.GAMMA, P.DELTA_SETS[1], P.A_ROWS, P.B_ROWS)))
     box = (P.A_LOWER, P.A_UPPER, P.B_LOWER, P.B_UPPER)
     plants = fj.uncertain_plants(P.A_ROWS, P.B_ROWS, "sample", box=box, samples=samples, seed=3)
     plants = fj.LinearPlant(*(jnp.asarray(x) for x in plants))

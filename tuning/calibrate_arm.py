@@ -1,10 +1,10 @@
-"""Calibrate the arm of fosmc_jax._plants.arm to the paper's (29) and Appendix box.
+"""Calibrate the arm of fosmc_jax (``fosmc_jax.Arm``) to the paper's (29) and Appendix box.
 
 The paper prints no arm, only the nominal rows 3, 6, 9 of its third-order model (29) and the
 box they range over (Appendix, corrected in NOTES.md). This script fits the arm's physical
 parameters so that, over the paper's operating envelope (its reference (30) at 41 instants x
 payloads 0, 2.5, 5, 7.5, 10 kg), the box of the arm's instantaneous rows
-(``fosmc_jax._plants.arm.third_order_rows``) has its midpoint near (29) and lies inside, or close
+(``fosmc_jax.third_order_rows``) has its midpoint near (29) and lies inside, or close
 to, the Appendix box. Every parameter is mapped from an unconstrained vector through exp /
 sigmoid, so masses, inertias, lengths, friction and motor constants stay positive and the
 link inertias satisfy the triangle inequalities by construction (I = (b+c, a+c, a+b)).
@@ -34,18 +34,19 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
-from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._design.gains import box_norm_bound  # noqa: E402
-from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._plants.arm import (  # noqa: E402
+from fosmc_jax import (  # noqa: E402
     ARM_PARAMS,
     PAYLOAD_RANGE,
+    Arm,
     ArmParams,
+    Cycloid,
     arm_box,
-    box_alpha_beta,
-    envelope_samples,
-    rows_over,
+    box_norm_bound,
+    desired_state,
+    paper,
+    third_order_rows,
 )
+from fosmc_jax.io import write_text  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results" / "arm_calibration.md"
 PAYLOADS = np.linspace(*PAYLOAD_RANGE, 5)
@@ -77,6 +78,29 @@ INIT = {
     "log_L": np.log(np.array([0.11, 0.11, 0.13])),
     "log_Kt": np.log(np.array([5.0, 5.0, 5.0])),
 }
+
+
+def envelope_samples(n_times: int, dtype) -> jnp.ndarray:
+    """States X (n_times, 9) along the paper's reference (30) over [0, tau]: the operating
+    envelope of the paper's simulations (the states ``fosmc bounds`` builds the arm's box on; the
+    library keeps its copy private)."""
+    ref = Cycloid(*(jnp.asarray(x, dtype) for x in (paper.THETA_START, paper.THETA_END, paper.TAU)))
+    t = jnp.linspace(0.0, paper.TAU, n_times, dtype=dtype)
+    return jax.vmap(lambda s: desired_state(ref(s)))(t)
+
+
+@jax.jit
+def rows_over(params: ArmParams, payloads: jnp.ndarray, X_samples: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """:func:`fosmc_jax.third_order_rows` for every payload (P,) x state (S, 9): (P, S, 3, 9), (P, S, 3, 3)."""
+    one = lambda m, X: third_order_rows(Arm(params, m), X)
+    return jax.vmap(jax.vmap(one, in_axes=(None, 0)), in_axes=(0, None))(payloads, X_samples)
+
+
+def box_alpha_beta(box) -> tuple:
+    """alpha, beta of (31) for the arm's own box (:func:`fosmc_jax.arm_box`) and nominal."""
+    alpha = box_norm_bound(box.A_nominal, box.A_lower, box.A_upper, box.B_nominal)
+    beta = box_norm_bound(box.B_nominal, box.B_lower, box.B_upper, box.B_nominal)
+    return alpha, beta
 
 
 def to_params(z: dict) -> ArmParams:
@@ -224,7 +248,7 @@ def table(p: ArmParams) -> str:
     md = [
         "# The arm's box and nominal vs the paper's (29) and Appendix",
         "",
-        "Written by `tuning/calibrate_arm.py`. Arm: `fosmc_jax._plants.arm.ARM_PARAMS`; rows 3, 6, 9 of",
+        "Written by `tuning/calibrate_arm.py`. Arm: `fosmc_jax.ARM_PARAMS`; rows 3, 6, 9 of",
         "its own third-order model (`third_order_rows`) sampled along the paper's reference (30)",
         f"({N_TIMES} instants over [0, tau]) x payloads {PAYLOADS.tolist()} kg. Arm nominal = midpoint",
         "of the arm's box, as in the paper. `mid misfit` = (arm nominal - paper nominal) / s and",
@@ -282,7 +306,7 @@ def main() -> None:
     write_text(OUT, table(p))
     print(f"wrote {OUT}")
     if args.check and not ok:
-        raise SystemExit("calibrated parameters differ from fosmc_jax._plants.arm.ARM_PARAMS")
+        raise SystemExit("calibrated parameters differ from fosmc_jax.ARM_PARAMS")
 
 
 if __name__ == "__main__":

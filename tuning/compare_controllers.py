@@ -7,12 +7,12 @@ wall-time budget, each point re-evaluated on held-out payloads.
     .venv/bin/python tuning/compare_controllers.py --config tuning/configs/realistic_arm_short_training.toml \\
         --budget 240 --out tuning/results/compare_controllers
 
-For every kind, one after the other on the same machine: ``fosmc front`` (:func:`fosmc_jax._app.study.study`)
+For every kind, one after the other on the same machine: ``fosmc front`` (:func:`fosmc_jax.config.study`)
 on the config with ``[controller] kind`` set, over the kind's own parameters
-(``fosmc_jax._search.tune.SPACES``: the FOSMC's delta, gamma, poles; SMC's k, phi; super-twisting's
+(``fosmc_jax.search.SPACES``: the FOSMC's delta, gamma, poles; SMC's k, phi; super-twisting's
 k1, k2; per-joint log factors around the config's values), with ``--budget`` seconds (its
 compilations, references and held-out evaluation included); the front's points carry their
-held-out metrics (:func:`fosmc_jax._app.study.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
+held-out metrics (:func:`fosmc_jax.config.held_out_config`: payloads 1, 3, 5, 7 and 9 kg since
 849d357, 2.5, 5 and 7.5 kg in the committed study; fresh noise seeds). The kind's defaults
 (the config's values) are evaluated beside it.
 
@@ -43,15 +43,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._app import study as front_study  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import front as F  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import jsonable, write_text  # noqa: E402
 
-KINDS = tuple(T.SPACES)
+KINDS = tuple(fs.SPACES)
 LABELS = {"fosmc": "FOSMC (delta, gamma, poles)", "smc": "SMC (k, phi)", "super_twisting": "super-twisting (k1, k2)"}
-AXES = F.AXES
+AXES = fs.AXES
 
 
 def log(msg: str) -> None:
@@ -61,12 +59,11 @@ def log(msg: str) -> None:
 def study(cfg: dict, kind: str, budget: float, seed: int) -> dict:
     """One kind's ``fosmc front`` (its points with held-out metrics) and its defaults' metrics."""
     cfg = _config.resolve(dict(cfg, controller=dict(cfg["controller"], kind=kind)))
-    F._EVALUATORS.clear()  # each kind pays its own compilations
     t0 = time.perf_counter()
-    front = front_study.study(cfg, F.Settings(budget=budget, seed=seed), log=lambda s: log(f"{kind}: {s}"))
+    front = _config.study(cfg, fs.FrontSettings(budget=budget, seed=seed), log=lambda s: log(f"{kind}: {s}"))
     wall = time.perf_counter() - t0
     plain, _, p0 = _config.tuning_problems(cfg)
-    default = T.evaluate(plain, p0)
+    default = fs.evaluate(plain, p0)
     return {"kind": kind, "evaluations": front["stages"]["evaluations"], "search_wall_s": wall,
             "stages": front["stages"], "diverged_sets": sum(p["diverged"] > 0 for p in front["points"]),
             "default": {"params": {k: np.asarray(v).tolist() for k, v in p0._asdict().items()},
@@ -165,7 +162,7 @@ def main(argv=None) -> None:
            "command": "python tuning/compare_controllers.py " + " ".join(sys.argv[1:] if argv is None else argv),
            "jax": jax.__version__, "machine": platform.machine(),
            "chattering_levels": [0.03, 0.1, 0.3, 1.0, 3.0, 10.0],
-           "held_out_payloads": front_study.held_out_config(cfg)["plant"]["payloads"]}  # fmt: skip
+           "held_out_payloads": _config.held_out_config(cfg)["plant"]["payloads"]}  # fmt: skip
     t0 = time.perf_counter()
     res["results"] = {k: study(cfg, k, args.budget, args.seed) for k in args.kinds}
     res["load_after"], res["wall_s"] = load(), time.perf_counter() - t0

@@ -13,7 +13,7 @@ For each config (a TOML path, or ``unseen`` / ``unseen_reference``: the configs 
   config with ``sim.dt`` and/or ``sim.t_final`` changed (and ``tune.train_dt`` /
   ``train_t_final`` cleared, which only the training problem reads);
 - the candidates are the front's global stage at ``--seed`` (default 0, the front's):
-  ``global_factors(N, seed, Settings().grid_share)`` -> ``from_factors(p0, z)`` (for N = 256:
+  ``fs.global_factors(N, seed, fs.FrontSettings().grid_share)`` -> ``fs.from_factors(p0, z)`` (for N = 256:
   the start, a 6^3 grid of factors common to the joints, 39 per-joint draws);
 - rungs: dt / 2 (finer than the plain problem: its own discretization error, and the floor of
   every comparison); a digital loop (``controller.sample_period`` T > 0) dt = T / k, k in
@@ -21,7 +21,7 @@ For each config (a TOML path, or ``unseen`` / ``unseen_reference``: the configs 
   is k = 10); the ideal loop dt x 2 and x 5; every config the short horizon (plain dt,
   t_final = the cycloid's duration tau + 0.5 s: the reference's motion has ended) and the
   cheapest pair (dt = T, or dt x 2, with the short horizon);
-- every rung evaluates every candidate with ``_front.evaluate_many`` in chunks of 64 (the first
+- every rung evaluates every candidate with a ``fs.Evaluator`` in chunks of 64 (the first
   chunk compiles; its time less the median warm chunk's is the compile time): mean metrics over
   each candidate's non-diverged rollouts, as the front's axes (mean over joints of
   ``rms_error`` and ``chattering_hf``).
@@ -33,9 +33,9 @@ difference |rung - plain| / plain of each axis over the same candidates (and the
 the plain non-dominated ones, and the config's own parameters' difference), the candidates
 whose ``chattering_hf`` agrees to 1e-9 (relative: the same held control sequence, up to
 rounding), the diverged counts' agreement, and the non-dominated sets
-(``_front.nondominated`` over every candidate): how many of the plain set stay non-dominated
+(``fs.nondominated`` over every candidate): how many of the plain set stay non-dominated
 on the rung, how many of the rung's are dominated on the plain problem, and the multiplicative
-epsilon indicator ``_front.epsilon`` of the rung's non-dominated candidates, measured on the
+epsilon indicator ``fs.epsilon`` of the rung's non-dominated candidates, measured on the
 plain problem, against the plain set (1: the plain set beats what the rung would pick nowhere;
 1.05: somewhere by 5%).
 
@@ -66,10 +66,9 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import front as F  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import jsonable, write_text  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESET = ROOT / "tuning" / "configs" / "realistic_arm.toml"
@@ -154,21 +153,29 @@ def load_avg() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def evaluate(problem: T.Problem, params: T.Params, n: int, log) -> tuple[dict, dict]:
+def grid_size(n: int, grid_share: float, k: int = 3) -> int:
+    """Values per axis of the grid over k parameters in ``fs.global_factors`` of size n (0 below
+    n = 16): the front's own rule, which the library keeps private."""
+    g = int((grid_share * n) ** (1 / k) + 1e-9) if n >= 16 else 0
+    return g if 1 + g**k <= n else g - 1
+
+
+def evaluate(problem: fs.Problem, params: fs.Params, n: int, log) -> tuple[dict, dict]:
     """Every candidate's mean metrics, chunk by chunk (chunks of :data:`CHUNK`), and the timing:
     compile time (first chunk less the median warm one), warm ms per candidate (median chunk),
     every chunk's seconds and the load average around them."""
+    problem = fs.Evaluator(problem)  # compiled once, by the first chunk
     parts, times, loads = [], [], [load_avg()]
     for i in range(0, n, CHUNK):
         part = jax.tree.map(lambda x: x[i : i + CHUNK], params)
         t = time.perf_counter()
-        parts.append(F.evaluate_many(problem, part, CHUNK, log=lambda _: None))
+        parts.append(problem(part, CHUNK, log=lambda _: None))
         times.append(time.perf_counter() - t)
         loads.append(load_avg())
         log(f"    chunk {i // CHUNK + 1}/{-(-n // CHUNK)}  {times[-1]:6.2f} s  load {loads[-1]}")
     if len(times) == 1:  # one chunk: time it again warm
         t = time.perf_counter()
-        F.evaluate_many(problem, params, CHUNK, log=lambda _: None)
+        problem(params, CHUNK, log=lambda _: None)
         times.append(time.perf_counter() - t)
         loads.append(load_avg())
     warm = statistics.median(times[1:])
@@ -199,7 +206,7 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 
 def compare(plain: dict, rung: dict) -> dict:
     """The rung's agreement with the plain problem (see the module docstring)."""
-    (pe, pc), (re_, rc) = F._axes(plain), F._axes(rung)
+    (pe, pc), (re_, rc) = fs.axes(plain), fs.axes(rung)
     pd, rd = plain["diverged"], rung["diverged"]
     ok = (pd == 0) & (rd == 0) & np.isfinite(pe) & np.isfinite(re_)
     out = {"compared": int(ok.sum())}
@@ -213,7 +220,7 @@ def compare(plain: dict, rung: dict) -> dict:
                      "max_rel_diff": float(rel.max()) if rel.size else float("nan"),
                      "median_rel_diff": float(np.median(rel)) if rel.size else float("nan"),
                      "max_rel_diff_candidate": worst}  # fmt: skip
-    front = np.flatnonzero(F.nondominated(pe, pc) & ok)
+    front = np.flatnonzero(fs.nondominated(pe, pc) & ok)
     for axis, p, r in (("rms_error", pe, re_), ("chattering_hf", pc, rc)):
         rel = np.abs(r - p) / np.abs(p)
         out[axis]["plain_front_max_rel_diff"] = float(rel[front].max()) if front.size else float("nan")
@@ -221,9 +228,9 @@ def compare(plain: dict, rung: dict) -> dict:
     out["diverged"] = {"counts_agree": int(np.sum(pd == rd)), "plain_any": int(np.sum(pd > 0)),
                        "rung_any": int(np.sum(rd > 0)), "plain_only": int(np.sum((pd > 0) & (rd == 0))),
                        "rung_only": int(np.sum((pd == 0) & (rd > 0)))}  # fmt: skip
-    nd_p, nd_r = F.nondominated(pe, pc), F.nondominated(re_, rc)
+    nd_p, nd_r = fs.nondominated(pe, pc), fs.nondominated(re_, rc)
     picks = np.flatnonzero(nd_r & np.isfinite(pe) & np.isfinite(pc))  # the rung's picks, on the plain problem
-    eps = F.epsilon((pe[picks], pc[picks]), (pe[nd_p], pc[nd_p])) if picks.size else float("nan")
+    eps = fs.epsilon((pe[picks], pc[picks]), (pe[nd_p], pc[nd_p])) if picks.size else float("nan")
     out["front"] = {"plain_nondominated": int(nd_p.sum()), "rung_nondominated": int(nd_r.sum()),
                     "plain_kept": int(np.sum(nd_p & nd_r)), "rung_dominated_on_plain": int(np.sum(nd_r & ~nd_p)),
                     "epsilon_rung_picks_vs_plain": eps,
@@ -234,14 +241,14 @@ def compare(plain: dict, rung: dict) -> dict:
 def study(spec: str, n: int, seed: int, log) -> dict:
     name, cfg, source = load_config(spec)
     plain0, _, p0 = _config.tuning_problems(cfg)
-    space = T.space_of(p0)
-    z = F.global_factors(n, seed, F.Settings().grid_share, space)
-    params = F.from_factors(p0, z)
+    space = fs.space_of(p0)
+    z = fs.global_factors(n, seed, fs.FrontSettings().grid_share, space)
+    params = fs.from_factors(p0, z)
     T_s = cfg["controller"]["sample_period"]
     log(f"{name}: {source}; {cfg['plant']['payloads']} kg, T = {T_s} s, dt = {cfg['sim']['dt']} s, "
         f"t_final = {cfg['sim']['t_final']} s, {cfg['sim']['integrator']}; {n} candidates (seed {seed})")  # fmt: skip
     result = {"name": name, "source": source, "config": cfg, "candidates": n, "seed": seed,
-              "grid_per_axis": F.grid_size(n, F.Settings().grid_share, len(space.params)), "factors": z, "rungs": []}  # fmt: skip
+              "grid_per_axis": grid_size(n, fs.FrontSettings().grid_share, len(space.params)), "factors": z, "rungs": []}  # fmt: skip
     plain_m = None
     for rung in rungs(cfg):
         c, warned = rung_config(cfg, rung)
@@ -253,7 +260,7 @@ def study(spec: str, n: int, seed: int, log) -> dict:
         t = time.perf_counter()
         m, timing = evaluate(problem, params, n, log)
         entry = {**rung, "steps": steps, "steps_per_sample": m_per, "warnings": warned, "timing": timing,
-                 "axes": {"rms_error": F._axes(m)[0], "chattering_hf": F._axes(m)[1]}, "diverged": m["diverged"]}  # fmt: skip
+                 "axes": {"rms_error": fs.axes(m)[0], "chattering_hf": fs.axes(m)[1]}, "diverged": m["diverged"]}  # fmt: skip
         if plain_m is None:
             plain_m = m
         else:
@@ -293,7 +300,7 @@ def markdown(results: list[dict], command: str, meta: dict) -> str:
         f"start, {meta['load'][1]} at the end; {meta['wall_s']:.0f} s in all. Written by `tuning/fidelity.py` "
         "(its docstring defines every column).",
         "",
-        "Candidates: the front's global stage (`_front.global_factors` with the front's grid share, seed "
+        "Candidates: the front's global stage (`fosmc_jax.search.global_factors` with the front's grid share, seed "
         f"{results[0]['seed']}): for N = 256 the start, a 6^3 grid of factors common to the joints and 39 per-joint "
         "draws; the same N and each config's own horizon for every config (nothing reduced). Rank and relative-difference columns: over the candidates that diverged on neither problem "
         "(`compared`). Relative differences of the short-horizon rungs measure a different quantity "
@@ -303,9 +310,9 @@ def markdown(results: list[dict], command: str, meta: dict) -> str:
         "over the plain problem's non-dominated candidates; the config's parameters: candidate 0, the start "
         "(what `fosmc simulate` reports for the config). Diverged: candidates whose number of "
         "diverged rollouts agrees, and those with a diverged rollout on one problem only. Plain front kept: of the "
-        "plain problem's non-dominated candidates (`_front.nondominated` over every candidate), those "
+        "plain problem's non-dominated candidates (`fosmc_jax.search.nondominated` over every candidate), those "
         "non-dominated on the rung; rung front dominated on plain: the rung's non-dominated candidates dominated "
-        "on the plain problem; epsilon: `_front.epsilon` of the rung's non-dominated candidates, measured on the "
+        "on the plain problem; epsilon: `fosmc_jax.search.epsilon` of the rung's non-dominated candidates, measured on the "
         "plain problem, against the plain set (1: nowhere worse). The rung `dt / 2 (finer)` is the plain problem's "
         "own discretization error and the floor of every comparison. The reference is the config's "
         "`[trajectory]` cycloid (the only reference a config sets; the TOML files keep the paper's, tau = 2 s), "
@@ -332,7 +339,7 @@ def markdown(results: list[dict], command: str, meta: dict) -> str:
             if "vs_plain" not in r:
                 div = int(np.sum(np.asarray(r["diverged"]) > 0))
                 lines.append(head + f" 1 | 1 | {res['candidates'] - div} | - | 0 | 0 | 0 | 0 | {div} diverged | "
-                             f"{int(F.nondominated(r['axes']['rms_error'], r['axes']['chattering_hf']).sum())} points | - | 1 |")  # fmt: skip
+                             f"{int(fs.nondominated(r['axes']['rms_error'], r['axes']['chattering_hf']).sum())} points | - | 1 |")  # fmt: skip
                 continue
             v = r["vs_plain"]
             e, c, d, fr = v["rms_error"], v["chattering_hf"], v["diverged"], v["front"]

@@ -2,15 +2,15 @@
 
 For one config, each method gets the same wall time on the same machine, one after the other
 (the baselines get what the front actually took, its references and held-out evaluation
-included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax._app.study.study`),
+included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax.config.study`),
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
-and a log grid over the same search space (:mod:`fosmc_jax._search.peers`), and with ``--peers`` NSGA-II,
+and a log grid over the same search space (:mod:`fosmc_jax.search`), and with ``--peers`` NSGA-II,
 pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: ``pip install -e .[peers]``; each generation of
 ``--popsize`` in one batched call). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
 reference point (beyond the worst of Table 1's sets and SGN), how many of the
 front's points some baseline point dominates, and the epsilon indicator both ways (by how
-much, at most, one set beats the other: :func:`fosmc_jax._search.front.epsilon`). The front's held-out evaluation (fresh payloads
+much, at most, one set beats the other: :func:`fosmc_jax.search.epsilon`). The front's held-out evaluation (fresh payloads
 or box samples, fresh noise seeds) is reported beside its training metrics.
 
     .venv/bin/python tuning/frontier.py --config tuning/configs/realistic_arm.toml --budget 300 --name realistic
@@ -37,11 +37,9 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._app import study as front_study  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import front as F  # noqa: E402
-from fosmc_jax._search import peers as S  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import jsonable, save_figure, write_text  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
@@ -72,20 +70,6 @@ def dominated_pairs(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.nd
     return pairs
 
 
-def hypervolume(e: np.ndarray, c: np.ndarray, ref: tuple[float, float]) -> float:
-    """Area dominated by the points in (log10 c, log10 e) and bounded by ``ref`` (log10 too)."""
-    keep = F.nondominated(e, c)
-    x, y = np.log10(c[keep]), np.log10(e[keep])
-    order = np.argsort(x)
-    x, y = x[order], y[order]
-    area, y_prev = 0.0, ref[1]
-    for xi, yi in zip(x, y):
-        if xi < ref[0] and yi < y_prev:
-            area += (ref[0] - xi) * (y_prev - yi)
-            y_prev = yi
-    return float(area)
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--config")
@@ -97,7 +81,7 @@ def main(argv=None) -> None:
                     help="also these NSGA-II baselines (default both: nsga2,optuna_nsga2; fosmc_jax[peers])")  # fmt: skip
     ap.add_argument("--popsize", type=int, default=64, help="NSGA-II's population, one batched call each (default 64)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="a fosmc_jax._search.front.Settings field for the front (ablations), e.g. global_share=1")  # fmt: skip
+                    help="a fosmc_jax.search.FrontSettings field for the front (ablations), e.g. global_share=1")  # fmt: skip
     ap.add_argument("--check", action="store_true",
                     help="only the cost and surrogate check (check_costs), then exit")  # fmt: skip
     ap.add_argument("--epsilon", nargs="+", metavar="FRONTIER_JSON",
@@ -132,44 +116,43 @@ def main(argv=None) -> None:
     front_dir = OUT / f"front_{args.name}"
 
     start, load = time.perf_counter(), os.getloadavg()[0]
-    settings = F.Settings(points=args.points, budget=args.budget)
+    settings = fs.FrontSettings(points=args.points, budget=args.budget)
     for item in args.set:  # KEY=1.5 or KEY=0.1,0.01 (a tuple)
         key, value = item.split("=", 1)
         parsed = json.loads(f"[{value}]")
         value = parsed[0] if len(parsed) == 1 else parsed
         settings = settings._replace(**{key: type(getattr(settings, key))(value)})
     out["settings"] = settings._asdict()
-    front = front_study.study(cfg, settings, out=front_dir, log=log)
+    front = _config.study(cfg, settings, out=front_dir, log=log)
     out["methods"]["fosmc front"] = {"wall_s": time.perf_counter() - start, "points": front["points"],
                                      "evaluations": front["stages"]["evaluations"],
                                      "load": [load, os.getloadavg()[0]]}  # fmt: skip
     front_m = {k: np.array([p["metrics"][k] for p in front["points"]]) for k in ("rms_error", "chattering_hf")}
     front_m["diverged"] = np.array([p["diverged"] for p in front["points"]])
-    weights = F.pick_starts(front_m, 4)[1].tolist()  # the front's slopes at four points along it
+    weights = fs.pick_starts(front_m, 4)[1].tolist()  # the front's slopes at four points along it
     budget = out["methods"]["fosmc front"]["wall_s"]  # the baselines get the front's actual wall time
     out["baseline_budget_s"], out["cma_weights"] = budget, weights
     log(f"fosmc front: {len(front['points'])} points in {budget:.0f} s")
 
     runs = {
-        "cma": ("CMA-ES (pycma)", lambda: S.cma_front(plain, p0, weights, budget, log=log)),
-        "random": ("random search", lambda: S.random_search(plain, p0, budget, log=log)),
-        "grid": ("log grid", lambda: S.log_grid(plain, p0, grid_size(plain, p0, budget), log=log)),
-        "nsga2": ("NSGA-II (pymoo)", lambda: S.nsga2(plain, p0, budget, args.popsize, log=log)),
-        "optuna_nsga2": ("NSGA-II (optuna)", lambda: S.optuna_nsga2(plain, p0, budget, args.popsize, log=log)),
+        "cma": ("CMA-ES (pycma)", lambda: fs.cma_front(plain, p0, weights, budget, log=log)),
+        "random": ("random search", lambda: fs.random_search(plain, p0, budget, log=log)),
+        "grid": ("log grid", lambda: fs.log_grid(plain, p0, grid_size(plain, p0, budget), log=log)),
+        "nsga2": ("NSGA-II (pymoo)", lambda: fs.nsga2(plain, p0, budget, args.popsize, log=log)),
+        "optuna_nsga2": ("NSGA-II (optuna)", lambda: fs.optuna_nsga2(plain, p0, budget, args.popsize, log=log)),
     }
     for key in methods:
         if key not in runs:
             continue
         label, fn = runs[key]
-        F._EVALUATORS.clear()  # each method pays its own compilation, as the front did
         t0, load = time.perf_counter(), os.getloadavg()[0]
         r = fn()
         e, c = axes_of(r["metrics"])
-        keep = np.flatnonzero(F.nondominated(e, c))
-        params = S.from_factors(p0, r["z"][keep])
+        keep = np.flatnonzero(fs.nondominated(e, c))
+        params = fs.from_factors(p0, r["z"][keep])
         out["methods"][label] = {
             "wall_s": time.perf_counter() - t0, "evaluations": len(e), "load": [load, os.getloadavg()[0]],
-            "points": [F.point_of(jax.tree.map(lambda x, i=i: x[i], params), r["metrics"], j)
+            "points": [fs.point_of(jax.tree.map(lambda x, i=i: x[i], params), r["metrics"], j)
                        for i, j in enumerate(keep)],
         }  # fmt: skip
         log(f"{label}: {len(e)} evaluations, {len(keep)} non-dominated, {out['methods'][label]['wall_s']:.0f} s")
@@ -181,9 +164,9 @@ def main(argv=None) -> None:
     for label, m in out["methods"].items():
         e, c = axes_of_points(m["points"])
         dominating = len(dominated_pairs((e, c), (fe, fc)))
-        m["hypervolume"] = hypervolume(e, c, ref_point)
+        m["hypervolume"] = fs.hypervolume(e, c, ref_point)
         m["front_points_dominated"] = dominating if label != "fosmc front" else 0
-        m["beats_front_by"], m["front_beats_it_by"] = F.epsilon((fe, fc), (e, c)), F.epsilon((e, c), (fe, fc))
+        m["beats_front_by"], m["front_beats_it_by"] = fs.epsilon((fe, fc), (e, c)), fs.epsilon((e, c), (fe, fc))
         summary.append((label, m["wall_s"], m["evaluations"], len(m["points"]), m["hypervolume"],
                         m["front_points_dominated"], m["beats_front_by"], m["front_beats_it_by"],
                         e.min(), c.min(), m["load"]))  # fmt: skip
@@ -198,7 +181,7 @@ def main(argv=None) -> None:
              f"machine (`.venv/bin/python tuning/frontier.py --config {args.config} --budget {args.budget:.0f} "
              f"--name {args.name}`). Hypervolume: area dominated in (log10 mean chattering_hf, log10 mean rms_error) "
              f"up to the reference point {np.round(ref_point, 2).tolist()} (0.5 decade beyond the worst reference).",
-             "Epsilon: the multiplicative epsilon indicator (`fosmc_jax._search.front.epsilon`), the largest "
+             "Epsilon: the multiplicative epsilon indicator (`fosmc_jax.search.epsilon`), the largest "
              "factor by which one set beats the other anywhere (1 or less: nowhere).",
              "", "| method | wall s | load (1-min, start/end) | evaluations | front points | hypervolume | "
              "`fosmc front` points it dominates | epsilon: it beats the front by | epsilon: the front beats it by | "
@@ -229,7 +212,7 @@ def reference_point(refs: dict) -> tuple[float, float]:
 
 def compare_study(path: str) -> None:
     """Print, for a study's result (``frontier_<name>.json``), each baseline's count of front
-    points it dominates, the epsilon indicator both ways (:func:`fosmc_jax._search.front.epsilon`), and
+    points it dominates, the epsilon indicator both ways (:func:`fosmc_jax.search.epsilon`), and
     by chattering_hf band where it wins."""
     study = json.loads(pathlib.Path(path).read_text())
     sets = {label: axes_of_points(m["points"]) for label, m in study["methods"].items()}
@@ -238,7 +221,7 @@ def compare_study(path: str) -> None:
         beaten = {i for i, _ in dominated_pairs((e, c), (fe, fc))}
         print(
             f"{path}: {label} dominates {len(beaten)} of {len(fe)} front points; it beats the front by at most "
-            f"{F.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {F.epsilon((e, c), (fe, fc)):.3f}x"
+            f"{fs.epsilon((fe, fc), (e, c)):.3f}x, the front beats it by at most {fs.epsilon((e, c), (fe, fc)):.3f}x"
         )
         # by chattering_hf band: front points, those beaten, and the median over the band's points of
         # (the lowest error of this method at no more chattering) / (the front point's error)
@@ -262,7 +245,7 @@ def score_fronts(paths: list[str]) -> None:
         he, hc = axes_of_points(front["points"], "held_out")
         re, rc = he / e, hc / c
         print(f"{path}: {front['stages'].get('evaluations', front['stages'].get('candidates'))} evaluations, "
-              f"{len(e)} points, hypervolume {hypervolume(e, c, reference_point(front['references'])):.2f}, best "
+              f"{len(e)} points, hypervolume {fs.hypervolume(e, c, reference_point(front['references'])):.2f}, best "
               f"rms_error {e.min():.2g} rad at {c[e.argmin()]:.3g} V, lowest chattering_hf at rms_error <= 0.1 / "
               f"0.01 / 0.001 rad: {' / '.join(low)} V; held out / training: rms_error {re.min():.2f}-{re.max():.2f}, "
               f"chattering_hf {rc.min():.2f}-{rc.max():.2f}, {int(np.sum((re > 1.25) | (rc > 1.25)))} points beyond "
@@ -282,8 +265,8 @@ def dominance_check(path: str) -> None:
     if not pairs:
         return print(f"{path}: no front point is dominated by a CMA-ES point")
     as_params = lambda pts: type(p0)(*(np.array([p["params"][k] for p in pts]) for k in p0._fields))
-    ma = F.evaluate_many(train, as_params([points[0][i] for i, _ in pairs]), 16, log=lambda _: None)
-    mb = F.evaluate_many(train, as_params([points[1][j] for _, j in pairs]), 16, log=lambda _: None)
+    ma = fs.evaluate_many(train, as_params([points[0][i] for i, _ in pairs]), 16, log=lambda _: None)
+    mb = fs.evaluate_many(train, as_params([points[1][j] for _, j in pairs]), 16, log=lambda _: None)
     (ea, ca), (eb, cb) = axes_of(ma), axes_of(mb)
     still = int(np.sum((eb <= ea) & (cb <= ca) & ((eb < ea) | (cb < ca))))
     print(f"{path}: {len(pairs)} front points dominated by a CMA-ES point on the plain problem; on the training "
@@ -298,41 +281,41 @@ def check_costs(cfg: dict, n_random: int = 64) -> None:
     from scipy.stats import spearmanr
 
     plain, train, p0 = _config.tuning_problems(cfg)
-    lo, hi = S.bounds()
-    z = np.concatenate([F.grid_factors(4), np.random.default_rng(1).uniform(lo, hi, size=(n_random, S.DIM))])
-    params = S.from_factors(p0, z)
+    lo, hi = fs.bounds()
+    z = np.concatenate([fs.grid_factors(4), np.random.default_rng(1).uniform(lo, hi, size=(n_random, fs.DIM))])
+    params = fs.from_factors(p0, z)
     first = jax.tree.map(lambda x: x[:16], params)
     times = []
-    for _ in range(2):  # a fresh compilation each time, as before
-        F._EVALUATORS.clear()
+    for _ in range(2):  # a fresh compilation each time (a fresh evaluator), as before
         t = time.perf_counter()
-        F.evaluate_many(plain, first, 16, log=lambda _: None)
+        fs.evaluate_many(plain, first, 16, log=lambda _: None)
         times.append(time.perf_counter() - t)
     print(f"load {os.getloadavg()[0]:.1f}: 16 plain evaluations compiled afresh {times[1]:.2f} s "
           f"({times[1] / 16:.3f} s each)")  # fmt: skip
     metrics = {}
     for label, problem in (("plain", plain), ("training", train)):
-        F.evaluate_many(problem, first, 16, log=lambda _: None)
+        problem = fs.Evaluator(problem)
+        problem(first, 16, log=lambda _: None)
         t = time.perf_counter()
-        metrics[label] = F.evaluate_many(problem, params, 16, log=lambda _: None)
+        metrics[label] = problem(params, 16, log=lambda _: None)
         dt = time.perf_counter() - t
         print(
             f"load {os.getloadavg()[0]:.1f}: {len(z)} {label} evaluations, warm: {dt:.1f} s ({dt / len(z):.3f} s each)"
         )
     (ep, cp), (et, ct) = axes_of(metrics["plain"]), axes_of(metrics["training"])
     ok = np.isfinite(ep + cp + et + ct)
-    both = F.nondominated(ep, cp) & F.nondominated(et, ct)
+    both = fs.nondominated(ep, cp) & fs.nondominated(et, ct)
     print(f"Spearman rho, training against plain: rms_error {spearmanr(ep[ok], et[ok])[0]:.3f}, chattering_hf "
-          f"{spearmanr(cp[ok], ct[ok])[0]:.3f}; non-dominated: plain {F.nondominated(ep, cp).sum()}, training "
-          f"{F.nondominated(et, ct).sum()}, both {both.sum()}")  # fmt: skip
+          f"{spearmanr(cp[ok], ct[ok])[0]:.3f}; non-dominated: plain {fs.nondominated(ep, cp).sum()}, training "
+          f"{fs.nondominated(et, ct).sum()}, both {both.sum()}")  # fmt: skip
 
 
 def grid_size(problem, p0, budget: float) -> int:
     """Values per axis of a log grid that fits the budget (from one timed chunk)."""
-    z = np.zeros((16, S.DIM))
-    F.evaluate_many(problem, S.from_factors(p0, z), 16, log=lambda _: None)
+    z, problem = np.zeros((16, fs.DIM)), fs.Evaluator(problem)
+    problem(fs.from_factors(p0, z), 16, log=lambda _: None)
     t0 = time.perf_counter()
-    F.evaluate_many(problem, S.from_factors(p0, z), 16, log=lambda _: None)
+    problem(fs.from_factors(p0, z), 16, log=lambda _: None)
     per = (time.perf_counter() - t0) / 16
     return max(2, int((0.9 * budget / per) ** (1 / 3)))
 
@@ -342,8 +325,6 @@ def plot(out: dict, path: pathlib.Path, config: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from fosmc_jax._app.plots import save_figure
 
     fig, ax = plt.subplots(figsize=(8, 6))
     for i, (label, m) in enumerate(out["methods"].items()):

@@ -32,12 +32,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._app.plots import save_figure  # noqa: E402
-from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
-from fosmc_jax._simulator.rollout import simulate_batch  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import paper, simulate_batch  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import save_figure, write_text  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 SCALES = (1.0, 0.3, 0.1, 0.03, 0.01)
@@ -59,7 +57,7 @@ def per_rollout(b, opts):
     """f(u, delta) -> (rms error (B,), chattering (B,)): means over the joints, per rollout."""
 
     def f(u, delta):
-        p = T.to_physical(u, b.controller)
+        p = fs.to_physical(u, b.controller)
         ctrl = b.controller._replace(delta=delta * jnp.exp(u.delta - jnp.log(b.controller.delta)),
                                      gamma=p.gamma, poles=p.poles)  # fmt: skip
         r = simulate_batch(b.plants, ctrl, b.reference, b.X0s, b.dt, **opts)
@@ -68,7 +66,7 @@ def per_rollout(b, opts):
     return f
 
 
-def flat(g: T.Tunable) -> np.ndarray:
+def flat(g: fs.Tunable) -> np.ndarray:
     """(..., 15) from a Tunable of gradients with leading batch axes."""
     return np.concatenate([np.asarray(x).reshape(np.shape(x)[: np.ndim(x) - np.ndim(u)] + (-1,))
                            for x, u in zip(g, U_SHAPES)], axis=-1)  # fmt: skip
@@ -82,13 +80,13 @@ def fd_check(dt: float, h: float) -> list[dict]:
     for t_final in (0.5, 2.0):
         b, opts = build(t_final, dt, 0)
         f = per_rollout(b, opts)
-        u0 = T.to_internal(T.Tunable(b.controller.delta, b.controller.gamma, b.controller.poles), b.controller)
+        u0 = fs.to_internal(fs.Tunable(b.controller.delta, b.controller.gamma, b.controller.poles), b.controller)
         scalar = lambda u, d, k: f(u, d)[k][0]
         rev = jax.jit(jax.grad(scalar), static_argnums=2)
         fwd = jax.jit(jax.jacfwd(scalar), static_argnums=2)
         val = jax.jit(scalar, static_argnums=2)
         x0 = flat(u0)
-        unflat = lambda x: T.Tunable(jnp.asarray(x[:3]), jnp.asarray(x[3:6]), jnp.asarray(x[6:]).reshape(3, 3))
+        unflat = lambda x: fs.Tunable(jnp.asarray(x[:3]), jnp.asarray(x[3:6]), jnp.asarray(x[6:]).reshape(3, 3))
         for scale in (1.0, 0.01):
             d = jnp.asarray(paper.DELTA_SETS[0] * scale)
             for k, name in enumerate(("rms_error", "chattering")):
@@ -109,7 +107,7 @@ def sweep(dt: float, samples: int) -> list[dict]:
     for t_final in HORIZONS:
         b, opts = build(t_final, dt, samples)
         f = per_rollout(b, opts)
-        u0 = T.to_internal(T.Tunable(b.controller.delta, b.controller.gamma, b.controller.poles), b.controller)
+        u0 = fs.to_internal(fs.Tunable(b.controller.delta, b.controller.gamma, b.controller.poles), b.controller)
         jac = jax.jit(jax.jacfwd(f))
         t0 = time.perf_counter()
         for scale in SCALES:

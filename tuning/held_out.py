@@ -1,6 +1,6 @@
 """Plain metrics of tuned parameters on the training batch and on a held-out batch.
 
-The held-out batch is :func:`fosmc_jax._app.study.held_out_config`'s: arm payloads the training did
+The held-out batch is :func:`fosmc_jax.config.held_out_config`'s: arm payloads the training did
 not use (1, 3, 5, 7, 9 kg; 2.5, 5, 7.5 kg for the committed results), fresh box samples for
 the linear model, fresh noise seeds.
 
@@ -29,9 +29,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._app import study as front_study  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -48,9 +47,9 @@ def main(argv=None) -> None:
         ap.error("--params or --front is required")
     cfg = _config.with_params(_config.load(args.config), args.params, args.point)
     rows = []
-    for label, c in (("training batch", cfg), ("held-out batch", front_study.held_out_config(cfg))):
+    for label, c in (("training batch", cfg), ("held-out batch", _config.held_out_config(cfg))):
         plain, _, p = _config.tuning_problems(c)
-        m = T.evaluate(plain, p)
+        m = fs.evaluate(plain, p)
         rows.append((label, c["plant"].get("payloads") if c["plant"]["kind"] == "arm" else c["plant"]["seed"], m))
     print(
         "| batch | payloads (kg) or seed | rms_error (rad) | max_abs_error (rad) | chattering (V/s) | chattering_hf (V) |"

@@ -6,7 +6,7 @@ Gains (36), SGN and the ratio switching (28) with each Table 1 set, the paper's 
 - ``linear``: the uncertain linear plant (3) with rows 3, 6, 9 drawn uniformly and
   independently in the Appendix box (NOTES.md), ``--samples`` draws (seeded);
 - ``vertices``: ``--vertices`` distinct box vertices (seeded), the box's extreme plants;
-- ``arm``: the arm of ``fosmc_jax._plants.arm`` with payloads uniform in PAYLOAD_RANGE,
+- ``arm``: the arm (``fosmc_jax.arm_sweep``) with payloads uniform in PAYLOAD_RANGE,
   ``--arm-samples`` draws (seeded).
 
 For each (plant set, switching) case: the distribution of max |theta - theta_d| per joint
@@ -33,10 +33,17 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from fosmc_jax import Controller, Cycloid, desired_state, paper, simulate_batch, uncertain_plants  # noqa: E402
-from fosmc_jax._app.plots import save_figure  # noqa: E402
-from fosmc_jax._io import atomic_write, write_text  # noqa: E402
-from fosmc_jax._plants.arm import PAYLOAD_RANGE, arm_sweep  # noqa: E402
+from fosmc_jax import (  # noqa: E402
+    PAYLOAD_RANGE,
+    Cycloid,
+    FOSMCParams,
+    arm_sweep,
+    desired_state,
+    paper,
+    simulate_batch,
+    uncertain_plants,
+)
+from fosmc_jax.io import atomic_write, save_figure, write_text  # noqa: E402
 
 OUT = pathlib.Path(__file__).parent / "results"
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -52,7 +59,7 @@ def log(msg: str) -> None:
 def run_case(plants, delta, switching, args, label):
     """All rollouts of one case, in chunks of ``args.chunk`` plants; metrics as NumPy arrays."""
     f = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64))
-    ctrl = Controller(f(paper.C), f(paper.POLES), f(paper.GAMMA), f(delta), f(paper.A_ROWS), f(paper.B_ROWS))
+    ctrl = FOSMCParams(f(paper.C), f(paper.POLES), f(paper.GAMMA), f(delta), f(paper.A_ROWS), f(paper.B_ROWS))
     ref = Cycloid(f(paper.THETA_START), f(paper.THETA_END), f(paper.TAU))
     X0s = desired_state(ref(jnp.zeros(())))[None]
     n_steps = round(args.t_final / args.dt)

@@ -1,7 +1,7 @@
 """Pareto front of tracking error against chattering, by sweeping the chattering weight.
 
 Every weight w_c starts from the paper's gains (36), poles (33) and Table 1 set 2, and is tuned
-(delta, gamma, poles; Adam in the unconstrained coordinates of :mod:`fosmc_jax._search.tune`) on
+(delta, gamma, poles; Adam in the unconstrained coordinates of :mod:`fosmc_jax.search`) on
 the objective of ``fosmc tune``:
 
     J = mean_i [ mean_j rms_error_ij / e_ref + w_c * mean_j chattering_ij / c_ref ]
@@ -36,12 +36,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
-from fosmc_jax import paper  # noqa: E402
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._app.plots import save_figure  # noqa: E402
-from fosmc_jax._io import write_text  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
-from fosmc_jax._simulator.rollout import simulate_batch  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import paper, simulate_batch  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import save_figure, write_text  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 OUT = HERE / "results"
@@ -53,25 +51,25 @@ def log(msg: str) -> None:
 
 
 def load_problems(config=CONFIG, train_dt: float | None = 1e-3, t_final: float | None = None):
-    """(plain, train) :class:`fosmc_jax._search.tune.Problem` of a config, as ``fosmc tune`` builds
+    """(plain, train) :class:`fosmc_jax.search.Problem` of a config, as ``fosmc tune`` builds
     them (``train`` uses ``train_dt``; ``t_final`` overrides both horizons), and p0."""
     cfg = _config.load(config)
     if t_final is not None:
         cfg["sim"]["t_final"] = t_final
     built = _config.build(cfg)
-    plain = T.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt,
-                      dict(built.options, save_every=0))  # fmt: skip
+    plain = fs.Problem(built.plants, built.controller, built.reference, built.X0s, built.dt,
+                       dict(built.options, save_every=0))  # fmt: skip
     tcfg = copy.deepcopy(cfg)
     if train_dt:
         tcfg["sim"]["dt"] = train_dt
     tb = _config.build(tcfg)
-    train = T.Problem(tb.plants, tb.controller, tb.reference, tb.X0s, tb.dt,
-                      dict(tb.options, save_every=0, checkpoint_every=cfg["tune"]["remat_steps"]))  # fmt: skip
-    p0 = T.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
+    train = fs.Problem(tb.plants, tb.controller, tb.reference, tb.X0s, tb.dt,
+                       dict(tb.options, save_every=0, checkpoint_every=cfg["tune"]["remat_steps"]))  # fmt: skip
+    p0 = fs.Tunable(built.controller.delta, built.controller.gamma, built.controller.poles)
     return plain, train, p0
 
 
-def rollout_metrics(problem: T.Problem, p: T.Tunable, switching: str | None = None):
+def rollout_metrics(problem: fs.Problem, p: fs.Tunable, switching: str | None = None):
     """(rms_error, chattering, diverged) per rollout, (B, 3), (B, 3), (B,), traced-friendly."""
     ctrl = problem.base._replace(delta=p.delta, gamma=p.gamma, poles=p.poles)
     opts = {k: v for k, v in problem.options.items() if not (k == "checkpoint_every" and switching)}
@@ -81,26 +79,26 @@ def rollout_metrics(problem: T.Problem, p: T.Tunable, switching: str | None = No
     return r.metrics.rms_error, r.metrics.chattering, r.diverged
 
 
-def refs(train: T.Problem, p0: T.Tunable) -> tuple[float, float]:
+def refs(train: fs.Problem, p0: fs.Tunable) -> tuple[float, float]:
     """The objective's scales: batch means of rms error and chattering at p0 (training sim)."""
     e, c, _ = jax.jit(lambda p: rollout_metrics(train, p))(p0)
     return float(jnp.mean(e)), float(jnp.mean(c))
 
 
-def make_loss(train: T.Problem, e_ref: float, c_ref: float):
+def make_loss(train: fs.Problem, e_ref: float, c_ref: float):
     """loss(u, w_c) -> mean_i J_i with the library's rollout_costs; u in internal coordinates."""
 
-    def loss(u: T.Tunable, w_c):
-        e, c, div = rollout_metrics(train, T.to_physical(u, train.base))
+    def loss(u: fs.Tunable, w_c):
+        e, c, div = rollout_metrics(train, fs.to_physical(u, train.base))
         metrics = type("M", (), {"rms_error": e, "chattering": c})
-        obj = T.Objective(1.0, w_c, e_ref, c_ref, scale="linear", chattering_metric="chattering")  # as committed
-        J, _, _ = T.rollout_costs(metrics, div, obj)
+        obj = fs.Objective(1.0, w_c, e_ref, c_ref, scale="linear", chattering_metric="chattering")  # as committed
+        J, _, _ = fs.rollout_costs(metrics, div, obj)
         return jnp.mean(J)
 
     return loss
 
 
-def plain_metrics(plain: T.Problem, params: T.Tunable, switching: str | None = None) -> dict:
+def plain_metrics(plain: fs.Problem, params: fs.Tunable, switching: str | None = None) -> dict:
     """Plain-simulator metrics of a stack of parameter sets (leading axis K), vmapped:
     mean over rollouts and joints of rms_error (rad) and chattering (V/s), per joint too."""
     f = jax.jit(jax.vmap(lambda p: rollout_metrics(plain, p, switching)))
@@ -114,11 +112,11 @@ def plain_metrics(plain: T.Problem, params: T.Tunable, switching: str | None = N
     }
 
 
-def stack(ps: list[T.Tunable]) -> T.Tunable:
+def stack(ps: list[fs.Tunable]) -> fs.Tunable:
     return jax.tree.map(lambda *x: jnp.stack(x), *ps)
 
 
-def tune_vmapped(loss, u0: T.Tunable, weights, steps: int, lr: float, clip: float = 1.0):
+def tune_vmapped(loss, u0: fs.Tunable, weights, steps: int, lr: float, clip: float = 1.0):
     """Adam (cosine schedule, global-norm clipping) on every weight at once, vmapped.
     Returns final internal parameters (K, ...) and the loss history (steps, K)."""
     opt = optax.chain(optax.clip_by_global_norm(clip), optax.adam(optax.cosine_decay_schedule(lr, steps, 0.1)))
@@ -166,7 +164,7 @@ def main() -> None:
     log(f"scales at p0 (training sim): e_ref {e_ref:.4g} rad, c_ref {c_ref:.4g} V/s")
     weights = jnp.asarray(np.logspace(np.log10(args.wmin), np.log10(args.wmax), args.weights))
     loss = make_loss(train, e_ref, c_ref)
-    u0 = T.to_internal(p0, train.base)
+    u0 = fs.to_internal(p0, train.base)
 
     # vmap or loop? one weight's value_and_grad against a step of the vmapped loop (all weights)
     one = jax.jit(jax.value_and_grad(loss))
@@ -182,7 +180,7 @@ def main() -> None:
         f"vmapped step (all {len(weights)} weights): {timing['vmapped']:.2f} s = "
         f"{timing['vmapped'] / (len(weights) * timing['one']):.2f} of a loop over weights"
     )
-    tuned = jax.vmap(lambda v: T.to_physical(v, train.base))(u)
+    tuned = jax.vmap(lambda v: fs.to_physical(v, train.base))(u)
 
     log("plain-simulator evaluation (Euler, dt = 1e-4, 4 s)")
     front = plain_metrics(plain, tuned)

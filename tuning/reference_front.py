@@ -2,7 +2,7 @@
 
 A config's reference front is the non-dominated union, in (mean ``rms_error``, mean
 ``chattering_hf``) on the config's plain problem, of long runs of every method: ``fosmc front``,
-CMA-ES (:func:`fosmc_jax._search.peers.cma_front`) and NSGA-II (:func:`fosmc_jax._search.peers.nsga2`),
+CMA-ES (:func:`fosmc_jax.search.cma_front`) and NSGA-II (:func:`fosmc_jax.search.nsga2`),
 every candidate re-evaluated with the current code (the metric definitions change: the
 committed fronts of tuning/results/front_realistic_15min_* predate today's ``chattering_hf``).
 A front is scored by the additive epsilon indicator in log10 of both axes against the
@@ -72,11 +72,10 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import front as F  # noqa: E402
-from fosmc_jax._search import peers as S  # noqa: E402
-from fosmc_jax._simulator.metrics import METRIC_NAMES  # noqa: E402
+from fosmc_jax import METRIC_NAMES  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax.io import jsonable, write_text  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "tuning" / "results" / "reference"
@@ -98,37 +97,6 @@ def load_text() -> str:
 # ---------------------------------------------------------------------------- scores
 
 
-def additive_epsilon(front: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray, np.ndarray]) -> float:
-    """The additive epsilon indicator in log10 of both axes of a front a = (errors,
-    chatterings) against reference points r: the smallest eps such that every r has some a
-    with log10 a_err <= log10 r_err + eps and log10 a_chat <= log10 r_chat + eps, i.e.
-    max_r min_a max(log10 a_err - log10 r_err, log10 a_chat - log10 r_chat). <= 0: the front
-    weakly dominates every reference point; NaN with no reference point, inf with no front
-    point. It is log10 of the multiplicative :func:`fosmc_jax._search.front.epsilon` (front, ref),
-    restricted to the reference points given; it belongs beside that one in fosmc_jax._search.front."""
-    (ae, ac), (re, rc) = (tuple(np.log10(np.asarray(x, float)) for x in s) for s in (front, ref))
-    if not len(re):
-        return float("nan")
-    if not len(ae):
-        return float("inf")
-    gap = np.maximum(ae[:, None] - re[None, :], ac[:, None] - rc[None, :])  # (A, R)
-    return float(np.max(np.min(gap, axis=0)))
-
-
-def hypervolume(e: np.ndarray, c: np.ndarray, ref: tuple[float, float]) -> float:
-    """Area dominated by the points in (log10 c, log10 e), bounded by ``ref`` = (log10 c,
-    log10 e) (tuning/frontier.py's)."""
-    keep = F.nondominated(e, c)
-    x, y = np.log10(c[keep]), np.log10(e[keep])
-    order = np.argsort(x)
-    area, y_prev = 0.0, ref[1]
-    for xi, yi in zip(x[order], y[order]):
-        if xi < ref[0] and yi < y_prev:
-            area += (ref[0] - xi) * (y_prev - yi)
-            y_prev = yi
-    return float(area)
-
-
 def hv_reference(e: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     """The hypervolume's fixed reference point of a reference front (log10 c, log10 e): the
     upper end of the scored band (10 V) and half a decade above the largest error of the
@@ -144,15 +112,15 @@ def score(front: tuple[np.ndarray, np.ndarray], reference: dict) -> dict:
     out = {}
     for lo, hi in BANDS:
         band = (rc >= lo) & (rc <= hi)
-        out[f"epsilon_{lo:g}_{hi:g}"] = additive_epsilon(front, (re[band], rc[band]))
-    out["hypervolume"] = hypervolume(*front, tuple(reference["hv_reference_log10"]))
-    out["reference_hypervolume"] = hypervolume(re, rc, tuple(reference["hv_reference_log10"]))
+        out[f"epsilon_{lo:g}_{hi:g}"] = fs.additive_epsilon(front, (re[band], rc[band]))
+    out["hypervolume"] = fs.hypervolume(*front, tuple(reference["hv_reference_log10"]))
+    out["reference_hypervolume"] = fs.hypervolume(re, rc, tuple(reference["hv_reference_log10"]))
     return out
 
 
 def axes(points: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     """Mean rms_error and chattering_hf of JSON points."""
-    return tuple(np.array([np.mean(p["metrics"][k]) for p in points], float) for k in F.AXES)
+    return tuple(np.array([np.mean(p["metrics"][k]) for p in points], float) for k in fs.AXES)
 
 
 # ---------------------------------------------------------------------------- files
@@ -174,14 +142,6 @@ def points_of(path: str | pathlib.Path) -> dict[str, list[dict]]:
     return {path.parent.name: data["points"]}
 
 
-def dominated_by(point: tuple[float, float], ref: tuple[np.ndarray, np.ndarray]) -> float:
-    """By how much, at most, some reference point beats one point in both axes at once, in log10:
-    max_r min(log10 e - log10 r_e, log10 c - log10 r_c) (<= 0: no reference point dominates it;
-    0.05: one beats it by 12% in both). The score of ``fosmc tune``'s single point."""
-    (e, c), (re, rc) = np.log10(point), (np.log10(np.asarray(x, float)) for x in ref)
-    return float(np.max(np.minimum(e - re, c - rc)))
-
-
 def params_of(points: list[dict], p0):
     """Parameter sets of p0's kind (leading axis n) from JSON points."""
     return type(p0)(*(np.array([p["params"][k] for p in points], float) for k in p0._fields))
@@ -197,7 +157,7 @@ def evaluate(plain, p0, points: list[dict], what: str) -> dict:
             last[0] = time.perf_counter()
             log(f"{what}: {msg}")
 
-    m = F.evaluate_many(plain, params_of(points, p0), CHUNK, log=progress, what="re-evaluating")
+    m = fs.evaluate_many(plain, params_of(points, p0), CHUNK, log=progress, what="re-evaluating")
     log(f"{what}: {len(points)} points re-evaluated in {time.perf_counter() - t0:.0f} s (load {load_text()})")
     return m
 
@@ -234,7 +194,7 @@ def build(args) -> dict:
     """Run one method on the config's plain problem for the budget; write its non-dominated
     candidates (no diverged rollout) with their plain metrics to <OUT>/<config>/<method>.json
     (the front: its front.json's points), and every candidate it evaluated to ``--save-all``
-    (.npz) when given. CMA-ES (:func:`fosmc_jax._search.peers.cma_front`) is restarted with the next
+    (.npz) when given. CMA-ES (:func:`fosmc_jax.search.cma_front`) is restarted with the next
     seed while budget is left: pycma stops a run at its own criteria (tolfun, ...)."""
     cfg = _config.load(args.config)
     name = config_name(args.config)
@@ -263,12 +223,12 @@ def build(args) -> dict:
                 weights = [float(w) for w in args.weights.split(",")]
             else:  # tuning/frontier.py's: the slopes of the front at four points along it
                 pts = json.loads(pathlib.Path(args.weights_from).read_text())["points"]
-                front_m = {k: np.array([p["metrics"][k] for p in pts]) for k in F.AXES}
-                weights = F.pick_starts(dict(front_m, diverged=np.array([p["diverged"] for p in pts])), 4)[1].tolist()
+                front_m = {k: np.array([p["metrics"][k] for p in pts]) for k in fs.AXES}
+                weights = fs.pick_starts(dict(front_m, diverged=np.array([p["diverged"] for p in pts])), 4)[1].tolist()
             runs, seed = [], args.seed
             while not runs or time.perf_counter() - start < args.budget - 1.0:
                 left = args.budget - (time.perf_counter() - start)
-                runs.append(S.cma_front(plain, p0, weights, left, seed=seed, log=throttled()))
+                runs.append(fs.cma_front(plain, p0, weights, left, seed=seed, log=throttled()))
                 log(f"cma: seed {seed}: {len(runs[-1]['z'])} evaluations, {time.perf_counter() - start:.0f} s")
                 seed += 1
             r = {
@@ -277,16 +237,16 @@ def build(args) -> dict:
             }
             extra.update(cma_weights=weights, cma_seeds=list(range(args.seed, seed)))
         elif args.method == "nsga2":
-            r = S.nsga2(plain, p0, args.budget, popsize=args.popsize, seed=args.seed, log=throttled())
+            r = fs.nsga2(plain, p0, args.budget, popsize=args.popsize, seed=args.seed, log=throttled())
         else:
-            r = S.optuna_nsga2(plain, p0, args.budget, popsize=args.popsize, seed=args.seed, log=throttled())
+            r = fs.optuna_nsga2(plain, p0, args.budget, popsize=args.popsize, seed=args.seed, log=throttled())
         z, m = r["z"], r["metrics"]
-        params = S.from_factors(p0, z)
+        params = fs.from_factors(p0, z)
         extra["evaluations"] = len(z)
     wall = time.perf_counter() - start
     e, c = np.mean(m["rms_error"], -1), np.mean(m["chattering_hf"], -1)
     ok = np.asarray(m["diverged"]) == 0
-    keep = np.flatnonzero(F.nondominated(np.where(ok, e, np.nan), c))
+    keep = np.flatnonzero(fs.nondominated(np.where(ok, e, np.nan), c))
     if args.save_all:
         np.savez_compressed(args.save_all, **({} if z is None else {"z": z}),
                             **{f"params_{k}": np.asarray(v) for k, v in params._asdict().items()},
@@ -296,7 +256,7 @@ def build(args) -> dict:
            "popsize": args.popsize if "nsga2" in args.method else None, "seed": args.seed,
            "load_start_end": [load0, load_text()], "command": command, "code": code, **extra,
            "diverged_candidates": int((~ok).sum()), "non_dominated": len(keep),
-           "points": [F.point_of(jax.tree.map(lambda x, i=i: np.asarray(x)[i], params), m, i) for i in keep]}  # fmt: skip
+           "points": [fs.point_of(jax.tree.map(lambda x, i=i: np.asarray(x)[i], params), m, i) for i in keep]}  # fmt: skip
     path = folder / f"{args.method}.json"
     write_text(path, json.dumps(jsonable(out), indent=1))
     log(f"build {args.method}: {out['evaluations']} evaluations, {len(keep)} non-dominated, {wall:.0f} s, "
@@ -320,18 +280,18 @@ def merge(args) -> dict:
         for label, group in points_of(path).items():
             m = evaluate(plain, p0, group, label)
             # how far the stored metrics are from the current code's (a method's json: a check, ~1e-7)
-            old, new = (np.array([np.mean(p["metrics"][k]) for p in group]) for k in F.AXES), F._axes(m)
+            old, new = (np.array([np.mean(p["metrics"][k]) for p in group]) for k in fs.AXES), fs.axes(m)
             ratios = [n / o for o, n in zip(old, new)]
             change[label] = {f"{k}_new_over_stored": [float(np.nanmin(r)), float(np.nanmedian(r)), float(np.nanmax(r))]
-                             for k, r in zip(F.AXES, ratios)}  # fmt: skip
+                             for k, r in zip(fs.AXES, ratios)}  # fmt: skip
             log(f"{label}: re-evaluated / stored (min, median, max): {change[label]}")
             for i, p in enumerate(group):
-                pts.append(F.point_of(type(p0)(*(np.asarray(p["params"][k]) for k in p0._fields)), m, i))
+                pts.append(fs.point_of(type(p0)(*(np.asarray(p["params"][k]) for k in p0._fields)), m, i))
                 labels.append(label)
                 sources.append(str(path))
     e, c = axes(pts)
     ok = np.array([p["diverged"] == 0 for p in pts])
-    keep = np.flatnonzero(F.nondominated(np.where(ok, e, np.nan), c))
+    keep = np.flatnonzero(fs.nondominated(np.where(ok, e, np.nan), c))
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     ref = [dict(pts[i], method=labels[i], source=sources[i]) for i in keep]
     re, rc = e[keep], c[keep]
@@ -341,7 +301,7 @@ def merge(args) -> dict:
     fronts = {}
     for lab in per_label:
         idx = np.flatnonzero((np.array(labels) == lab) & ok)
-        idx = idx[F.nondominated(e[idx], c[idx])]
+        idx = idx[fs.nondominated(e[idx], c[idx])]
         fronts[lab] = {"points": [pts[i] for i in idx]}
     out = {"config": args.config, "inputs": list(args.inputs), "code": code_state(), "candidates": len(pts),
            "diverged_candidates": int((~ok).sum()), "wall_s": time.perf_counter() - t0,
@@ -375,7 +335,7 @@ def score_files(paths: list[str], reference_path: str) -> dict[str, dict]:
             pts = [p for p in pts if p.get("diverged", 0) == 0]
             s = score(axes(pts), reference)
             if len(pts) == 1:  # one point (a tune result): also how far the reference beats it
-                s["dominated_by"] = dominated_by(tuple(float(a[0]) for a in axes(pts)), axes(reference["points"]))
+                s["dominated_by"] = fs.dominated_by(tuple(float(a[0]) for a in axes(pts)), axes(reference["points"]))
                 print(f"{path} ({label}): the reference beats its point by {s['dominated_by']:.4f} (log10) at most")
             out[f"{path}: {label}"] = s
             print(f"{path} ({label}, {len(pts)} points): epsilon (log10) over 0.1-10 V {s['epsilon_0.1_10']:.4f}, "

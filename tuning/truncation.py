@@ -8,7 +8,7 @@ best of the global stage of ``tune.global_candidates``, as ``run_tune`` computes
 problem, objective and seed, computed once per config), in tune's internal coordinates u (15
 entries: log delta, log gamma, log(-poles)), float64:
 
-a. the AD gradient of tune's training loss (``_tuning.make_loss``, reverse mode): its max
+a. the AD gradient of tune's training loss (``fosmc_jax.search.make_loss``, reverse mode): its max
    |entry|, norm, finiteness;
 b. its informativeness: the cosine between it and central finite differences of the SAME loss
    at h = 0.01, 0.05, 0.2 in u (one batched call of 2 x 15 perturbed points + the centre per
@@ -18,9 +18,9 @@ b. its informativeness: the cosine between it and central finite differences of 
    objective) after a step of s = 0.01, 0.03, 0.1 in u along -g/|g|, against the same steps
    along 3 random unit directions (the control) and along -FD(h = 0.2);
 c. per second, for the configs of ``--tune-configs`` and W in ``--tune-windows``: a short
-   tune (``_tuning.run``, ``--tune-steps`` Adam steps, the config's learning rate, schedule
+   tune (``fosmc_jax.search.tune``, ``--tune-steps`` Adam steps, the config's learning rate, schedule
    and clip, reverse mode) from tune's start, timed without its compilation (reported
-   apart), and the plain loss it reaches, against CMA-ES (``_search.cma_es``, popsize 16,
+   apart), and the plain loss it reaches, against CMA-ES (``fosmc_jax.search.cma_es``, popsize 16,
    sigma 0.1 and 0.3 in u, on the same training loss evaluated batched, from the same start)
    for the same wall time (one CMA-ES run per sigma, read off at each tune run's time).
 
@@ -55,7 +55,7 @@ import time
 
 import tomllib
 
-from fosmc_jax._simulator.sharding import use_all_cores
+from fosmc_jax import use_all_cores
 
 use_all_cores()  # before the first JAX operation, as the command line does
 
@@ -69,12 +69,11 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 from jax.sharding import Mesh, NamedSharding  # noqa: E402
 from jax.sharding import PartitionSpec as Spec  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
-from fosmc_jax._search.front import global_stage  # noqa: E402
-from fosmc_jax._search.peers import cma_es  # noqa: E402
-from fosmc_jax._simulator.cache import use_compilation_cache  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax import search as fs  # noqa: E402
+from fosmc_jax import use_compilation_cache  # noqa: E402
+from fosmc_jax.io import jsonable, write_text  # noqa: E402
+from fosmc_jax.search import cma_es, global_stage  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "tuning" / "configs"
@@ -119,7 +118,7 @@ def num(x) -> float | str:
 def replicated(tree):
     """``tree`` replicated over the local devices' mesh, the sharding that tune's gradient (its
     loss runs under ``simulate_split``'s shard_map) and hence Adam's update give the parameters:
-    ``_tuning.run`` called with an uncommitted u0 compiles its value_and_grad twice (for u0, then
+    ``fs.tune`` called with an uncommitted u0 compiles its value_and_grad twice (for u0, then
     for the updated u from step 2 on); with this one, once."""
     return jax.device_put(tree, NamedSharding(Mesh(np.asarray(jax.local_devices()), ("batch",)), Spec()))
 
@@ -164,18 +163,18 @@ def grad_stats(g: np.ndarray) -> dict:
 
 class Batched:
     """The tuning objective of ``problem`` (same obj) at many flat u at once: vmapped over
-    candidates, the candidates split over the local devices (as fosmc_jax._search.front's chunk
-    evaluator); compiled once per chunk size. Values of the training problem do not depend on
+    candidates, the candidates split over the local devices (as ``fosmc_jax.search.Evaluator``
+    does); compiled once per chunk size. Values of the training problem do not depend on
     the gradient window (truncation changes derivatives only)."""
 
-    def __init__(self, problem: T.Problem, obj: T.Objective, unravel):
+    def __init__(self, problem: fs.Problem, obj: fs.Objective, unravel):
         self.devices = jax.local_devices()
         mesh = Mesh(np.asarray(self.devices), ("c",))
 
         def one(x):
-            r = problem.simulate(T.to_physical(unravel(x), problem.base, None), checkpoint_every=0, truncate_every=0)
-            J, _, _ = T.rollout_costs(r.metrics, r.diverged, obj)
-            return T.aggregate(J, obj), jnp.sum(r.diverged)
+            r = problem.simulate(fs.to_physical(unravel(x), problem.base, None), checkpoint_every=0, truncate_every=0)
+            J, _, _ = fs.rollout_costs(r.metrics, r.diverged, obj)
+            return fs.aggregate(J, obj), jnp.sum(r.diverged)
 
         self.run = jax.jit(jax.shard_map(jax.vmap(one), mesh=mesh, in_specs=Spec("c"), out_specs=Spec("c"),
                                          check_vma=False))  # fmt: skip
@@ -210,7 +209,7 @@ class Batched:
 def accepted(cfg: dict) -> str | None:
     """Why ``fosmc tune`` (or this study) would refuse the config, else None."""
     kind = cfg["controller"]["kind"]
-    names = T.SPACES[kind].names
+    names = fs.SPACES[kind].names
     if not set(cfg["tune"]["params"]) <= set(names):
         return f"tune.params {cfg['tune']['params']} not parameters of kind {kind}"
     if cfg["tune"]["keep_gamma_bound"]:
@@ -235,16 +234,16 @@ def setup(cfg: dict) -> dict:
     """What run_tune computes before its optimizer: problems, objective, tune's start."""
     c = copy.deepcopy(cfg)
     plain, train, p0 = problems(c, 0.0)
-    m = T.evaluate(train, p0)["metrics"]
-    obj = T.objective_of(c["tune"], m)
+    m = fs.evaluate(train, p0)["metrics"]
+    obj = fs.objective_of(c["tune"], m)
     start, score, t_global = p0, None, 0.0
     if cfg["tune"]["global_candidates"]:
         t = time.perf_counter()
         start, score = global_stage(train, obj, p0, cfg["tune"]["global_candidates"],
                                     free=tuple(cfg["tune"]["params"]), log=lambda _: None)  # fmt: skip
         t_global = time.perf_counter() - t
-    u_p0 = T.to_internal(p0, plain.base, None)
-    u_start = T.to_internal(start, plain.base, None)
+    u_p0 = fs.to_internal(p0, plain.base, None)
+    u_start = fs.to_internal(start, plain.base, None)
     flat_p0, unravel = ravel_pytree(u_p0)
     flat_start = ravel_pytree(u_start)[0]
     return {"plain": plain, "train": train, "p0": p0, "start": start, "obj": obj, "score": score,
@@ -265,7 +264,7 @@ def fd_gradient(evaluate: Batched, u: np.ndarray, h: float) -> dict:
 def ad_gradient(cfg: dict, s: dict, w: float, points: dict) -> dict:
     """Tune's AD gradient (reverse mode, its training loss with gradient_window = w) at each point."""
     _, train, _ = problems(cfg, w)
-    loss = T.make_loss(train, s["obj"], None)
+    loss = fs.make_loss(train, s["obj"], None)
     vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
     out = {"truncate_every": train.options["truncate_every"], "points": {}}
     first = True
@@ -411,12 +410,12 @@ def tune_vs_cma(name: str, cfg: dict, s: dict, args) -> dict:
     runs = {}
     for w in args.tune_windows:
         _, train, _ = problems(cfg, w)
-        settings = T.Settings(args.tune_steps, tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], "reverse",
+        settings = fs.TuneSettings(args.tune_steps, tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], "reverse",
                               tuple(tcfg["params"]), 0)  # fmt: skip
         stamps = []
         t = time.perf_counter()
-        u, hist = T.run(
-            T.make_loss(train, s["obj"], None),
+        u, hist = fs.tune(
+            fs.make_loss(train, s["obj"], None),
             u0,
             settings,
             log=lambda m: stamps.append(time.perf_counter()) if m.startswith("step ") else None,
@@ -497,7 +496,7 @@ VARIANTS = {
 
 
 def diagnosis(
-    start: T.Params | None, variants: list[str], as_is: dict | None = None, windows: tuple[float, ...] = (0.0,)
+    start: fs.Params | None, variants: list[str], as_is: dict | None = None, windows: tuple[float, ...] = (0.0,)
 ) -> dict:
     """The gradient at realistic_arm's tune start with one ingredient changed: at the whole
     horizon (W = 0; the entry's own fields) and at the other ``windows`` (its "windows")."""
@@ -522,10 +521,10 @@ def diagnosis(
         for w in windows:
             cfg = _config.resolve(copy.deepcopy(user))
             plain, train, p0 = problems(cfg, w)
-            obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
-            loss = T.make_loss(train, obj, None)
+            obj = fs.objective_of(cfg["tune"], fs.evaluate(train, p0)["metrics"])
+            loss = fs.make_loss(train, obj, None)
             vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
-            u = replicated(T.to_internal(p, plain.base, None))
+            u = replicated(fs.to_internal(p, plain.base, None))
             t = time.perf_counter()
             (value, _), g = jax.block_until_ready(vg(u))
             compile_s = time.perf_counter() - t
@@ -677,11 +676,11 @@ def report(data: dict) -> str:
     tv = {n: c["tune_vs_cma"] for n, c in cfgs.items() if "tune_vs_cma" in c}
     if tv:
         A("\n## c. Per second: a short tune against CMA-ES at the same wall time\n")
-        A(f"Tune: `_tuning.run`, {data['settings']['tune_steps']} Adam steps from tune's start, the config's "
+        A(f"Tune: `fosmc_jax.search.tune`, {data['settings']['tune_steps']} Adam steps from tune's start, the config's "
           "learning rate, schedule and clip, reverse mode; time = (steps + 1) x the median step (each "
           "step one gradient; run evaluates its last point once more), its compilation apart (the wall time's "
           "excess over that). It returns the parameters of its lowest training loss. CMA-ES: "
-          f"`_search.cma_es`, popsize {POPSIZE}, on the same training loss in u, one batched call per generation, "
+          f"`fosmc_jax.search.cma_es`, popsize {POPSIZE}, on the same training loss in u, one batched call per generation, "
           "from the same start, read off at the generation that ends within the tune run's time; its best "
           "training point. Both end points evaluated on the plain problem. Improvement = plain loss at the start "
           "minus at the end (positive: better); per s = over the time.\n\n")  # fmt: skip
@@ -761,7 +760,7 @@ def main() -> int:
         up = uptime()
         log(f"diagnosis only: {up}")
         c = data["configs"][DIAG_CONFIG]
-        start = T.Tunable(*(jnp.asarray(v) for v in c["params"]["start"].values()))
+        start = fs.Tunable(*(jnp.asarray(v) for v in c["params"]["start"].values()))
         dws = tuple(float(x) for x in args.diagnosis_windows.split(",") if x.strip())
         as_is = dict(
             c["windows"]["0"]["points"]["start"],
@@ -831,7 +830,7 @@ def main() -> int:
         log(f"{name}: start ({uptime()})")
         data["configs"][name] = study_config(name, cfg, args, name in TUNE_CONFIGS)
         if name == DIAG_CONFIG:
-            diag_start = T.Tunable(*(jnp.asarray(v) for v in data["configs"][name]["params"]["start"].values()))
+            diag_start = fs.Tunable(*(jnp.asarray(v) for v in data["configs"][name]["params"]["start"].values()))
         write_text(json_path, json.dumps(jsonable(data), indent=1))  # progress: a partial file after each config
     if not args.no_diagnosis:
         variants = list(VARIANTS)[:: 1 if not args.quick else 6][: 2 if args.quick else None]

@@ -30,8 +30,8 @@ fj.use_all_cores()
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax._app import config as _config  # noqa: E402
-from fosmc_jax._io import jsonable, write_text  # noqa: E402
+from fosmc_jax import config as _config  # noqa: E402
+from fosmc_jax.io import jsonable, write_text  # noqa: E402
 
 HERE = pathlib.Path(__file__).parent
 #: name -> the [tune] keys changed from the defaults (the default: none)

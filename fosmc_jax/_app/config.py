@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._controllers.fosmc import LAWS, SWITCHING, Controller, DiscreteFOSMC
+from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, FOSMCParams
 from .._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
@@ -481,8 +481,8 @@ class Problem(NamedTuple):
     dt: Any
     options: dict  # simulate()'s static keyword arguments
     keys: Any  # (R, 2) PRNG keys, one per noise realization (None: the ideal loop)
-    params: Controller  # the FOSMC parameters
-    make: Callable[[Controller], Any]  # FOSMC parameters -> the controller of the config's loop
+    params: FOSMCParams  # the FOSMC parameters
+    make: Callable[[FOSMCParams], Any]  # FOSMC parameters -> the controller of the config's loop
 
     @property
     def args(self) -> tuple:
@@ -495,12 +495,12 @@ def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
 
 
-def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
-    """The :class:`Controller` a config describes (``gamma`` overrides ``controller.gamma``)."""
+def controller_of(cfg: dict, dtype, gamma=None) -> FOSMCParams:
+    """The :class:`FOSMCParams` a config describes (``gamma`` overrides ``controller.gamma``)."""
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
     ctl, model = cfg["controller"], cfg["model"]
     gamma = ctl["gamma"] if gamma is None else gamma
-    return Controller(
+    return FOSMCParams(
         cast(ctl["C"]),
         cast(ctl["poles"]),
         cast(gamma),
@@ -510,7 +510,7 @@ def controller_of(cfg: dict, dtype, gamma=None) -> Controller:
     )
 
 
-def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
+def controller_factory(cfg: dict, dtype) -> Callable[[FOSMCParams], Any]:
     """FOSMC parameters -> the controller of the config's loop: for ``controller.kind =
     "fosmc"``, the parameters themselves (the paper's ideal loop, ``sample_period = 0``) or a
     :class:`DigitalLoop` around a :class:`DiscreteFOSMC` with the config's sensors, delay and
@@ -520,7 +520,7 @@ def controller_factory(cfg: dict, dtype) -> Callable[[Controller], Any]:
     return lambda params: loop(law(params))
 
 
-def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[Controller], Any], Callable[[Any], Any]]:
+def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[FOSMCParams], Any], Callable[[Any], Any]]:
     """(law, loop): FOSMC parameters -> the config's kind of law with the config's gains,
     sampled with period T (T = 0: the ideal loop's); a law -> the controller of the config's
     loop (the ideal loop: the law itself, super-twisting's v integrated with the plant)."""
@@ -530,7 +530,9 @@ def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[Controller], Any], Callab
     sampled = bool(ctl["sample_period"])
     surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
     if ctl["kind"] == "fosmc":
-        law = (lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])) if sampled else (lambda p: p)
+        law = (lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])) if sampled else (
+            lambda params: FOSMC(params, ctl["switching"], ctl["law"])
+        )
     elif ctl["kind"] == "smc":
         law = lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
     else:
@@ -611,7 +613,7 @@ def tuning_problems(cfg: dict):
     trains with dt = ``controller.sample_period``), and the config's values of its kind's
     parameters (``fosmc_jax._search.tune.SPACES[kind].values``: the FOSMC's :class:`Tunable` of
     delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2). The problems' ``base`` is what
-    those parameters are fields of: the FOSMC's :class:`Controller`, or the SMC or
+    those parameters are fields of: the FOSMC's :class:`FOSMCParams`, or the SMC or
     super-twisting law built with the config's gains."""
     space = SPACES[cfg["controller"]["kind"]]
     train_cfg = copy.deepcopy(cfg)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._controllers.fosmc import FOSMC, Controller
+from .._controllers.fosmc import FOSMC, FOSMCParams
 from .._design import paper
 from .._design.gains import summarize
 from .._plants.linear import LinearPlant, uncertain_plants
@@ -75,9 +75,9 @@ def _batched(plants, ctrls, reference, X0, dt, **options):
     return jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + x.shape[2:]), r)
 
 
-def _controller(delta, dtype) -> Controller:
+def _controller(delta, dtype) -> FOSMCParams:
     c = lambda x: jnp.asarray(x, dtype)
-    return Controller(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
+    return FOSMCParams(c(paper.C), c(paper.POLES), c(paper.GAMMA), c(delta), c(paper.A_ROWS), c(paper.B_ROWS))
 
 
 def _stack(trees):
@@ -122,16 +122,14 @@ def run_cases(
         start = time.perf_counter()
         dt = jnp.asarray(settings.dt, dtype)
         if not settings.save_every:
-            ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets])
-            result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator,
-                              switching=switching)  # fmt: skip
+            ctrls = FOSMC(_stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets]), switching)
+            result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator)
         else:
             batch = jax.tree.map(lambda x: np.concatenate([x] * len(sets)), plants)
-            ctrls = _stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)])
+            ctrls = FOSMC(_stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)]), switching)
             # every step of the primary plant's SGN runs is kept, to show the chattering period
             save_every = 1 if switching == "sign" and g == 0 else settings.save_every
-            one = functools.partial(simulate, n_steps=n_steps, integrator=settings.integrator,
-                                    switching=switching, save_every=save_every)  # fmt: skip
+            one = functools.partial(simulate, n_steps=n_steps, integrator=settings.integrator, save_every=save_every)
             result = jax.block_until_ready(jax.vmap(one, in_axes=(0, 0, None, None, None))(
                 batch, ctrls, reference, X0, dt))  # fmt: skip
         cases, offset = [], 0
@@ -170,7 +168,7 @@ def realistic_config(t_final: float | None = None) -> dict:
     return cfg
 
 
-def _run(cfg: dict, params: list[Controller], switching: str, realistic: bool, save_every: int = 0):
+def _run(cfg: dict, params: list[FOSMCParams], switching: str, realistic: bool, save_every: int = 0):
     """Every (params x payload) of ``cfg``'s arm, each run in the ideal loop or the config's
     digital loop: one vmapped call, results with a leading axis (len(params) * P)."""
     cfg = copy.deepcopy(cfg)

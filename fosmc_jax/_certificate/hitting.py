@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .._controllers.fosmc import Controller, Derived, derive, safe_norm, switch, switching_gain
+from .._controllers.fosmc import Derived, FOSMCParams, derive, safe_norm, switch, switching_gain
 from .._design import paper as _paper
 from .._plants.arm import Arm, third_order_rows
 from .._plants.reference import desired_state, feedforward
@@ -51,7 +51,7 @@ class Terms(NamedTuple):
     r: Array  # (3,) theta_d''' + (A_r + B_bar K) Z
 
 
-def terms(ctrl: Controller, derived: Derived, derivatives: Array, Z: Array, law: str = "paper") -> Terms:
+def terms(ctrl: FOSMCParams, derived: Derived, derivatives: Array, Z: Array, law: str = "paper") -> Terms:
     """:class:`Terms` at reference ``derivatives`` (4, 3) (a reference's output at t) and
     tracking error ``Z`` (9,), with the controller's nominal model for Omega (10)."""
     X_d = desired_state(derivatives)
@@ -62,13 +62,13 @@ def terms(ctrl: Controller, derived: Derived, derivatives: Array, Z: Array, law:
     return Terms(X_d + Z, rho, U0, r)
 
 
-def control(ctrl: Controller, derived: Derived, tm: Terms, s: Array, switching: str = "sign") -> Array:
+def control(ctrl: FOSMCParams, derived: Derived, tm: Terms, s: Array, switching: str = "sign") -> Array:
     """U (3,) of (23) at sliding variable ``s`` (3,), volts."""
     return tm.U0 - derived.CB_inv @ (tm.rho * switch(s, ctrl.delta, switching))
 
 
 def hitting(
-    ctrl: Controller,
+    ctrl: FOSMCParams,
     derivatives: Array,
     Z: Array,
     s: Array,
@@ -88,7 +88,7 @@ def hitting(
 
 
 def box_max_hitting(
-    ctrl: Controller,
+    ctrl: FOSMCParams,
     derivatives: Array,
     Z: Array,
     s: Array,

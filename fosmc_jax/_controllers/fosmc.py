@@ -3,7 +3,7 @@
 :class:`FOSMC` (the paper's ideal loop) and :class:`DiscreteFOSMC` (a sampled controller)
 wrap these functions in the controller interface of :mod:`fosmc_jax._simulator.rollout`.
 
-:class:`Controller` holds what may be traced and tuned (C, the poles, gamma, delta) plus the
+:class:`FOSMCParams` holds what may be traced and tuned (C, the poles, gamma, delta) plus the
 nominal design model (rows 3, 6, 9 of A and B) used for K, Omega and the integral term.
 Everything derived from it (K, (CB)^-1, CA + CBK) is computed once per rollout by
 :func:`derive`, so that gradients reach the poles through K.
@@ -28,7 +28,7 @@ SWITCHING = ("sign", "ratio", "sat", "tanh")
 LAWS = ("paper", "equivalent")
 
 
-class Controller(NamedTuple):
+class FOSMCParams(NamedTuple):
     """FOSMC parameters (a pytree; every field may be traced).
 
     Fields: ``C`` (3, 9) sliding-surface matrix (15); ``poles`` (3, 3) closed-loop poles per
@@ -46,14 +46,14 @@ class Controller(NamedTuple):
 
 
 class Derived(NamedTuple):
-    """Quantities computed once per rollout from a :class:`Controller`."""
+    """Quantities computed once per rollout from a :class:`FOSMCParams`."""
 
     K: Array  # (3, 9), places the poles: eig(A + BK) = poles, (16)
     CB_inv: Array  # (3, 3)
     S: Array  # (3, 9), CA + CBK, the integrand's matrix in (14)
 
 
-def derive(ctrl: Controller) -> Derived:
+def derive(ctrl: FOSMCParams) -> Derived:
     """K from the poles, (CB)^-1, and CA + CBK = C (A + BK)."""
     K = gain_from_poles(ctrl.a_rows, ctrl.b_rows, ctrl.poles)
     CB_inv = jnp.linalg.inv(input_matrix_product(ctrl.C, ctrl.b_rows))
@@ -95,7 +95,7 @@ def reference_terms(a_rows: Array, b_rows: Array, r: Array) -> tuple[Array, Arra
     return X_d, Omega, safe_norm(X_d), safe_norm(Omega)
 
 
-def sliding_surface(ctrl: Controller, Z: Array, w: Array) -> Array:
+def sliding_surface(ctrl: FOSMCParams, Z: Array, w: Array) -> Array:
     """s = C Z - w (14), where w = int_0^t (CA + CBK) Z dtau is the integral state, (3,)."""
     return ctrl.C @ Z - w
 
@@ -108,7 +108,7 @@ def switching_gain(gamma: Array, norm_Z: Array, norm_X_d: Array, norm_Omega: Arr
 
 
 def control_law(
-    ctrl: Controller,
+    ctrl: FOSMCParams,
     derived: Derived,
     Z: Array,
     X_d: Array,
@@ -149,7 +149,7 @@ class FOSMCState(NamedTuple):
     s: Array  # (3,) the sliding variable at the last sample (kept for traces)
 
 
-def _fosmc_sample(ctrl: Controller, state: FOSMCState, Y: Array, r: Array, switching: str, law: str):
+def _fosmc_sample(ctrl: FOSMCParams, state: FOSMCState, Y: Array, r: Array, switching: str, law: str):
     X_d = desired_state(r)
     Omega = feedforward(ctrl.a_rows, ctrl.b_rows, r)
     Z = Y - X_d
@@ -157,7 +157,7 @@ def _fosmc_sample(ctrl: Controller, state: FOSMCState, Y: Array, r: Array, switc
     return control_law(ctrl, derive(ctrl), Z, X_d, Omega, s, switching, law), s, Z
 
 
-def _fosmc_init(ctrl: Controller, X0: Array, r0: Array) -> FOSMCState:
+def _fosmc_init(ctrl: FOSMCParams, X0: Array, r0: Array) -> FOSMCState:
     return FOSMCState(jnp.zeros(3, X0.dtype), ctrl.C @ (X0 - desired_state(r0)))
 
 
@@ -167,10 +167,10 @@ class FOSMC:
     """The FOSMC in the paper's ideal loop: U from the exact state at every simulation step,
     and the integral w = int_0^t (CA + CBK) Z dtau of (14) integrated with the plant.
 
-    Fields: ``params`` (:class:`Controller`, traced); ``switching`` and ``law`` (static).
+    Fields: ``params`` (:class:`FOSMCParams`, traced); ``switching`` and ``law`` (static).
     """
 
-    params: Controller
+    params: FOSMCParams
     switching: str = "ratio"
     law: str = "paper"
 
@@ -184,6 +184,9 @@ class FOSMC:
     def derivative(self, state: FOSMCState, X: Array, r: Array, t: Array) -> FOSMCState:
         return FOSMCState(derive(self.params).S @ (X - desired_state(r)), jnp.zeros_like(state.s))
 
+    def sliding_variable(self, state: FOSMCState) -> Array:
+        return state.s
+
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params", "period"], meta_fields=["switching", "law"])
 @dataclasses.dataclass(frozen=True)
@@ -194,11 +197,11 @@ class DiscreteFOSMC:
 
     w_0 = 0. It knows only the Y_j: its integral is this sum, not the integral of the true error.
 
-    Fields: ``params`` (:class:`Controller`), ``period`` T (s, scalar) (traced); ``switching``,
+    Fields: ``params`` (:class:`FOSMCParams`), ``period`` T (s, scalar) (traced); ``switching``,
     ``law`` (static).
     """
 
-    params: Controller
+    params: FOSMCParams
     period: Array
     switching: str = "ratio"
     law: str = "paper"
@@ -209,3 +212,6 @@ class DiscreteFOSMC:
     def update(self, state: FOSMCState, Y: Array, r: Array, t: Array) -> tuple[Array, FOSMCState]:
         U, s, Z = _fosmc_sample(self.params, state, Y, r, self.switching, self.law)
         return U, state._replace(w=state.w + self.period * (derive(self.params).S @ Z), s=s)
+
+    def sliding_variable(self, state: FOSMCState) -> Array:
+        return state.s

@@ -79,6 +79,9 @@ class SMC:
         CB = input_matrix_product(self.surface.C, self.surface.b_rows)
         return U_eq - jnp.linalg.solve(CB, self.k * jnp.clip(s / self.phi, -1.0, 1.0)), SMCState(s)
 
+    def sliding_variable(self, state: SMCState) -> Array:
+        return state.s
+
 
 class STState(NamedTuple):
     v: Array  # (3,) the integral term
@@ -113,6 +116,9 @@ class SuperTwisting:
         v = state.v - self.period * self.k2 * jnp.sign(s)
         return U, STState(v, s)
 
+    def sliding_variable(self, state: STState) -> Array:
+        return state.s
+
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["law"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
@@ -130,3 +136,6 @@ class ContinuousSuperTwisting:
     def derivative(self, state: STState, X: Array, r: Array, t: Array) -> STState:
         s, _ = _surface(self.law.surface, X, r)
         return STState(-self.law.k2 * jnp.sign(s), jnp.zeros_like(s))
+
+    def sliding_variable(self, state: STState) -> Array:
+        return state.s

@@ -26,6 +26,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from .._controllers.base import ContinuousLaw, HasSlidingVariable
+
 #: ``measured``: theta', theta'' read directly; ``difference``: backward differences of theta.
 DERIVATIVES = ("measured", "difference")
 
@@ -123,7 +125,7 @@ class DigitalLoop:
     delay: int = 0
 
     def __post_init__(self):
-        if hasattr(self.law, "derivative"):
+        if isinstance(self.law, ContinuousLaw):
             raise TypeError("DigitalLoop: the law must be a sampled controller (no continuous-time state)")
 
     def init(self, X0: Array, r0: Array, key=None) -> LoopState:
@@ -152,3 +154,9 @@ class DigitalLoop:
         else:
             applied, pending = U, state.pending
         return saturate(applied, self.u_max), LoopState(law, memory, pending, state.j + 1, state.key)
+
+    def sliding_variable(self, state: LoopState) -> Array:
+        """The law's sliding variable at the last sample (NaN if it has none)."""
+        if isinstance(self.law, HasSlidingVariable):
+            return self.law.sliding_variable(state.law)
+        return jnp.full(3, jnp.nan, state.memory.theta.dtype)

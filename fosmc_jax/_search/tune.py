@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .._controllers.fosmc import Controller
+from .._controllers.fosmc import FOSMCParams
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
 from .._simulator.metrics import mean_over_survivors
@@ -149,7 +149,7 @@ class GammaFloor(NamedTuple):
     convention: str = "paper"
 
 
-def gamma_floor(floor: GammaFloor | None, base: Controller, poles) -> Any:
+def gamma_floor(floor: GammaFloor | None, base: FOSMCParams, poles) -> Any:
     """The lower bound on gamma for these poles (0 without a floor)."""
     if floor is None:
         return jnp.zeros_like(base.gamma)
@@ -248,7 +248,7 @@ class Problem(NamedTuple):
     """What a tuning run simulates: the batch and the fixed parts of the controller."""
 
     plants: Any
-    base: Any  # whose fields the parameters replace: the FOSMC's Controller, the SMC or super-twisting law
+    base: Any  # whose fields the parameters replace: the FOSMC's FOSMCParams, the SMC or super-twisting law
     reference: Any
     X0s: Any
     dt: Any

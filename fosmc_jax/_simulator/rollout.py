@@ -13,7 +13,7 @@ controller sample with the measurement Y (9,), the reference sample r = referenc
 and t; optionally ``derivative(state, X, r, t) -> state'`` (continuous-time state), and the
 attributes ``sample_steps`` (static int m) and ``u_max`` ((3,) actuator limit, for the
 ``saturation_fraction`` metric). See :class:`fosmc_jax.FOSMC`, :class:`fosmc_jax.DiscreteFOSMC`
-and :class:`fosmc_jax.DigitalLoop`. The FOSMC parameters :class:`fosmc_jax.Controller` alone
+and :class:`fosmc_jax.DigitalLoop`. The FOSMC parameters :class:`fosmc_jax.FOSMCParams` alone
 run as the paper's ideal loop.
 
 A plant is any pytree with methods ``init(X0) -> state``, ``observe(state) -> X (9,)`` and
@@ -29,13 +29,16 @@ from __future__ import annotations
 
 import functools
 import operator
+import warnings
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .._controllers.fosmc import FOSMC, Controller, derive, reference_terms, safe_sqrt, switch, switching_gain
+from .._controllers.base import ContinuousLaw, HasSlidingVariable, SampledLoop, check_controller
+from .._controllers.fosmc import FOSMC, FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
+from .._plants.base import check_plant
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import arm_native as _arm_native
@@ -133,16 +136,24 @@ def _finite_and_bounded(tree, X, bound) -> Array:
 
 
 def as_controller(controller, switching: str = "ratio", law: str = "paper"):
-    """A :class:`Controller` (FOSMC parameters) as the ideal-loop :class:`FOSMC`; any other
-    controller as it is."""
-    return FOSMC(controller, switching, law) if isinstance(controller, Controller) else controller
+    """A :class:`FOSMCParams` (FOSMC parameters) as the ideal-loop :class:`FOSMC`, with a
+    DeprecationWarning (the simulator takes controllers: ``FOSMC(params, switching, law)``);
+    any other controller as it is."""
+    if not isinstance(controller, FOSMCParams):
+        return controller
+    warnings.warn("simulate: bare FOSMC parameters with switching= and law= are deprecated; pass the controller "
+                  "fosmc_jax.FOSMC(params, switching, law)", DeprecationWarning, stacklevel=3)  # fmt: skip
+    return FOSMC(controller, switching, law)
 
 
-def _sliding_variable(state, dtype) -> Array:
-    """The sliding variable kept in a controller's state (a wrapped law's too), else NaN."""
-    while not hasattr(state, "s") and hasattr(state, "law"):
-        state = state.law
-    return state.s if hasattr(state, "s") else jnp.full(3, jnp.nan, dtype)
+def _sliding_variable(ctrl, state, dtype) -> Array:
+    """The controller's sliding variable (:class:`HasSlidingVariable`), else NaN."""
+    return ctrl.sliding_variable(state) if isinstance(ctrl, HasSlidingVariable) else jnp.full(3, jnp.nan, dtype)
+
+
+def _u_max(ctrl) -> Array | None:
+    """A sampled loop's actuator limit (:class:`SampledLoop`); None in the ideal loop."""
+    return ctrl.u_max if isinstance(ctrl, SampledLoop) else None
 
 
 def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
@@ -160,7 +171,7 @@ def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
         plant_state,
         ctrl_state,
         U,
-        _metrics.start(X[0::3] - r[0], U, getattr(ctrl, "u_max", None)),
+        _metrics.start(X[0::3] - r[0], U, _u_max(ctrl)),
         bad,
         jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
     )
@@ -198,15 +209,15 @@ def simulate(
     Args:
       plant: plant pytree (see module docstring), e.g. ``LinearPlant`` or ``Arm``.
       controller: a controller (see module docstring): :class:`FOSMC`, :class:`DiscreteFOSMC`,
-        :class:`DigitalLoop`, your own; or a :class:`Controller` (FOSMC parameters), which
+        :class:`DigitalLoop`, your own; or a :class:`FOSMCParams` (FOSMC parameters), which
         runs as ``FOSMC(controller, switching, law)``, the paper's ideal loop.
       reference: pytree callable t -> (4, 3) desired angles and derivatives.
       X0: (9,) initial state [theta, theta', theta''] per joint.
       dt: step (s). The dtype of ``X0`` sets the precision of the run.
       n_steps: number of steps n; t_final = n dt. Static.
       integrator: ``euler`` or ``rk4``. Static.
-      switching: ``sign``, ``ratio`` (28), ``sat`` or ``tanh``, for a :class:`Controller`. Static.
-      law: ``paper`` (23) or ``equivalent``, for a :class:`Controller`. Static.
+      switching: ``sign``, ``ratio`` (28), ``sat`` or ``tanh``, for a :class:`FOSMCParams`. Static.
+      law: ``paper`` (23) or ``equivalent``, for a :class:`FOSMCParams`. Static.
       save_every: keep every ``save_every``-th sample (and the last) in ``Result.trace``;
         0 keeps none; a multiple of m. Static.
       checkpoint_every: for reverse-mode gradients, rematerialise blocks of this many steps
@@ -229,11 +240,13 @@ def simulate(
     if integrator not in _STEPPERS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
     ctrl = as_controller(controller, switching, law)
-    m = getattr(ctrl, "sample_steps", 1)
+    check_plant(plant)
+    check_controller(ctrl)
+    m = ctrl.sample_steps if isinstance(ctrl, SampledLoop) else 1
     if save_every % m:
         raise ValueError(f"save_every = {save_every} must be a multiple of the controller's sample_steps = {m}")
-    u_max = getattr(ctrl, "u_max", None)
-    flows = hasattr(ctrl, "derivative")
+    u_max = _u_max(ctrl)
+    flows = isinstance(ctrl, ContinuousLaw)
     dtype = X0.dtype
     dt = jnp.asarray(dt, dtype)
     a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
@@ -283,7 +296,7 @@ def simulate(
     carry = start(plant, ctrl, reference, X0, key, divergence_bound)
 
     def snapshot(c: _Carry):
-        return c.k, plant.observe(c.plant_state), c.U, _sliding_variable(c.ctrl_state, dtype)
+        return c.k, plant.observe(c.plant_state), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
 
     trace = None
     if save_every:
@@ -355,7 +368,7 @@ class _Batch(NamedTuple):
     diverged_at: Array  # (P, O)
 
 
-def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Array, Array]:
+def _time_terms(controller: FOSMCParams, reference, t: Array) -> tuple[Array, Array, Array]:
     """X_d (9,), Omega (3,) and the reference part of rho (19), gamma_2 ||X_d|| + gamma_3 ||Omega||."""
     X_d, Omega, norm_X_d, norm_Omega = reference_terms(controller.a_rows, controller.b_rows, reference(t))
     return X_d, Omega, switching_gain(controller.gamma, 0.0, norm_X_d, norm_Omega)
@@ -363,7 +376,7 @@ def _time_terms(controller: Controller, reference, t: Array) -> tuple[Array, Arr
 
 def _linear_batch(
     plants: LinearPlant,
-    controller: Controller,
+    controller: FOSMCParams,
     reference,
     X0s: Array,
     dt: Array,
