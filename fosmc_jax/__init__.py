@@ -19,7 +19,9 @@ from ._controllers.fosmc import (
     sliding_surface,
     switch,
 )
-from ._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
+from ._controllers.smc import SMC
+from ._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
+from ._controllers.surface import SurfaceParams
 from ._design import paper
 from ._design.gains import (
     CONVENTIONS,

@@ -11,6 +11,7 @@ judged by. The problems come from a config: :func:`fosmc_jax.config.tuning_probl
     front = fs.nondominated(e, c)
 """
 
+from ._controllers import Kind, register
 from ._search.front import (
     AXES,
     DIM,
@@ -36,9 +37,12 @@ from ._search.tune import (
     SPACES,
     GammaFloor,
     Objective,
+    Param,
     Params,
     Problem,
+    SMCGains,
     Space,
+    STGains,
     Tunable,
     aggregate,
     evaluate,
@@ -60,8 +64,14 @@ __all__ = [
     "epsilon",
     "hypervolume",
     "nondominated",
+    # controller kinds (fosmc_jax._controllers.kind): a kind is one file and one register() line
+    "Kind",
+    "register",
     # tuning problems, objectives and the gradient tuner (fosmc_jax._search.tune)
     "SPACES",
+    "Param",
+    "SMCGains",
+    "STGains",
     "GammaFloor",
     "Objective",
     "Params",

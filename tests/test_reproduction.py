@@ -68,10 +68,10 @@ def test_replace_block_round_trip():
         R.replace_block(text, "y", "")
 
 
-def test_readme_arm_table_equals_calibration_output():
+def test_docs_arm_table_equals_calibration_output():
     cal = (ROOT / "tuning/results/arm_calibration.md").read_text()
     table = cal[cal.index("| entry") : cal.index("The last column")].rstrip() + "\n"
-    assert block((ROOT / "README.md").read_text(), "arm") == table
+    assert block((ROOT / "docs/arm.md").read_text(), "arm") == table
 
 
 def test_controller_comparison_block_equals_its_committed_table():

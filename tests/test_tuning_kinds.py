@@ -3,12 +3,18 @@ on SMC's (k, phi) and super-twisting's (k1, k2), their results put back into the
 by ``fosmc simulate --params``, the tune loss's gradient in the log gains against central
 differences, and one-line errors for mixing kinds or FOSMC-only options."""
 
+import dataclasses
+import functools
 import json
+from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import fosmc_jax as fj
+from fosmc_jax import search as fs
 from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
@@ -177,3 +183,70 @@ def test_the_front_command_writes_the_kinds_front_with_held_out_and_references(t
     assert set(res["references"]["SGN"]["params"]) == {"delta", "gamma", "poles"}
     assert (out / "front.png").stat().st_size > 10_000
     assert len(capsys.readouterr()[0].splitlines()) == len(res["points"])
+
+
+# ---------------------------------------------------------------------------- a kind of one's own
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["surface", "k", "eps"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class TanhSMC:
+    """A law defined here, not in the package: U = U_eq - (CB)^-1 k tanh(s / eps) on the
+    conventional surface (fosmc_jax.SurfaceParams)."""
+
+    surface: fj.SurfaceParams
+    k: jax.Array
+    eps: jax.Array
+
+    def init(self, X0, r0, key=None):
+        return jnp.zeros(3, X0.dtype)
+
+    def update(self, state, Y, r, t):
+        X_d, dX_d = fj.desired_state(r), jnp.stack([r[1], r[2], r[3]], axis=1).reshape(9)
+        C, a_rows, b_rows = self.surface
+        s = C @ (Y - X_d)
+        rates = jnp.stack([Y[1::3], Y[2::3], a_rows @ Y], axis=1).reshape(9)  # nominal X' without input
+        CB = fj.input_matrix_product(C, b_rows)
+        return jnp.linalg.solve(CB, C @ dX_d - C @ rates - self.k * jnp.tanh(s / self.eps)), s
+
+    def sliding_variable(self, state):
+        return state
+
+
+class TanhGains(NamedTuple):
+    k: jax.Array
+    eps: jax.Array
+
+
+TANH = fs.Kind(
+    fs.Space(
+        "tanh_smc", TanhGains, (fs.Param("k", "tanh_k", 1, (-2.0, 2.0)), fs.Param("eps", "tanh_eps", 1, (-3.0, 1.0)))
+    ),
+    {"tanh_k": (300.0, 300.0, 300.0), "tanh_eps": (1.0, 1.0, 1.0)},
+    lambda params, controller, T: TanhSMC(
+        fj.SurfaceParams(params.C, params.a_rows, params.b_rows), controller["tanh_k"], controller["tanh_eps"]
+    ),
+)
+
+
+def test_a_kind_defined_outside_the_package_is_one_registry_line_and_tunes(tmp_path, capsys):
+    fs.register(TANH)  # the one line
+    try:
+        path = toml(tmp_path / "c.toml", "tanh_smc", {"tanh_eps": [0.5, 0.5, 0.5]})
+        assert main(["tune", "--config", path, "--steps", "4", "--out", str(tmp_path / "out")]) == 0
+        res = json.loads((tmp_path / "out" / "result.json").read_text())
+        assert set(res["final"]["params"]) == {"k", "eps"} and res["config"]["tune"]["params"] == ["k", "eps"]
+        assert res["initial"]["params"]["eps"] == pytest.approx([0.5] * 3)  # from its own config key
+        assert res["history"]["loss"][-1] < res["history"]["loss"][0]
+        capsys.readouterr()
+        # its result goes back into its config keys, as a built-in kind's does
+        assert main(["simulate", "--config", path, "--params", str(tmp_path / "out" / "result.json"), "--json"]) == 0
+        assert np.isfinite(mean_metrics(capsys)["rms_error"]).all()
+        with pytest.raises(fj.ConfigError, match="controller.tanh_k: expected 3 positive numbers"):
+            _config.resolve({"controller": {"kind": "tanh_smc", "tanh_k": [1.0, -1.0, 1.0]}})
+    finally:
+        from fosmc_jax._controllers import KINDS
+
+        KINDS.pop("tanh_smc")
+    with pytest.raises(fj.ConfigError, match="controller.kind: expected one of fosmc, smc, super_twisting"):
+        _config.resolve({"controller": {"kind": "tanh_smc"}})

@@ -253,6 +253,7 @@ def run_reproduce(
     ``tradeoff.md`` for the arm), exactly as written to ``out``.
     """
     from . import reproduce as R
+
     if plant not in ("arm", "linear"):
         raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
     if integrator not in ("euler", "rk4"):
@@ -327,6 +328,7 @@ def run_certify(
     ``gamma_bounds``): what ``--json`` prints.
     """
     from . import certify as _certify
+
     cfg = config_of(config)
     switching = cfg["controller"]["switching"] if configured_switching else "sign"
     opts = {"switching": switching, "seed": seed}
@@ -374,6 +376,7 @@ def run_tune(
     the kind's names (e.g. ``{"k": [...], "phi": [...]}``).
     """
     from .._search import tune as T
+
     cfg = config_of(config)
     tcfg = cfg["tune"]
     if steps is not None:

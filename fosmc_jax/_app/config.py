@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, FOSMCParams
-from .._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting, SurfaceParams
+from .._controllers import KINDS
+from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
@@ -43,14 +43,10 @@ class ConfigError(ValueError):
 
 
 PLANT_KINDS = ("linear", "arm")
-#: ``[controller] kind``: the paper's FOSMC, conventional SMC, super-twisting (fosmc_jax._controllers.smc).
-CONTROLLER_KINDS = ("fosmc", "smc", "super_twisting")
 BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
-#: Every kind's tunable parameters (``[tune] params`` names some of the config's kind's).
-TUNABLE_NAMES = tuple(name for space in SPACES.values() for name in space.names)
 
 
 def defaults() -> dict[str, Any]:
@@ -72,10 +68,8 @@ def defaults() -> dict[str, Any]:
             "sample_period": 0.0,
             "delay_samples": 0,
             "kind": "fosmc",
-            "smc_k": [1000.0, 1000.0, 1000.0],
-            "smc_phi": [10.0, 10.0, 10.0],
-            "st_k1": [50.0, 50.0, 50.0],
-            "st_k2": [1000.0, 1000.0, 1000.0],
+            # every registered kind's own gains (fosmc_jax._controllers.kind), e.g. SMC's smc_k
+            **{key: list(value) for kind in KINDS.values() for key, value in kind.gains.items()},
         },
         "sensors": {
             "encoder_counts": [0, 0, 0],
@@ -196,10 +190,13 @@ def _integer(what: str, check: Callable[[int], bool]):
     return validate
 
 
-def _choice(choices: tuple[str, ...]):
+def _choice(choices: tuple[str, ...] | Callable[[], tuple[str, ...]]):
+    """A validator of one of ``choices`` (a callable: read at validation, for registries)."""
+
     def validate(key: str, value: Any) -> Any:
-        if value not in choices:
-            raise ConfigError(f"{key}: expected one of {', '.join(choices)}; got {_short(value)}")
+        allowed = choices() if callable(choices) else choices
+        if value not in allowed:
+            raise ConfigError(f"{key}: expected one of {', '.join(allowed)}; got {_short(value)}")
         return value
 
     return validate
@@ -211,10 +208,11 @@ def _boolean(key: str, value: Any) -> Any:
     return value
 
 
-def _names(choices: tuple[str, ...]):
+def _names(choices: Callable[[], tuple[str, ...]]):
     def validate(key: str, value: Any) -> Any:
-        if not isinstance(value, list) or not value or any(v not in choices for v in value):
-            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(choices)}; got {_short(value)}")
+        allowed = choices()
+        if not isinstance(value, list) or not value or any(v not in allowed for v in value):
+            raise ConfigError(f"{key}: expected a non-empty list drawn from {', '.join(allowed)}; got {_short(value)}")
         return list(dict.fromkeys(value))
 
     return validate
@@ -271,11 +269,7 @@ SCHEMA: dict[str, Any] = {
         "law": _choice(LAWS),
         "sample_period": _number("a non-negative number (s; 0: the ideal loop)", lambda x: x >= 0),
         "delay_samples": _integer("a non-negative integer (controller samples)", lambda n: n >= 0),
-        "kind": _choice(CONTROLLER_KINDS),
-        "smc_k": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
-        "smc_phi": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
-        "st_k1": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
-        "st_k2": _array((3,), "3 positive numbers", lambda a: np.all(a > 0)),
+        "kind": _choice(lambda: tuple(KINDS)),
     },
     "sensors": {
         "encoder_counts": _counts,
@@ -312,7 +306,7 @@ SCHEMA: dict[str, Any] = {
         "divergence_bound": _number("a positive number", lambda x: x > 0),
     },
     "tune": {
-        "params": _names(TUNABLE_NAMES),
+        "params": _names(lambda: tuple(name for space in SPACES.values() for name in space.names)),
         "weight_error": _number("a non-negative number", lambda x: x >= 0),
         "weight_chattering": _number("a non-negative number", lambda x: x >= 0),
         "worst_case": _choice(WORST_CASE),
@@ -343,6 +337,13 @@ SCHEMA: dict[str, Any] = {
 }
 
 
+def _schema() -> dict[str, Any]:
+    """:data:`SCHEMA` with every registered controller kind's gains (3 positive numbers each)."""
+    positive = _array((3,), "3 positive numbers", lambda a: np.all(a > 0))
+    gains = {key: positive for kind in KINDS.values() for key in kind.gains}
+    return dict(SCHEMA, controller={**SCHEMA["controller"], **gains})
+
+
 def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
     if not isinstance(user, dict):
         raise ConfigError(f"{prefix or 'config'}: expected a table, got {_short(user)}")
@@ -364,7 +365,7 @@ def resolve(user: dict | None = None) -> dict[str, Any]:
     ``[tune] params`` defaults to every parameter of the config's ``controller.kind``.
     Raises :class:`ConfigError` naming the first offending key.
     """
-    cfg = _merge(SCHEMA, defaults(), copy.deepcopy(user or {}), "")
+    cfg = _merge(_schema(), defaults(), copy.deepcopy(user or {}), "")
     if "params" not in (user or {}).get("tune", {}):
         cfg["tune"]["params"] = list(SPACES[cfg["controller"]["kind"]].names)
     _check_consistency(cfg)
@@ -528,17 +529,11 @@ def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[FOSMCParams], Any], Calla
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
     T = cast(ctl["sample_period"])
     sampled = bool(ctl["sample_period"])
-    surface = lambda params: SurfaceParams(params.C, params.a_rows, params.b_rows)
-    if ctl["kind"] == "fosmc":
-        law = (lambda params: DiscreteFOSMC(params, T, ctl["switching"], ctl["law"])) if sampled else (
-            lambda params: FOSMC(params, ctl["switching"], ctl["law"])
-        )
-    elif ctl["kind"] == "smc":
-        law = lambda params: SMC(surface(params), cast(ctl["smc_k"]), cast(ctl["smc_phi"]))
-    else:
-        law = lambda params: SuperTwisting(surface(params), cast(ctl["st_k1"]), cast(ctl["st_k2"]), T)
+    kind = KINDS[ctl["kind"]]
+    table = dict(ctl, **{key: cast(ctl[key]) for key in kind.gains})  # the kind's gains as arrays
+    law = lambda params: kind.law(params, table, T)
     if not sampled:
-        return law, ContinuousSuperTwisting if ctl["kind"] == "super_twisting" else (lambda law: law)
+        return law, kind.ideal or (lambda law: law)
     noise_std = cast(sens["noise_std"]) if any(sens["noise_std"]) else None  # all zero: nothing to draw
     sensors = Sensors(cast(sens["encoder_counts"]), noise_std, sens["derivatives"])
     u_max = cast(cfg["actuator"].get("u_max", [np.inf] * 3))

@@ -327,7 +327,7 @@ def to_markdown(rows: list[dict[str, Any]], metrics: tuple[str, ...] = TABLE_MET
 
 
 def design_facts() -> str:
-    """NOTES.md items 1, 3, 4 and 5, recomputed: a Markdown section with the package's numbers
+    """docs/paper.md, recomputed: a Markdown section with the package's numbers
     beside the paper's printed ones."""
     box = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
     d = summarize(paper.A_ROWS, paper.B_ROWS, box, paper.C, paper.POLES)

@@ -1,7 +1,7 @@
 """A numerical certificate of the hitting condition (20): s^T ds/dt / ||s|| < 0 away from s = 0.
 
 Theorem 4.1 claims that the control (23) with gamma above the bounds (24)-(26) makes (20) hold
-for every plant in the box. NOTES.md items 4-5 say the bounds cannot be taken on trust (norm
+for every plant in the box. docs/paper.md explains why the bounds cannot be taken on trust (norm
 conventions, (1 + beta) where the usual argument needs (1 - beta)); this module checks (20)
 itself, at sampled points, and reports the worst one.
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -21,6 +21,7 @@ from jax import Array
 
 from .._design.gains import closed_loop_matrix, gain_from_poles, input_matrix_product
 from .._plants.reference import desired_state, feedforward
+from .kind import Kind, Param, Space
 
 #: Switching functions f(s) that replace SGN(s) in (23). ``ratio`` is (28).
 SWITCHING = ("sign", "ratio", "sat", "tanh")
@@ -215,3 +216,28 @@ class DiscreteFOSMC:
 
     def sliding_variable(self, state: FOSMCState) -> Array:
         return state.s
+
+
+class Tunable(NamedTuple):
+    """The FOSMC's tunable parameters: ``delta`` (3,), ``gamma`` (3,), ``poles`` (3, 3) in 1/s."""
+
+    delta: Any
+    gamma: Any
+    poles: Any
+
+
+def _law(params: FOSMCParams, controller: dict, T: Array):
+    """The FOSMC of the config's loop: :class:`FOSMC` in the ideal loop, else :class:`DiscreteFOSMC`."""
+    if controller["sample_period"]:
+        return DiscreteFOSMC(params, T, controller["switching"], controller["law"])
+    return FOSMC(params, controller["switching"], controller["law"])
+
+
+#: The front's boxes: delta x 10^[-3, 1.5], gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]. Its
+#: parameters and gains are the core [controller] keys (delta, gamma, poles, switching, law).
+KIND = Kind(
+    Space("fosmc", Tunable, (Param("delta", "delta", 1, (-3.0, 1.5)), Param("gamma", "gamma", 1, (-0.5, 0.5)),
+                             Param("poles", "poles", -1, (0.0, 2.0)))),
+    {},
+    _law,
+)  # fmt: skip

@@ -214,7 +214,7 @@ def box_norm_bound(
 # ---------------------------------------------------------------------------- gamma bounds
 
 #: Norm conventions for (24)-(26). ``spectral``: every norm is the 2-norm, as written.
-#: ``paper``: ||CB|| read as the smallest singular value of CB (NOTES.md item 4), which
+#: ``paper``: ||CB|| read as the smallest singular value of CB (docs/paper.md), which
 #: reproduces the paper's gamma_2 and gamma_3 bounds in (35); ||CBK|| stays a 2-norm.
 CONVENTIONS = ("spectral", "paper")
 

@@ -2,7 +2,7 @@
 
 Every number of "A Full Order Sliding Mode Tracking Controller For A Class of Uncertain
 Dynamical System" that this package uses lives here, with its equation number. The Appendix
-box is the corrected one of ``shared/paper/NOTES.md``. Nothing else in the package hard-codes
+box is the corrected one of docs/paper.md. Nothing else in the package hard-codes
 these values; the design quantities the paper derives from them (K, alpha, beta, gamma
 bounds) are *computed* in :mod:`fosmc_jax._design.gains`, and the printed ones are kept here only
 to be shown beside the computed ones.
@@ -37,7 +37,7 @@ B_ROWS = np.array(
     ]
 )
 
-#: The Appendix box on rows 3, 6, 9 of A (corrected in NOTES.md), shape (3, 9).
+#: The Appendix box on rows 3, 6, 9 of A (corrected in docs/paper.md), shape (3, 9).
 A_LOWER = np.array(
     [
         [0.0, -102.79, -14.33, -4.61, 17.63, 0.22, 0.03, -0.64, -0.52],
@@ -53,7 +53,7 @@ A_UPPER = np.array(
     ]
 )
 
-#: The Appendix box on B_bar (NOTES.md: 15.54..26.28 is B(3,1); 172.95 is B(9,3)'s lower bound).
+#: The Appendix box on B_bar (docs/paper.md: 15.54..26.28 is B(3,1); 172.95 is B(9,3)'s lower bound).
 B_LOWER = np.array(
     [
         [15.54, -10.82, -0.16],
@@ -114,7 +114,7 @@ PAYLOADS = (0.0, 10.0)
 ALPHA_PRINTED = 5.9874
 BETA_PRINTED = 0.6200
 
-#: (32) as printed. NOTES.md item 3: it is for A - BK and, so rounded, not stabilising.
+#: (32) as printed. docs/paper.md: it is for A - BK and, so rounded, not stabilising.
 K_PRINTED = np.array(
     [
         [0.01, -0.59, -0.26, 0.07, 1.27, 0.07, 0.0, 0.67, -0.01],

@@ -25,7 +25,7 @@ computed from that state, as in the paper's third-order model (1)-(2). Units: U 
 i in amperes, angles in radians, SI elsewhere.
 
 Every parameter lives in :class:`ArmParams`; the calibrated defaults :data:`ARM_PARAMS` are
-the output of ``tuning/calibrate_arm.py`` (NOTES.md item 6: the paper's B_bar reads as
+the output of ``tuning/calibrate_arm.py`` (docs/paper.md: the paper's B_bar reads as
 M^-1 diag(Kt/L), its ddtheta coefficients as -R/L), pasted here as literals.
 """
 

@@ -20,7 +20,7 @@ class Cycloid(NamedTuple):
 
     theta_d(t) = theta(0) + Delta / (2 pi) [2 pi t / tau - sin(2 pi t / tau)] for 0 <= t < tau,
     theta(tau) afterwards (and theta(0) before 0), Delta = theta(tau) - theta(0).
-    The third derivative jumps by Delta (2 pi)^2 / tau^3 at t = 0 and t = tau (NOTES.md item 7).
+    The third derivative jumps by Delta (2 pi)^2 / tau^3 at t = 0 and t = tau (docs/paper.md).
 
     Fields: ``start`` (3,) rad, ``end`` (3,) rad, ``duration`` tau (s, scalar).
     """

@@ -1,10 +1,11 @@
 """Gradient-based tuning of a controller kind's parameters (optax), robust over a batch of rollouts.
 
 Each ``[controller] kind`` has its own tunable parameter set, a :class:`Space` in
-:data:`SPACES`: the FOSMC's delta, gamma and poles (:class:`Tunable`), conventional SMC's k and
-phi (:class:`SMCGains`), super-twisting's k1 and k2 (:class:`STGains`). Each parameter holds
-one row per joint and names its config key, its sign and the log10 box of the scale factors
-that ``fosmc front`` searches (:mod:`fosmc_jax._search.front`).
+:data:`SPACES` (declared with the kind, :mod:`fosmc_jax._controllers.kind`): the FOSMC's delta,
+gamma and poles (:class:`Tunable`), conventional SMC's k and phi (:class:`SMCGains`),
+super-twisting's k1 and k2 (:class:`STGains`). Each parameter holds one row per joint and names
+its config key, its sign and the log10 box of the scale factors that ``fosmc front`` searches
+(:mod:`fosmc_jax._search.front`).
 
 Parameters live in unconstrained coordinates: x = exp(u) for a positive parameter, x =
 -exp(u) for a negative one (the poles: real, negative, repeats allowed); the FOSMC's gamma can
@@ -47,6 +48,11 @@ import numpy as np
 import optax
 
 from .._controllers.fosmc import FOSMCParams
+from .._controllers.fosmc import Tunable as Tunable  # the kinds' parameter sets, re-exported for the tuner's users
+from .._controllers.kind import SPACES, Space
+from .._controllers.kind import Param as Param
+from .._controllers.smc import SMCGains as SMCGains
+from .._controllers.super_twisting import STGains as STGains
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
 from .._simulator.metrics import mean_over_survivors
@@ -59,82 +65,14 @@ WORST_CASE = ("none", "max", "cvar")
 MODES = ("auto", "reverse", "forward")
 
 
-class Tunable(NamedTuple):
-    """The FOSMC's tunable parameters: ``delta`` (3,), ``gamma`` (3,), ``poles`` (3, 3) in 1/s."""
-
-    delta: Any
-    gamma: Any
-    poles: Any
-
-
-class SMCGains(NamedTuple):
-    """Conventional SMC's tunable parameters (:class:`fosmc_jax.SMC`): switching gains ``k``
-    (3,) and boundary-layer widths ``phi`` (3,)."""
-
-    k: Any
-    phi: Any
-
-
-class STGains(NamedTuple):
-    """Super-twisting's tunable parameters (:class:`fosmc_jax.SuperTwisting`): ``k1`` (3,),
-    ``k2`` (3,)."""
-
-    k1: Any
-    k2: Any
-
-
-#: A kind's parameter set (physical or unconstrained coordinates; with leading batch axes in fronts).
-Params = Tunable | SMCGains | STGains
-
-
-class Param(NamedTuple):
-    """One tunable parameter: an array with one row per joint, scaled by one factor per joint."""
-
-    name: str  # its field in the kind's parameters and law, and its name in result files
-    key: str  # the [controller] config key it comes from and goes back to
-    sign: int  # +1: positive, x = exp(u); -1: negative, x = -exp(u)
-    box: tuple[float, float]  # log10 range of the front's scale factors around the config's value
-
-
-class Space(NamedTuple):
-    """A controller kind's tunable parameter set: the NamedTuple ``values`` holding them (its
-    fields are the ``params``' names, in order) and the :class:`Param` of each."""
-
-    kind: str
-    values: type
-    params: tuple[Param, ...]
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return tuple(p.name for p in self.params)
-
-    @property
-    def dim(self) -> int:
-        """Number of the front's log factors: one per joint per parameter."""
-        return 3 * len(self.params)
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """The front's box of log factors (dim,): each parameter's range, three joints each."""
-        return np.repeat([p.box[0] for p in self.params], 3), np.repeat([p.box[1] for p in self.params], 3)
-
-
-#: Each ``[controller] kind``'s parameter set. The boxes: FOSMC delta x 10^[-3, 1.5], gamma x
-#: 10^[-0.5, 0.5], poles x 10^[0, 2]; SMC k x 10^[-2, 2], phi x 10^[-3, 2]; super-twisting
-#: k1 x 10^[-2, 2], k2 x 10^[-2, 3].
-SPACES = {
-    s.kind: s
-    for s in (
-        Space("fosmc", Tunable, (Param("delta", "delta", 1, (-3.0, 1.5)), Param("gamma", "gamma", 1, (-0.5, 0.5)),
-                                 Param("poles", "poles", -1, (0.0, 2.0)))),
-        Space("smc", SMCGains, (Param("k", "smc_k", 1, (-2.0, 2.0)), Param("phi", "smc_phi", 1, (-3.0, 2.0)))),
-        Space("super_twisting", STGains, (Param("k1", "st_k1", 1, (-2.0, 2.0)), Param("k2", "st_k2", 1, (-2.0, 3.0)))),
-    )
-}  # fmt: skip
+#: A kind's parameter set (its :class:`Space`'s ``values``: the FOSMC's :class:`Tunable`, SMC's
+#: :class:`SMCGains`, super-twisting's :class:`STGains`, a registered kind's own), physical or
+#: unconstrained coordinates, with leading batch axes in fronts.
+Params = Any
 
 
 def space_of(p: Params) -> Space:
-    """The :class:`Space` of a parameter set (a :class:`Tunable`, :class:`SMCGains` or
-    :class:`STGains`)."""
+    """The :class:`Space` of a parameter set (its type is the space's ``values``)."""
     for s in SPACES.values():
         if type(p) is s.values:
             return s

@@ -34,7 +34,8 @@ import numpy as np
 from jax import Array
 
 from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, reference_terms
-from .._controllers.smc import SMC, ContinuousSuperTwisting, SuperTwisting
+from .._controllers.smc import SMC
+from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
 from .._design.gains import input_matrix_product
 from .._loop.digital import DigitalLoop
 from .._plants.arm import Arm, cast_params

@@ -1,0 +1,101 @@
+"""Controller kinds (``[controller] kind``). A kind is one file, its law and a :class:`Kind`
+record, plus one registry line (:func:`register`; the built-in kinds are registered in
+``fosmc_jax/_controllers/__init__.py``): the config, ``fosmc tune``, ``fosmc front`` and the
+result files then know it by its name, its parameters and its config keys.
+
+A kind's tunable parameters are fields of its law (a dataclass pytree: the tuner replaces
+them with ``dataclasses.replace``), except the FOSMC's, which are fields of its parameters
+(:class:`fosmc_jax.FOSMCParams`). Every kind shares the FOSMC's sliding-surface matrix C and
+nominal design rows (the ``[controller] C`` and ``[model]`` keys), which its law receives.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, NamedTuple
+
+import numpy as np
+
+
+class Param(NamedTuple):
+    """One tunable parameter: an array with one row per joint, scaled by one factor per joint."""
+
+    name: str  # its field in the kind's parameters and law, and its name in result files
+    key: str  # the [controller] config key it comes from and goes back to
+    sign: int  # +1: positive, x = exp(u); -1: negative, x = -exp(u)
+    box: tuple[float, float]  # log10 range of the front's scale factors around the config's value
+
+
+class Space(NamedTuple):
+    """A controller kind's tunable parameter set: the NamedTuple ``values`` holding them (its
+    fields are the ``params``' names, in order) and the :class:`Param` of each."""
+
+    kind: str
+    values: type
+    params: tuple[Param, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.params)
+
+    @property
+    def dim(self) -> int:
+        """Number of the front's log factors: one per joint per parameter."""
+        return 3 * len(self.params)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The front's box of log factors (dim,): each parameter's range, three joints each."""
+        return np.repeat([p.box[0] for p in self.params], 3), np.repeat([p.box[1] for p in self.params], 3)
+
+
+class Kind(NamedTuple):
+    """Everything the package needs to know about a controller kind.
+
+    ``space``: its tunable parameters (names, config keys, signs, the front's box); its name
+    is ``space.kind``. ``gains``: its own ``[controller]`` keys, each three positive numbers
+    (one per joint), with their defaults. ``law(params, controller, T)``: the law, from the
+    FOSMC parameters (C and the nominal rows; the FOSMC's own gains), the resolved
+    ``[controller]`` table (the kind's gains as arrays of the run's dtype) and the sample
+    period T (an array; ``controller["sample_period"]`` = 0: the ideal loop). ``ideal``: the
+    ideal loop's controller around the law (None: the law itself).
+    """
+
+    space: Space
+    gains: dict[str, tuple[float, float, float]]
+    law: Callable[[Any, dict, Any], Any]
+    ideal: Callable[[Any], Any] | None = None
+
+    @property
+    def name(self) -> str:
+        return self.space.kind
+
+
+#: The registered kinds by name, in registration order.
+KINDS: dict[str, Kind] = {}
+
+
+def register(kind: Kind) -> Kind:
+    """Make ``kind`` known by its name (a second registration of a name replaces the first)."""
+    if not kind.name.isidentifier():
+        raise ValueError(f"a controller kind's name must be an identifier, got {kind.name!r}")
+    taken = {key for k in KINDS.values() if k.name != kind.name for key in k.gains}
+    if taken & set(kind.gains):
+        raise ValueError(f"controller kind {kind.name!r}: config keys {sorted(taken & set(kind.gains))} are taken")
+    KINDS[kind.name] = kind
+    return kind
+
+
+class _Spaces(Mapping):
+    """Every registered kind's :class:`Space` by name (a live view of :data:`KINDS`)."""
+
+    def __getitem__(self, name: str) -> Space:
+        return KINDS[name].space
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(KINDS)
+
+    def __len__(self) -> int:
+        return len(KINDS)
+
+
+SPACES: Mapping[str, Space] = _Spaces()
