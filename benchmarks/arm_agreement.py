@@ -1,5 +1,5 @@
 """How closely the arm's kernel (fosmc_jax/_simulator/arm_kernel.cc) agrees with vmap of simulate, and how
-far float32 digital loops are from float64: the figures BENCHMARKS.md ("Issue 21") and the README
+far float32 digital loops are from float64: the figures BENCHMARKS.md ("Issue 21") and docs/performance.md
 quote, in one command:
 
     python benchmarks/arm_agreement.py            # about 2 minutes on 2 cores
