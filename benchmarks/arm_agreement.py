@@ -41,7 +41,7 @@ def build(base: str | None, t_final: float, **changes):
             del cfg[section][name]
     b = _config.build(cfg)
     opts = {k: v for k, v in b.options.items() if k not in ("switching", "law", "save_every")}
-    return lambda fast: fj.simulate_batch(b.plants, b.controller, b.reference, b.X0s, b.dt, keys=b.keys, fast=fast,
+    return lambda fast: fj.simulate_batch(b.plants, b.controller(), b.reference, b.X0s, b.dt, keys=b.keys, fast=fast,
                                           **opts).metrics  # fmt: skip
 
 

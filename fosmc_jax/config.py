@@ -4,7 +4,8 @@ simulator and the tuner take. Errors are one-line :class:`ConfigError`\\ s namin
 
     import fosmc_jax.config as fc
     cfg = fc.load("tuning/configs/realistic_arm.toml")  # or fc.resolve({"plant": {...}})
-    sim = fc.build(cfg)  # plants, controller, reference, initial states, dt, options, keys
+    sim = fc.build(cfg)  # a Problem: plants, base parameters, reference, initial states, dt, ...
+    result = sim.simulate()  # the batch with the config's parameters
     plain, train, p0 = fc.tuning_problems(cfg)  # what fosmc tune and fosmc front search on
 """
 
@@ -21,10 +22,12 @@ from ._app.config import (
     with_params,
 )
 from ._app.study import held_out_config, references, study
+from ._simulator.problem import Problem
 
 __all__ = [
     "GRADIENT_WINDOW",
     "ConfigError",
+    "Problem",
     "box_of",
     "build",
     "defaults",

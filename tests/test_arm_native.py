@@ -147,7 +147,7 @@ def preset(t_final=0.3, **changes):
             del cfg[section][name]
     b = _config.build(cfg)
     opts = {k: v for k, v in b.options.items() if k not in ("switching", "law", "save_every")}
-    return (b.plants, b.controller, b.reference, b.X0s, b.dt), opts
+    return (b.plants, b.controller(), b.reference, b.X0s, b.dt), opts
 
 
 @pytest.mark.parametrize(

@@ -96,9 +96,9 @@ def test_each_kind_runs_from_the_config_alone_and_is_differentiable(kind, capsys
     gain = "k" if kind == "smc" else "k1"
 
     def loss(g):
-        law = pr.controller if kind == "smc" else pr.controller.law
+        law = pr.controller() if kind == "smc" else pr.controller().law
         law = law.__class__(**{**law.__dict__, gain: g})
-        ctrl = law if kind == "smc" else pr.controller.__class__(law)
+        ctrl = law if kind == "smc" else pr.controller().__class__(law)
         return jnp.sum(fj.simulate(jax.tree.map(lambda x: x[0], pr.plants), ctrl, pr.reference, pr.X0s[0], pr.dt,
                                    n_steps=200, integrator="euler").metrics.rms_error)  # fmt: skip
 

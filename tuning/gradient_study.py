@@ -57,8 +57,8 @@ def per_rollout(b, opts):
     """f(u, delta) -> (rms error (B,), chattering (B,)): means over the joints, per rollout."""
 
     def f(u, delta):
-        p = fs.to_physical(u, b.params)
-        ctrl = b.params._replace(delta=delta * jnp.exp(u.delta - jnp.log(b.params.delta)),
+        p = fs.to_physical(u, b.base)
+        ctrl = b.base._replace(delta=delta * jnp.exp(u.delta - jnp.log(b.base.delta)),
                                      gamma=p.gamma, poles=p.poles)  # fmt: skip
         r = simulate_batch(b.plants, ctrl, b.reference, b.X0s, b.dt, **opts)
         return jnp.mean(r.metrics.rms_error, -1), jnp.mean(r.metrics.chattering, -1)
@@ -80,7 +80,7 @@ def fd_check(dt: float, h: float) -> list[dict]:
     for t_final in (0.5, 2.0):
         b, opts = build(t_final, dt, 0)
         f = per_rollout(b, opts)
-        u0 = fs.to_internal(fs.Tunable(b.params.delta, b.params.gamma, b.params.poles), b.params)
+        u0 = fs.to_internal(fs.Tunable(b.base.delta, b.base.gamma, b.base.poles), b.base)
         scalar = lambda u, d, k: f(u, d)[k][0]
         rev = jax.jit(jax.grad(scalar), static_argnums=2)
         fwd = jax.jit(jax.jacfwd(scalar), static_argnums=2)
@@ -107,7 +107,7 @@ def sweep(dt: float, samples: int) -> list[dict]:
     for t_final in HORIZONS:
         b, opts = build(t_final, dt, samples)
         f = per_rollout(b, opts)
-        u0 = fs.to_internal(fs.Tunable(b.params.delta, b.params.gamma, b.params.poles), b.params)
+        u0 = fs.to_internal(fs.Tunable(b.base.delta, b.base.gamma, b.base.poles), b.base)
         jac = jax.jit(jax.jacfwd(f))
         t0 = time.perf_counter()
         for scale in SCALES:

@@ -57,15 +57,15 @@ def load_problems(config=CONFIG, train_dt: float | None = 1e-3, t_final: float |
     if t_final is not None:
         cfg["sim"]["t_final"] = t_final
     built = _config.build(cfg)
-    plain = fs.Problem(built.plants, built.params, built.reference, built.X0s, built.dt,
+    plain = fs.Problem(built.plants, built.base, built.reference, built.X0s, built.dt,
                        dict(built.options, save_every=0))  # fmt: skip
     tcfg = copy.deepcopy(cfg)
     if train_dt:
         tcfg["sim"]["dt"] = train_dt
     tb = _config.build(tcfg)
-    train = fs.Problem(tb.plants, tb.params, tb.reference, tb.X0s, tb.dt,
+    train = fs.Problem(tb.plants, tb.base, tb.reference, tb.X0s, tb.dt,
                        dict(tb.options, save_every=0, checkpoint_every=cfg["tune"]["remat_steps"]))  # fmt: skip
-    p0 = fs.Tunable(built.params.delta, built.params.gamma, built.params.poles)
+    p0 = fs.Tunable(built.base.delta, built.base.gamma, built.base.poles)
     return plain, train, p0
 
 

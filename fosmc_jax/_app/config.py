@@ -14,7 +14,7 @@ import math
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +30,7 @@ from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search import tune as _tuning
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, SPACES, WORST_CASE
+from .._simulator.problem import Problem
 from .._simulator.rollout import INTEGRATORS
 
 try:  # Python >= 3.11
@@ -472,25 +473,6 @@ def _check_loop(cfg: dict) -> None:
 # ---------------------------------------------------------------------------- objects
 
 
-class Problem(NamedTuple):
-    """What a resolved config describes, as simulator inputs (see :func:`fosmc_jax.simulate`)."""
-
-    plants: Any  # plant pytree with a leading batch axis P
-    controller: Any  # what simulate() runs: make(params)
-    reference: Cycloid
-    X0s: Any  # (O, 9) initial states
-    dt: Any
-    options: dict  # simulate()'s static keyword arguments
-    keys: Any  # (R, 2) PRNG keys, one per noise realization (None: the ideal loop)
-    params: FOSMCParams  # the FOSMC parameters
-    make: Callable[[FOSMCParams], Any]  # FOSMC parameters -> the controller of the config's loop
-
-    @property
-    def args(self) -> tuple:
-        """simulate_batch's positional arguments."""
-        return self.plants, self.controller, self.reference, self.X0s, self.dt
-
-
 def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``[plant.box]`` as float64 arrays (A_lower, A_upper, B_lower, B_upper)."""
     return tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
@@ -593,7 +575,7 @@ def build(cfg: dict) -> Problem:
         "divergence_bound": cfg["sim"]["divergence_bound"],
     }
     dt = jnp.asarray(cfg["sim"]["dt"], dtype)
-    return Problem(plants, make(params), reference, X0s, dt, options, keys_of(cfg), params, make)
+    return Problem(plants, params, reference, X0s, dt, options, keys_of(cfg), make)
 
 
 #: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:
@@ -624,12 +606,12 @@ def tuning_problems(cfg: dict):
     def problem(c: dict, **options) -> _tuning.Problem:
         b = build(c)
         if space.kind == "fosmc":
-            base, make = b.params, b.make
+            base, make = b.base, b.make
         else:
             law, loop = _law_and_loop(c, b.dt.dtype)
-            base, make = law(b.params), loop
+            base, make = law(b.base), loop
         opts = dict(b.options, save_every=0, **options)
-        return _tuning.Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
+        return Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
 
     plain = problem(cfg)
     # the gradient follows the loop over windows of tune.gradient_window (truncate_every): over the

@@ -355,7 +355,7 @@ def run(
     space = T.space_of(p0)
     state: dict[str, Any] = {}
     if resume and checkpoint is not None and checkpoint.exists():
-        state, leaves = T._load(checkpoint)
+        state, saved = T._load(checkpoint)
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     train, plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
     surrogate = not _same_simulation(train.problem, plain.problem)
@@ -402,8 +402,7 @@ def run(
         return None if end is None else end - n_points * reserve_per_point
 
     if "round" in state:
-        keys = state["keys"]
-        z, m = leaves[0], dict(zip(keys, leaves[1 : 1 + len(keys)]))
+        z, m = saved["z"], {k: saved[f"m.{k}"] for k in state["keys"]}
         r0 = state["round"]
     else:
         zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
@@ -422,8 +421,10 @@ def run(
                       "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma}  # fmt: skip
             if plain_state:
                 header["polish_round"] = plain_state[0]
-            plain_leaves = [plain_state[1], *plain_state[2].values()] if plain_state else []
-            T._save(checkpoint, {**header, "leaves": [z, *m.values(), *plain_leaves]})
+            arrays = {"z": z, **{f"m.{k}": v for k, v in m.items()}}  # the evaluated factors and their metrics
+            if plain_state:  # the plain rounds' own
+                arrays.update({"plain.z": plain_state[1], **{f"plain.m.{k}": v for k, v in plain_state[2].items()}})
+            T._save(checkpoint, header, arrays)
 
     cma_done = state.get("cma_done", False)
     n_cma = state.get("cma_end", n_global)  # evaluations up to the end of the CMA-ES stage
@@ -487,8 +488,8 @@ def run(
     if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx = np.flatnonzero(nondominated(*axes(m)))
         if state.get("stage") == "polish":
-            p_run, zp = state["polish_round"], leaves[1 + len(keys)]
-            mp = dict(zip(keys, leaves[2 + len(keys) :]))
+            p_run, zp = state["polish_round"], saved["plain.z"]
+            mp = {k: saved[f"plain.m.{k}"] for k in state["keys"]}
         else:
             zp = z[idx]
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")

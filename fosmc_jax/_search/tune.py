@@ -35,7 +35,6 @@ reported result is re-evaluated with the plain simulator (:func:`evaluate`).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -56,8 +55,8 @@ from .._controllers.super_twisting import STGains as STGains
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
 from .._simulator.metrics import mean_over_survivors
-from .._simulator.rollout import simulate_batch
-from .._simulator.sharding import replicated, simulate_split
+from .._simulator.problem import Problem
+from .._simulator.sharding import replicated
 
 #: The FOSMC's tunable parameters (a kind's are ``SPACES[kind].names``).
 PARAM_NAMES = ("delta", "gamma", "poles")
@@ -182,34 +181,6 @@ def aggregate(J, obj: Objective):
     return loss
 
 
-class Problem(NamedTuple):
-    """What a tuning run simulates: the batch and the fixed parts of the controller."""
-
-    plants: Any
-    base: Any  # whose fields the parameters replace: the FOSMC's FOSMCParams, the SMC or super-twisting law
-    reference: Any
-    X0s: Any
-    dt: Any
-    options: dict
-    keys: Any = None  # noise realizations of a digital loop (simulate_batch's keys)
-    make: Callable[[Any], Any] | None = None  # base -> the controller of the loop (None: base itself)
-
-    def controller(self, p: Params) -> Any:
-        """The controller simulated with physical parameters ``p`` (``base``'s fields of those names replaced)."""
-        if dataclasses.is_dataclass(self.base):  # the SMC and super-twisting laws
-            params = dataclasses.replace(self.base, **p._asdict())
-        else:
-            params = self.base._replace(**p._asdict())
-        return params if self.make is None else self.make(params)
-
-    def simulate(self, p: Params, split: bool = False, **options):
-        """The batch's rollouts with parameters ``p``; ``split``: over this process's devices
-        (:func:`fosmc_jax._simulator.sharding.simulate_split`, the tuner's loss)."""
-        run = simulate_split if split else simulate_batch
-        return run(self.plants, self.controller(p), self.reference, self.X0s, self.dt, keys=self.keys,
-                   **dict(self.options, **options))  # fmt: skip
-
-
 def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
 
@@ -270,19 +241,23 @@ def value_and_grad(loss, mode: str):
     return jax.jit(fwd)
 
 
-def _save(path: Path, payload: dict) -> None:
-    """Atomically write a checkpoint (NumPy .npz with a JSON header)."""
-    leaves = payload.pop("leaves")
-    header = np.frombuffer(json.dumps(payload).encode(), np.uint8)
-    arrays = {f"leaf{i}": np.asarray(x) for i, x in enumerate(leaves)}
-    atomic_write(path, lambda tmp: np.savez(tmp, header=header, **arrays))
+def _save(path: Path, header: dict, arrays: dict[str, Any]) -> None:
+    """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``."""
+    if "header" in arrays:
+        raise ValueError("a checkpoint array may not be named 'header'")
+    text = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    atomic_write(path, lambda tmp: np.savez(tmp, header=text, **{k: np.asarray(x) for k, x in arrays.items()}))
 
 
-def _load(path: Path) -> tuple[dict, list[np.ndarray]]:
+def _load(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
+    """(header, arrays by name) of a checkpoint written by :func:`_save`."""
     with np.load(path) as z:
-        header = json.loads(bytes(z["header"]).decode())
-        leaves = [z[f"leaf{i}"] for i in range(len(z.files) - 1)]
-    return header, leaves
+        return json.loads(bytes(z["header"]).decode()), {k: z[k] for k in z.files if k != "header"}
+
+
+def _named(tree) -> dict[str, Any]:
+    """A pytree's leaves by their paths (``jax.tree_util.keystr``), in leaf order."""
+    return {jax.tree_util.keystr(path): x for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
 def _norm(tree) -> float:
@@ -323,8 +298,10 @@ def run(
     start_step = 0
     mode = settings.mode
     if resume and checkpoint is not None and checkpoint.exists():
-        header, leaves = _load(checkpoint)
-        u, state = jax.tree.unflatten(jax.tree.structure((u, state)), [jnp.asarray(x) for x in leaves])
+        header, arrays = _load(checkpoint)
+        u, state = jax.tree.unflatten(
+            jax.tree.structure((u, state)), [jnp.asarray(arrays[k]) for k in _named((u, state))]
+        )
         history, start_step, mode = header["history"], header["step"], header["mode"]
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
@@ -369,7 +346,7 @@ def run(
             and settings.checkpoint_every
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
-            _save(checkpoint, {"step": done, "mode": mode, "history": history, "leaves": jax.tree.leaves((u, state))})
+            _save(checkpoint, {"step": done, "mode": mode, "history": history}, _named((u, state)))
     # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
     # cost) rather than a jit of the loss alone, which would compile a second program
     (last, _), _ = step_fn(u)
