@@ -529,16 +529,24 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
     return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
 
 
-def _fast_batch(plants, controller, reference, X0s, dt, **options) -> Result:
-    """:func:`_linear_batch` with its time loop in the native kernel where that is built;
-    derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
-    the ``lax.scan`` loop. The kernel is the CPU's: on a GPU (the default backend) the scan
-    runs."""
-    if jax.default_backend() != "cpu" or not _native.available():
-        return _linear_batch(plants, controller, reference, X0s, dt, **options)
-    scan = lambda *args: _linear_batch(*args, **options)
-    run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=True, **options))
-    run.defjvp(lambda primals, tangents: jax.jvp(scan, primals, tangents))
+def _vmap_linear(plants, params, reference, X0s, dt, *, switching: str, law: str, **options) -> Result:
+    """``vmap`` of :func:`simulate` over plants x initial states, flattened as the fast path."""
+    ctrl = FOSMC(params, switching, law)
+    one = lambda plant, X0: simulate(plant, ctrl, reference, X0, dt, **options)
+    result = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), result)
+
+
+def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, **options) -> Result:
+    """:func:`_linear_batch` with its time loop in the native kernel where that is built (the
+    kernel is the CPU's: on a GPU, or with ``native=False``, the ``lax.scan`` loop runs).
+    Derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
+    ``vmap`` of :func:`simulate`, equal to the scan's to rounding: in forward mode they ran
+    3.5x faster than the scan's and compiled 6x sooner (benchmarks/results/linear_paths.md)."""
+    kernel = native and jax.default_backend() == "cpu" and _native.available()
+    vmap_path = lambda *args: _vmap_linear(*args, **options)
+    run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=kernel, **options))
+    run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
     return run(plants, controller, reference, X0s, dt)
 
 
@@ -578,9 +586,7 @@ def simulate_batch(
     if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
         options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
         options.update(switching=ctrl.switching, law=ctrl.law)
-        if not native:
-            return _linear_batch(plants, ctrl.params, reference, X0s, dt, **options)
-        return _fast_batch(plants, ctrl.params, reference, X0s, dt, **options)
+        return _fast_batch(plants, ctrl.params, reference, X0s, dt, native=native, **options)
     key = options.pop("key", None)
     if keys is None:
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
