@@ -50,17 +50,35 @@ def reach(e: np.ndarray, c: np.ndarray) -> dict[str, float]:
     return {f"{lim:g}": float(np.min(c[e <= lim])) if np.any(e <= lim) else float("nan") for lim in LEVELS}
 
 
-def one_run(config: str, budget: float, seed: int, out: pathlib.Path, cold: bool) -> dict:
-    """One ``fosmc front`` process: its wall time, evaluations and front."""
+def fosmc_command() -> list[str]:
+    """The ``fosmc`` CLI: the checkout's ``.venv/bin/fosmc`` where there is one, else this
+    interpreter's ``-m fosmc_jax`` (a worktree without its own venv; the environment,
+    ``PYTHONPATH`` included, is passed on to the child)."""
+    exe = ROOT / ".venv" / "bin" / "fosmc"
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "fosmc_jax"]
+
+
+def one_run(config: str, budget: float, seed: int, out: pathlib.Path, cold: bool, extra: tuple[str, ...] = (),
+            env_extra: dict[str, str] | None = None, cache: str | None = None, cli: list[str] | None = None
+            ) -> dict:  # fmt: skip
+    """One ``fosmc front`` process: its wall time, evaluations and front (its output kept in
+    ``out``/cli.log). ``extra``: more CLI arguments; ``env_extra``: more environment variables;
+    ``cache``: the ``FOSMC_JAX_CACHE`` folder to use (instead of ``cold``'s new empty one);
+    ``cli``: the command that stands for ``fosmc`` (default :func:`fosmc_command`)."""
     env = dict(os.environ)
     if cold:
         env["FOSMC_JAX_CACHE"] = tempfile.mkdtemp(prefix="fosmc_cold_")
-    cmd = [str(ROOT / ".venv" / "bin" / "fosmc"), "front", "--config", config, "--budget", str(budget),
-           "--seed", str(seed), "--out", str(out), "--force"]  # fmt: skip
+    if cache is not None:
+        env["FOSMC_JAX_CACHE"] = cache
+    env.update(env_extra or {})
+    cmd = [*(cli or fosmc_command()), "front", "--config", config, "--budget", str(budget),
+           "--seed", str(seed), "--out", str(out), "--force", *extra]  # fmt: skip
     load = os.getloadavg()
     t = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t
+    if out.is_dir():
+        (out / "cli.log").write_text(proc.stdout + proc.stderr)
     if proc.returncode:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{proc.stderr[-2000:]}")
     front = json.loads((out / "front.json").read_text())
@@ -68,7 +86,7 @@ def one_run(config: str, budget: float, seed: int, out: pathlib.Path, cold: bool
     st = front["stages"]
     return {"budget": budget, "seed": seed, "wall_s": wall, "load_before": load, "load_after": os.getloadavg(),
             "cold": cold, "evaluations": st["evaluations"], "plain_evaluations": st.get("plain_evaluations", 0),
-            "points": len(pts), "stages": st, "front": R.axes(pts), "command": " ".join(cmd[1:])}  # fmt: skip
+            "points": len(pts), "stages": st, "front": R.axes(pts), "command": " ".join(["fosmc", *cmd[cmd.index("front"):]])}  # fmt: skip
 
 
 def markdown(name: str, runs: list[dict], command: str) -> str:
