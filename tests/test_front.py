@@ -309,3 +309,14 @@ def test_peers_evaluate_whole_generations_within_the_box(peer):
     lo, hi = F.bounds()
     assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
     assert r["metrics"]["rms_error"].shape == (8, 3) and r["metrics"]["diverged"].shape == (8,)
+
+
+def test_a_training_problem_that_differs_only_in_its_gradient_is_no_surrogate():
+    """Rematerialisation and gradient truncation change derivatives, not values: such a training
+    problem is the plain one, and the front then spends no evaluation re-evaluating its points
+    (tuning/results/front_ablation.md found 1,600 spent so with train_dt = [sim] dt)."""
+    cfg = _config.resolve({**TINY, "tune": {"gradient_window": 0.01}})
+    plain, train, _ = _config.tuning_problems(cfg)
+    assert train.options["truncate_every"] > 0 and "truncate_every" not in plain.options
+    assert F._same_simulation(train, plain)
+    assert not F._same_simulation(train._replace(dt=2 * train.dt), plain)

@@ -520,8 +520,9 @@ def run(
 
 
 def _same_simulation(a: T.Problem, b: T.Problem) -> bool:
-    """Whether two problems simulate the same thing (the training problem is no surrogate)."""
-    opts = lambda p: {k: v for k, v in p.options.items() if k != "checkpoint_every"}
+    """Whether two problems simulate the same thing (the training problem is no surrogate):
+    rematerialisation and gradient truncation change derivatives, not values."""
+    opts = lambda p: {k: v for k, v in p.options.items() if k not in ("checkpoint_every", "truncate_every")}
     return float(a.dt) == float(b.dt) and opts(a) == opts(b) and a.make is b.make and a.keys is b.keys
 
 
