@@ -167,10 +167,10 @@ def test_global_stage_holds_the_start_and_the_whole_grid_of_common_factors():
 def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
     """Sizes from the budget: the probe's chunk joins the global stage, and the checkpoint
     holds the stage deadlines in order (offsets from the run's start, which a
-    resumed run keeps)."""
+    resumed run keeps). A training surrogate (train_dt), so that every stage runs."""
     import cma  # noqa: F401  (imported and compiled before: the budget then goes to the stages)
 
-    plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
+    plain, train, p0 = _config.tuning_problems(_config.resolve({**TINY, "tune": {"train_dt": 4e-3}}))
     F.evaluate_many(train, F.sample_candidates(p0, 8, 0), 8, log=lambda _: None)
     settings = F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
     r = F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)

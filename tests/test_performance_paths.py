@@ -261,3 +261,17 @@ def test_tuners_split_over_the_devices_as_on_one():
     env.pop("JAX_NUM_CPU_DEVICES", None)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
+
+
+def test_the_kernels_layout_header_is_generated_from_the_accumulator():
+    """The kernels read their buffer layouts from layout.h, written from the Python side: every
+    accumulator field has its kernel name at its own index, and the carry rows follow."""
+    from fosmc_jax._simulator import metrics
+
+    fields = metrics.Accumulator._fields
+    assert set(_native.ACC_NAMES) == set(fields)
+    header = _native.layout_header()
+    for i, name in enumerate(fields):
+        assert f"{_native.ACC_NAMES[name]} = {i}" in header
+    assert _native.ROWS == 15 + 3 * len(fields) + 2 and f"kRows = {_native.ROWS}" in header
+    assert f"kCarryRows = {_native.ARM_CARRY_ROWS}" in header

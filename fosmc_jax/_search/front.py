@@ -355,7 +355,7 @@ def run(
     space = T.space_of(p0)
     state: dict[str, Any] = {}
     if resume and checkpoint is not None and checkpoint.exists():
-        state, saved = T._load(checkpoint)
+        state, ckpt = T._load(checkpoint)
         log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
     train, plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
     surrogate = not _same_simulation(train.problem, plain.problem)
@@ -382,8 +382,8 @@ def run(
             plain_point_s = (time.perf_counter() - t) / settings.chunk
         end = settings.budget if deadline is None else deadline - t0
         # the search's time, less the final evaluations of a front of a few hundred points
-        search = max(0.0, end - clock.elapsed() - 300 * (reserve_per_point + plain_point_s))
-        now = clock.elapsed()
+        now = clock.elapsed()  # once: the stages' ends must not pass the run's (local = now + search <= end)
+        search = max(0.0, end - now - 300 * (reserve_per_point + plain_point_s))
         ends = {"global": now + settings.global_share * search}
         ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
         ends["local"] = now + (1 - (settings.polish_share if surrogate else 0.0)) * search
@@ -402,7 +402,7 @@ def run(
         return None if end is None else end - n_points * reserve_per_point
 
     if "round" in state:
-        z, m = saved["z"], {k: saved[f"m.{k}"] for k in state["keys"]}
+        z, m = ckpt["z"], {k: ckpt[f"m.{k}"] for k in state["keys"]}
         r0 = state["round"]
     else:
         zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
@@ -488,8 +488,8 @@ def run(
     if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx = np.flatnonzero(nondominated(*axes(m)))
         if state.get("stage") == "polish":
-            p_run, zp = state["polish_round"], saved["plain.z"]
-            mp = {k: saved[f"plain.m.{k}"] for k in state["keys"]}
+            p_run, zp = state["polish_round"], ckpt["plain.z"]
+            mp = {k: ckpt[f"plain.m.{k}"] for k in state["keys"]}
         else:
             zp = z[idx]
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")

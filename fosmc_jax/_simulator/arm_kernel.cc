@@ -42,16 +42,19 @@
 #include <limits>
 
 #include "kernel.h"
+#include "layout.h"  // generated from the Python side (fosmc_jax._simulator.native.layout_header)
 
 namespace ffi = xla::ffi;
 
 namespace {
 
 using fosmc::Simd;
-constexpr int kLaneRows = 139, kCarryRows = 56, kSampleCols = 19, kMaxDelay = 8;
-enum { kQ = 0, kDq = 3, kCur = 6, kAcc = 9, kW = 12, kU = 15, kMemTh = 18, kMemDth = 21, kMet = 24, kDiv = 54,
-       kDivAt = 55, kPending = 56 };
-enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
+using namespace fosmc::acc;  // the accumulator's fields
+constexpr int kLaneRows = 139, kCarryRows = fosmc::arm::kCarryRows, kSampleCols = 19, kMaxDelay = 8;
+enum { kQ = 0, kDq = 3, kCur = 6, kAcc = 9, kW = 12, kU = 15, kMemTh = 18, kMemDth = 21, kMet = fosmc::arm::kMet,
+       kDiv = fosmc::arm::kDiv, kDivAt = fosmc::arm::kDivAt, kPending = fosmc::arm::kCarryRows };
+static_assert(kMet == kMemDth + 3, "layout.h: the accumulator follows the estimator's memory");
+static_assert(kFields == 10, "layout.h: the accumulator's fields changed; update Block's update of them");
 
 template <typename T>
 using V = typename Simd<T>::V;

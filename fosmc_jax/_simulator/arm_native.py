@@ -43,10 +43,12 @@ from .._plants.reference import desired_state
 from . import metrics as _metrics
 from . import native as _native
 
-# The layouts of arm_kernel.cc: lane rows, and where the carry's rows hold the accumulator's
-# fields (10 x 3, field-major), the divergence flag and its time; the delay line after them.
+# The layouts of arm_kernel.cc: its lane rows, and where the carry's rows hold the accumulator's
+# fields (field-major), the divergence flag and its time, the delay line after them (defined in
+# fosmc_jax._simulator.native, which writes them into the kernels' layout.h).
 LANE_ROWS = 139
-METRICS, DIVERGED, DIVERGED_AT, CARRY_ROWS = slice(24, 54), 54, 55, 56
+METRICS = slice(_native.ARM_MET, _native.ARM_DIV)
+DIVERGED, DIVERGED_AT, CARRY_ROWS = _native.ARM_DIV, _native.ARM_DIV + 1, _native.ARM_CARRY_ROWS
 MAX_DELAY = 8
 # Steps per kernel call: as many as keep the call's time table within 24 KiB (the core's L1).
 TABLE_BYTES = 24 * 1024
@@ -226,7 +228,7 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
     advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
     out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
-    fields = out[METRICS].reshape(10, 3, N)
+    fields = out[METRICS].reshape(_native.ACC, 3, N)
     acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))
     acc = acc._replace(count=acc.count[:, :1])
     metrics = _metrics.finish(acc, n_steps * dt)

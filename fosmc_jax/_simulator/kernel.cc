@@ -22,15 +22,18 @@
 #include <limits>
 
 #include "kernel.h"
+#include "layout.h"  // generated from the Python side (fosmc_jax._simulator.native.layout_header)
 
 namespace ffi = xla::ffi;
 
 namespace {
 
 using fosmc::Simd;
-constexpr int kRows = 47;
-enum { kX = 0, kWi = 9, kU = 12, kAcc = 15, kDiv = 45, kDivAt = 46 };
-enum { kCount, kSumE2, kMaxE, kLastE, kTV, kSumU2, kMaxU, kULow, kSumHf2, kSaturated };
+using namespace fosmc::acc;  // the accumulator's fields
+using fosmc::linear::kAcc, fosmc::linear::kDiv, fosmc::linear::kDivAt, fosmc::linear::kRows;
+enum { kX = 0, kWi = 9, kU = 12 };  // x, w, U: the rows before the accumulator
+static_assert(kAcc == kU + 3, "layout.h: the accumulator follows x, w and U");
+static_assert(kFields == 10, "layout.h: the accumulator's fields changed; update Block's update of them");
 
 template <typename T>
 struct Consts {

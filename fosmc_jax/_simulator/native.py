@@ -40,11 +40,51 @@ from jax import Array
 
 from .._controllers.fosmc import LAWS, SWITCHING
 from .cache import cache_dir
+from .metrics import Accumulator
 
 TARGET = "fosmc_advance"
 ARM_TARGET = "fosmc_arm_advance"
 LANES = 16  # rollouts per SIMD block (kW in kernel.cc): the batch is padded to a multiple
-ROWS = 47  # carry rows (see kernel.cc)
+
+# The kernels' buffer layouts, defined here and written into the header layout.h that both
+# kernels include (:func:`layout_header`, at build time): an accumulator field added on the
+# Python side without its kernel name fails the build (KeyError), never shifts an offset.
+#: The metric accumulator's fields (fosmc_jax._simulator.metrics.Accumulator) as the kernels name them.
+ACC_NAMES = {"count": "kCount", "sum_e2": "kSumE2", "max_e": "kMaxE", "last_e": "kLastE", "total_variation": "kTV",
+             "sum_u2": "kSumU2", "max_u": "kMaxU", "u_low": "kULow", "sum_hf2": "kSumHf2",
+             "saturated": "kSaturated"}  # fmt: skip
+ACC = len(Accumulator._fields)
+#: The linear kernel's carry rows: x (9), w (3), U (3), the accumulator (ACC x 3, field-major,
+#: joint-minor), diverged, diverged_at.
+LIN_ACC = 15
+LIN_DIV = LIN_ACC + 3 * ACC
+ROWS = LIN_DIV + 2
+#: The arm kernel's carry rows after its 24 rows of state (angles, rates, currents,
+#: accelerations, w, U, the estimator's memory): the accumulator, diverged, diverged_at; its
+#: delay line after them.
+ARM_MET = 24
+ARM_DIV = ARM_MET + 3 * ACC
+ARM_CARRY_ROWS = ARM_DIV + 2
+
+
+def layout_header() -> str:
+    """layout.h: the layouts above as C++ constants, for kernel.cc and arm_kernel.cc."""
+    fields = ", ".join(f"{ACC_NAMES[name]} = {i}" for i, name in enumerate(Accumulator._fields))
+    return "\n".join([
+        "// Generated at build time by fosmc_jax._simulator.native.layout_header from the Python side's",
+        "// layouts: do not edit.",
+        "#pragma once",
+        "namespace fosmc {",
+        f"namespace acc {{ enum Field {{ {fields} }}; constexpr int kFields = {ACC}; }}",
+        f"namespace linear {{ constexpr int kAcc = {LIN_ACC}, kDiv = {LIN_DIV}, kDivAt = {LIN_DIV + 1}, "
+        f"kRows = {ROWS}; }}",
+        f"namespace arm {{ constexpr int kMet = {ARM_MET}, kDiv = {ARM_DIV}, kDivAt = {ARM_DIV + 1}, "
+        f"kCarryRows = {ARM_CARRY_ROWS}; }}",
+        "}  // namespace fosmc",
+        "",
+    ])  # fmt: skip
+
+
 # Steps per kernel call: as many as keep the call's time table within 24 KiB, in the core's
 # L1 cache (267 Euler float32 steps; 512 steps per call ran slower by hand), at least 64.
 TABLE_BYTES = 24 * 1024
@@ -84,7 +124,7 @@ def _build() -> Path:
         raise OSError("no C++ compiler found (set CXX)")
     # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (benchmarks/arm_levers.py's ablations); in the cache key
     cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}"]
-    text = [path.read_text() for path in (*_SOURCES, _HEADER)]
+    text = [path.read_text() for path in (*_SOURCES, _HEADER)] + [layout_header()]
     key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
     cache = cache_dir()
     lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
@@ -92,6 +132,8 @@ def _build() -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
             out = Path(tmp) / lib.name
+            (Path(tmp) / "layout.h").write_text(text[-1])
+            cmd = [*cmd, f"-I{tmp}"]
             # each source compiled in its own process (the two kernels at once on two cores), then linked
             objects = [Path(tmp) / f"{path.stem}.o" for path in _SOURCES]
             jobs = [subprocess.Popen([*cmd, "-c", str(src), "-o", str(obj)], stderr=subprocess.PIPE, text=True)

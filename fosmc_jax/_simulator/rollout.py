@@ -509,7 +509,7 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
     acc = [field for fields in zip(*c.acc) for field in fields]  # field-major, joint-minor
     carry = rows([*c.x, *c.w, *c.U, *acc, c.diverged_at])
     dtype = carry.dtype
-    carry = jnp.concatenate([carry[:45], rows([c.diverged], dtype), carry[45:]])
+    carry = jnp.concatenate([carry[: _native.LIN_DIV], rows([c.diverged], dtype), carry[_native.LIN_DIV :]])
     ab = rows([e for row in A + B for e in row], dtype)
     bound = jnp.minimum(jnp.asarray(bound, dtype), jnp.finfo(dtype).max)  # |x| <= bound also means finite
     consts = jnp.concatenate([jnp.ravel(m).astype(dtype) for m in (controller.C, derived.S, derived.CB_inv, derived.K,
@@ -524,7 +524,9 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
         return jnp.concatenate([*stages, X_d, Omega, rho_ref[:, None], t1[:, None]], axis=1).astype(dtype)
 
     out = _native.advance(carry, ab, consts, table, c.k, n_steps, **how)[:, :n].reshape((-1, *lanes))
-    x, w, U, acc, div, div_at = out[:9], out[9:12], out[12:15], out[15:45], out[45], out[46]
+    div = _native.LIN_DIV
+    x, w, U, acc = out[:9], out[9:12], out[12 : _native.LIN_ACC], out[_native.LIN_ACC : div]
+    div, div_at = out[div], out[div + 1]
     acc = tuple(_metrics.Accumulator(*acc[j::3]) for j in range(3))
     return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
 
