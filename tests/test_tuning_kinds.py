@@ -229,6 +229,7 @@ TANH = fs.Kind(
 )
 
 
+@pytest.mark.slow  # a tune and a simulate of their own (~9 s)
 def test_a_kind_defined_outside_the_package_is_one_registry_line_and_tunes(tmp_path, capsys):
     fs.register(TANH)  # the one line
     try:
