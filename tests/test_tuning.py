@@ -146,6 +146,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert hist["loss"] == hist_full["loss"]
 
 
+@pytest.mark.slow  # three reverse-mode compilations (~17 s on 2 cores)
 def test_truncated_gradient_keeps_values_and_is_exact_beyond_the_horizon():
     """``truncate_every``: the rollout's values are unchanged; a window at least as long as the
     horizon gives the whole horizon's gradient (to rounding); a shorter one another, finite one
