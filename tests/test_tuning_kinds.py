@@ -229,7 +229,7 @@ TANH = fs.Kind(
 )
 
 
-@pytest.mark.slow  # a tune and a simulate of their own (~9 s)
+@pytest.mark.slow  # a tune, a simulate and a front of their own (~15 s)
 def test_a_kind_defined_outside_the_package_is_one_registry_line_and_tunes(tmp_path, capsys):
     fs.register(TANH)  # the one line
     try:
@@ -243,6 +243,10 @@ def test_a_kind_defined_outside_the_package_is_one_registry_line_and_tunes(tmp_p
         # its result goes back into its config keys, as a built-in kind's does
         assert main(["simulate", "--config", path, "--params", str(tmp_path / "out" / "result.json"), "--json"]) == 0
         assert np.isfinite(mean_metrics(capsys)["rms_error"]).all()
+        front = tmp_path / "front"
+        assert main(["front", "--config", path, "--candidates", "16", "--steps", "1", "--out", str(front)]) == 0
+        points = json.loads((front / "front.json").read_text())["points"]
+        assert points and all(set(pt["params"]) == {"k", "eps"} for pt in points)
         with pytest.raises(fj.ConfigError, match="controller.tanh_k: expected 3 positive numbers"):
             _config.resolve({"controller": {"kind": "tanh_smc", "tanh_k": [1.0, -1.0, 1.0]}})
     finally:
