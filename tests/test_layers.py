@@ -79,3 +79,14 @@ def test_studies_use_public_names_only(path):
     if rel in WHITE_BOX:
         return
     assert not private, "\n".join(private)
+
+
+def test_importing_the_package_leaves_matplotlib_alone():
+    """The plots are the application's: importing fosmc_jax (its namespaces included) neither
+    imports matplotlib nor sets its backend for the user."""
+    import subprocess
+    import sys
+
+    code = "import fosmc_jax, fosmc_jax.io, fosmc_jax.config, fosmc_jax.search, sys; print('matplotlib' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "False"
