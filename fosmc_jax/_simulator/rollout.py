@@ -531,14 +531,6 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
     return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
 
 
-def _vmap_linear(plants, params, reference, X0s, dt, *, switching: str, law: str, **options) -> Result:
-    """``vmap`` of :func:`simulate` over plants x initial states, flattened as the fast path."""
-    ctrl = FOSMC(params, switching, law)
-    one = lambda plant, X0: simulate(plant, ctrl, reference, X0, dt, **options)
-    result = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
-    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), result)
-
-
 def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, **options) -> Result:
     """:func:`_linear_batch` with its time loop in the native kernel where that is built (the
     kernel is the CPU's: on a GPU, or with ``native=False``, the ``lax.scan`` loop runs).
@@ -546,7 +538,12 @@ def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, 
     ``vmap`` of :func:`simulate`, equal to the scan's to rounding: in forward mode they ran
     3.5x faster than the scan's and compiled 6x sooner (benchmarks/results/linear_paths.md)."""
     kernel = native and jax.default_backend() == "cpu" and _native.available()
-    vmap_path = lambda *args: _vmap_linear(*args, **options)
+    switching, law = options["switching"], options["law"]
+    rest = {k: v for k, v in options.items() if k not in ("switching", "law")}
+
+    def vmap_path(plants, params, reference, X0s, dt):  # simulate_batch's own, one realization
+        return simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest)
+
     run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=kernel, **options))
     run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
     return run(plants, controller, reference, X0s, dt)
