@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._controllers import KINDS
+from .._controllers import KINDS, SPACES
 from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
@@ -28,8 +28,7 @@ from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
 from .._plants.arm import PAYLOAD_RANGE, arm_sweep
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
-from .._search import tune as _tuning
-from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, SPACES, WORST_CASE
+from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
 from .._simulator.problem import Problem
 from .._simulator.rollout import INTEGRATORS
 
@@ -584,11 +583,11 @@ GRADIENT_WINDOW = 0.02
 
 
 def tuning_problems(cfg: dict):
-    """(plain, train, p0): the :class:`fosmc_jax._search.tune.Problem` of ``[sim]`` (every result
+    """(plain, train, p0): the :class:`fosmc_jax._simulator.problem.Problem` of ``[sim]`` (every result
     is evaluated on it), the training problem (``tune.train_dt``, ``tune.train_t_final``, the
     scan rematerialised every ``tune.remat_steps``; a digital loop without ``tune.train_dt``
     trains with dt = ``controller.sample_period``), and the config's values of its kind's
-    parameters (``fosmc_jax._search.tune.SPACES[kind].values``: the FOSMC's :class:`Tunable` of
+    parameters (``fosmc_jax._controllers.SPACES[kind].values``: the FOSMC's :class:`Tunable` of
     delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2). The problems' ``base`` is what
     those parameters are fields of: the FOSMC's :class:`FOSMCParams`, or the SMC or
     super-twisting law built with the config's gains."""
@@ -603,7 +602,7 @@ def tuning_problems(cfg: dict):
         # same front, at 0.12-0.14 of the cost on three configs); results are re-evaluated on [sim]
         train_cfg["sim"]["dt"] = cfg["controller"]["sample_period"]
 
-    def problem(c: dict, **options) -> _tuning.Problem:
+    def problem(c: dict, **options) -> Problem:
         b = build(c)
         if space.kind == "fosmc":
             base, make = b.base, b.make
