@@ -4,7 +4,7 @@ Dynamical System", for a 3-DOF direct-drive arm."""
 
 from ._app.certify import certify
 from ._app.commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
-from ._app.config import ConfigError
+from ._app.config import ConfigError, build
 from ._certificate.hitting import Certificate
 from ._controllers.base import ContinuousLaw, ControlLaw, HasSlidingVariable, SampledLoop
 from ._controllers.fosmc import (
@@ -46,10 +46,14 @@ from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._simulator.cache import use_compilation_cache
 from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._simulator.native import available as kernel_available
+from ._simulator.problem import Problem
 from ._simulator.rollout import INTEGRATORS, Result, Trace, simulate, simulate_batch
 from ._simulator.sharding import simulate_sharded, use_all_cores, use_host_devices
 
 __all__ = [
+    # a config (path, preset name, dict) to the batch it describes: problem.simulate(params)
+    "build",
+    "Problem",
     # one function per `fosmc` command: a config in, the command's data out (fosmc_jax._app.commands)
     "run_bounds",
     "run_certify",

@@ -11,7 +11,9 @@ simulator and the tuner take. Errors are one-line :class:`ConfigError`\\ s namin
 
 from ._app.config import (
     GRADIENT_WINDOW,
+    PRESETS,
     ConfigError,
+    as_config,
     box_of,
     build,
     defaults,
@@ -26,7 +28,9 @@ from ._simulator.problem import Problem
 
 __all__ = [
     "GRADIENT_WINDOW",
+    "PRESETS",
     "ConfigError",
+    "as_config",
     "Problem",
     "box_of",
     "build",

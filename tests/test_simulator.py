@@ -477,11 +477,11 @@ def test_divergence_is_flagged_frozen_and_isolated():
     good, bad = (take(batch, i) for i in range(2))
     assert not bool(good.diverged) and np.isinf(float(good.diverged_at))
     assert bool(bad.diverged) and np.isfinite(float(bad.diverged_at))
-    for leaf in jax.tree.leaves(bad.metrics):
-        assert np.all(np.isfinite(leaf))
+    for leaf in jax.tree.leaves(bad.metrics):  # a diverged rollout's metrics cannot pass for a good one's
+        assert np.all(np.isnan(leaf))
     assert_results_equal(good, run(gammas[0]))  # the good rollout is unaffected by its neighbour
 
-    # the flag time and the frozen metrics match the NumPy loop stopped at the first bad sample
+    # the flag time matches the NumPy loop stopped at the first bad sample
     X, X_d, U, s, k_bad, _ = np_simulate(
         paper.A_ROWS,
         paper.B_ROWS,
@@ -497,7 +497,6 @@ def test_divergence_is_flagged_frozen_and_isolated():
     )
     assert k_bad is not None and 0 < k_bad < n
     assert float(bad.diverged_at) == pytest.approx(k_bad * dt, rel=1e-12)
-    assert_metrics_close(bad.metrics, np_metrics(X, X_d, U, n * dt, dt), rtol=1e-9)
 
 
 def test_huge_step_diverges_to_nonfinite_and_is_flagged():
@@ -514,7 +513,7 @@ def test_huge_step_diverges_to_nonfinite_and_is_flagged():
     )
     assert bool(res.diverged) and np.isfinite(float(res.diverged_at)) and float(res.diverged_at) > 0
     for leaf in jax.tree.leaves(res.metrics):
-        assert np.all(np.isfinite(leaf))
+        assert np.all(np.isnan(leaf))
     assert np.all(np.isfinite(np.asarray(res.trace.X)))  # frozen at the last finite state
 
 

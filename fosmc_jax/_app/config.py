@@ -47,6 +47,8 @@ BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
+#: The configs that ship with the package, by name (``build("realistic_arm")``).
+PRESETS = {path.stem: path for path in sorted((Path(__file__).parent / "presets").glob("*.toml"))}
 
 
 def defaults() -> dict[str, Any]:
@@ -373,9 +375,13 @@ def resolve(user: dict | None = None) -> dict[str, Any]:
 
 
 def load(path: str | Path | None) -> dict[str, Any]:
-    """Read and :func:`resolve` a TOML file (``None``: the defaults)."""
+    """Read and :func:`resolve` a TOML file, or a preset's by its name (:data:`PRESETS`, e.g.
+    ``"realistic_arm"``; a file of that name in the working folder comes first); ``None``: the
+    defaults."""
     if path is None:
         return resolve({})
+    if isinstance(path, str) and path in PRESETS and not Path(path).exists():
+        path = PRESETS[path]
     path = Path(path)
     try:
         text = path.read_text()
@@ -492,16 +498,6 @@ def controller_of(cfg: dict, dtype, gamma=None) -> FOSMCParams:
     )
 
 
-def controller_factory(cfg: dict, dtype) -> Callable[[FOSMCParams], Any]:
-    """FOSMC parameters -> the controller of the config's loop: for ``controller.kind =
-    "fosmc"``, the parameters themselves (the paper's ideal loop, ``sample_period = 0``) or a
-    :class:`DigitalLoop` around a :class:`DiscreteFOSMC` with the config's sensors, delay and
-    actuator; for ``smc`` and ``super_twisting`` the same around their laws (which take C and
-    the nominal rows from the parameters, and their gains from the config)."""
-    law, loop = _law_and_loop(cfg, dtype)
-    return lambda params: loop(law(params))
-
-
 def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[FOSMCParams], Any], Callable[[Any], Any]]:
     """(law, loop): FOSMC parameters -> the config's kind of law with the config's gains,
     sampled with period T (T = 0: the ideal loop's); a law -> the controller of the config's
@@ -541,20 +537,44 @@ def n_steps(cfg: dict) -> int:
     return max(1, round(cfg["sim"]["t_final"] / cfg["sim"]["dt"]))
 
 
-def build(cfg: dict) -> Problem:
-    """Simulator inputs for a resolved config, in its ``sim.precision``.
+def as_config(config: str | Path | dict | None) -> dict[str, Any]:
+    """The resolved config of a TOML path, a preset's name (:data:`PRESETS`), a user dict
+    (validated, defaults filled in; NumPy and JAX arrays welcome where lists are), a resolved
+    config (checked again, returned as a copy), or ``None`` (the paper's defaults)."""
+    if config is None or isinstance(config, (str, Path)):
+        return load(config)
+    if isinstance(config, dict):
+        return resolve(config)
+    raise ConfigError(f"config: expected a TOML path, a preset name ({', '.join(PRESETS)}), a dict or None, "
+                      f"got {type(config).__name__}")  # fmt: skip
+
+
+def build(config: str | Path | dict | None = None) -> Problem:
+    """The simulation a config describes (a TOML path, a preset's name such as
+    ``"realistic_arm"``, a dict, or ``None``: the paper's defaults; see :func:`as_config`), as a
+    :class:`fosmc_jax.Problem` in the config's ``sim.precision``: ``problem.simulate(params)``
+    runs its batch.
 
     The plants are the linear model's uncertainty realizations (``kind = "linear"``) or one arm
     per payload (``kind = "arm"``). The initial states are X_d(0) + each ``sim.initial_offset``;
     the batch is every plant crossed with every initial state, crossed with every noise
-    realization of a digital loop (in that order).
+    realization of a digital loop (in that order). The problem's ``base`` holds the kind's
+    parameters: the FOSMC's :class:`FOSMCParams`, or the SMC's or super-twisting's law with
+    the config's gains.
+
+    ``sim.precision = "float64"`` (the default) needs JAX's 64-bit mode, which only the user
+    may switch on (it changes every array of the process):
+    ``jax.config.update("jax_enable_x64", True)`` first, or ``with jax.enable_x64(True):``
+    around the script, or ``[sim] precision = "float32"``.
     """
+    cfg = as_config(config)
+    if cfg["sim"]["precision"] == "float64" and not jax.config.jax_enable_x64:
+        raise ConfigError('sim.precision: "float64" needs JAX\'s 64-bit mode: call jax.config.update('
+                          '"jax_enable_x64", True) before building, or set [sim] precision = "float32"')  # fmt: skip
     dtype = jnp.dtype(cfg["sim"]["precision"])
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
     ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
     reference = reference_of(cfg, dtype)
-    params = controller_of(cfg, dtype)
-    make = controller_factory(cfg, dtype)
     if plant["kind"] == "arm":
         plants = arm_sweep(cast(plant["payloads"]))
     else:
@@ -574,7 +594,13 @@ def build(cfg: dict) -> Problem:
         "divergence_bound": cfg["sim"]["divergence_bound"],
     }
     dt = jnp.asarray(cfg["sim"]["dt"], dtype)
-    return Problem(plants, params, reference, X0s, dt, options, keys_of(cfg), make)
+    params = controller_of(cfg, dtype)
+    law, loop = _law_and_loop(cfg, dtype)
+    if ctl["kind"] == "fosmc":
+        base, make = params, lambda params: loop(law(params))
+    else:  # the kind's parameters are fields of its law
+        base, make = law(params), loop
+    return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), make, ctl["kind"])
 
 
 #: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:
@@ -604,13 +630,7 @@ def tuning_problems(cfg: dict):
 
     def problem(c: dict, **options) -> Problem:
         b = build(c)
-        if space.kind == "fosmc":
-            base, make = b.base, b.make
-        else:
-            law, loop = _law_and_loop(c, b.dt.dtype)
-            base, make = law(b.base), loop
-        opts = dict(b.options, save_every=0, **options)
-        return Problem(b.plants, base, b.reference, b.X0s, b.dt, opts, b.keys, make)
+        return b._replace(options=dict(b.options, save_every=0, **options))
 
     plain = problem(cfg)
     # the gradient follows the loop over windows of tune.gradient_window (truncate_every): over the

@@ -231,14 +231,20 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     fields = out[METRICS].reshape(_native.ACC, 3, N)
     acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))
     acc = acc._replace(count=acc.count[:, :1])
-    metrics = _metrics.finish(acc, n_steps * dt)
-    return Result(metrics, out[DIVERGED] != 0, out[DIVERGED_AT], None)
+    diverged = out[DIVERGED] != 0
+    return Result(_metrics.masked(_metrics.finish(acc, n_steps * dt), diverged), diverged, out[DIVERGED_AT], None)
 
 
-def simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **options) -> Result:  # noqa: F821
-    """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold); derivatives are
-    those of ``vmap_path(plants, ctrl, reference, X0s, dt)``, the ``vmap`` of ``simulate``."""
-    native = {k: options[k] for k in ("n_steps", "integrator", "divergence_bound", "chattering_cutoff")}
-    run = jax.custom_jvp(functools.partial(_native_batch, **native))
+def simulate_batch(args: tuple, vmap_path, *, n_steps: int, integrator: str) -> Result:  # noqa: F821
+    """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold) for ``args`` =
+    (plants, ctrl, reference, X0s, dt, keys, divergence_bound, chattering_cutoff); the loop
+    draws no noise, so ``keys`` only reach the derivatives, which are those of
+    ``vmap_path(*args)``, the ``vmap`` of ``simulate``."""
+
+    def kernel(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
+        return _native_batch(plants, ctrl, reference, X0s, dt, n_steps=n_steps, integrator=integrator,
+                             divergence_bound=bound, chattering_cutoff=cutoff)  # fmt: skip
+
+    run = jax.custom_jvp(kernel)
     run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
-    return run(plants, ctrl, reference, X0s, dt)
+    return run(*args)

@@ -139,6 +139,15 @@ def finish(acc: Accumulator, t_final: Array) -> Metrics:
     )
 
 
+def masked(metrics: Metrics, diverged: Array) -> Metrics:
+    """``metrics`` with NaN wherever the rollout diverged (``diverged``: bool, the metrics'
+    leading shape): a diverged rollout's sums stop at its divergence and would pass for a good
+    rollout's (a NaN initial state diverges at t = 0 with every sum 0). Derivatives through the
+    NaN entries are 0."""
+    d = jnp.asarray(diverged)
+    return Metrics(*(jnp.where(d.reshape(d.shape + (1,) * (jnp.ndim(m) - d.ndim)), jnp.nan, m) for m in metrics))
+
+
 def mean_over_survivors(x: Array, diverged: Array) -> Array:
     """Mean of ``x`` (B, ...) over the rollouts (leading axis) that did not diverge
     (``diverged`` (B,) bool); NaN where all did. A diverged rollout's metrics are partial sums
@@ -151,13 +160,21 @@ def mean_over_survivors(x: Array, diverged: Array) -> Array:
     return xp.where(xp.any(ok), mean, xp.nan)
 
 
+#: The percentiles :func:`batch_summary` gives.
+PERCENTILES = (5, 50, 95)
+
+
 def batch_summary(metrics: Metrics, diverged) -> dict:
-    """Mean and worst (max) of each metric over the rollouts of a batch that did not diverge
-    (leading batch axis), with the number excluded. NumPy, for reports."""
-    ok = ~np.asarray(diverged, dtype=bool)
+    """Mean, worst (max) and :data:`PERCENTILES` of each metric per joint over the rollouts of a
+    batch that did not diverge (leading batch axis), with the number excluded. NumPy, for
+    reports."""
+    ok = ~np.asarray(diverged, dtype=bool).reshape(-1)
     out = {"rollouts": int(ok.size), "diverged_excluded": int((~ok).sum()), "mean": {}, "max": {}}
+    out.update({f"p{q}": {} for q in PERCENTILES})
     for name in METRIC_NAMES:
-        v = np.asarray(getattr(metrics, name))
+        v = np.asarray(getattr(metrics, name)).reshape(ok.size, -1)
         out["mean"][name] = np.asarray(mean_over_survivors(v, ~ok)).tolist()
-        out["max"][name] = v[ok].max(axis=0).tolist() if ok.any() else [float("nan")] * 3
+        out["max"][name] = v[ok].max(axis=0).tolist() if ok.any() else [float("nan")] * v.shape[1]
+        for q in PERCENTILES:
+            out[f"p{q}"][name] = np.percentile(v[ok], q, axis=0).tolist() if ok.any() else [float("nan")] * v.shape[1]
     return out

@@ -1,22 +1,36 @@
-"""A batch to simulate with parameters: what a config describes (``fosmc_jax.config.build``)
-and what the tuner and the front search (``fosmc_jax.config.tuning_problems``), one class."""
+"""A batch to simulate with parameters: what a config describes (:func:`fosmc_jax.build`),
+and what the tuner and the front search run (``fosmc_jax.config.tuning_problems``), one class."""
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
+import jax.numpy as jnp
+import numpy as np
+
+from .._controllers.kind import SPACES
 from .rollout import simulate_batch
 from .sharding import simulate_split
 
 
 class Problem(NamedTuple):
-    """The batch (plants with a leading axis P, initial states X0s (O, 9), noise ``keys``
-    (R, 2) of a digital loop or None), the reference, the step ``dt``, ``simulate_batch``'s
-    ``options``, and the controller's fixed parts: ``base``, whose fields the parameters
-    replace (the FOSMC's :class:`fosmc_jax.FOSMCParams`, or another kind's law), and ``make``,
-    base -> the controller of the loop (None: ``base`` itself)."""
+    """A config's batch: the plants (leading axis P), the initial states ``X0s`` (O, 9), the
+    noise ``keys`` (R, 2) of a digital loop (None: the ideal loop), the reference, the step
+    ``dt``, :func:`fosmc_jax.simulate_batch`'s ``options``, and the controller's fixed parts:
+    ``base``, the object whose fields the ``kind``'s tunable parameters are (the FOSMC's
+    :class:`fosmc_jax.FOSMCParams`; another kind's law), and ``make``, base -> the controller
+    of the loop (None: ``base`` itself).
+
+    ``problem.simulate(params)`` runs the batch with the kind's parameters replaced; it is a
+    pure function of ``params``, so ``jax.jit``, ``jax.grad`` and ``jax.vmap`` of a function
+    that calls it work (close over the problem, differentiate the parameters)::
+
+        problem = fosmc_jax.build("realistic_arm")
+        loss = lambda delta: problem.simulate({"delta": delta}).mean().rms_error.mean()
+        jax.grad(loss)(problem.params()["delta"])
+    """
 
     plants: Any
     base: Any
@@ -26,16 +40,22 @@ class Problem(NamedTuple):
     options: dict
     keys: Any = None
     make: Callable[[Any], Any] | None = None
+    kind: str = "fosmc"
+
+    def params(self) -> dict:
+        """The kind's tunable parameters as the problem holds them, by the names ``result.json``
+        and ``front.json`` use (the FOSMC's ``delta``, ``gamma``, ``poles``)."""
+        return {name: getattr(self.base, name) for name in SPACES[self.kind].names}
 
     def controller(self, p: Any = None) -> Any:
-        """The controller simulated with parameters ``p`` (a NamedTuple: ``base``'s fields of
-        those names replaced; None: ``base`` as it is)."""
+        """The controller simulated with parameters ``p``: a dict by the kind's parameter names
+        (a subset: the others stay), the kind's ``Space.values`` NamedTuple, or None (``base``
+        as it is). Names, shapes and, where the values are concrete, finiteness are checked
+        here; the simulator checks the rest (signs, ranges)."""
         params = self.base
         if p is not None:
-            if dataclasses.is_dataclass(params):  # a kind's law (SMC, super-twisting, ...)
-                params = dataclasses.replace(params, **p._asdict())
-            else:
-                params = params._replace(**p._asdict())
+            new = _checked(self.kind, self.base, p if isinstance(p, Mapping) else p._asdict())
+            params = dataclasses.replace(params, **new) if dataclasses.is_dataclass(params) else params._replace(**new)
         return params if self.make is None else self.make(params)
 
     @property
@@ -43,12 +63,62 @@ class Problem(NamedTuple):
         """``simulate_batch``'s positional arguments with the base parameters."""
         return self.plants, self.controller(), self.reference, self.X0s, self.dt
 
-    def simulate(self, p: Any = None, split: bool = False, **options):
-        """The batch's rollouts with parameters ``p`` (None: the base ones); ``split``: over
-        this process's devices (:func:`fosmc_jax._simulator.sharding.simulate_split`, the
-        tuner's loss). ``options`` override the problem's."""
+    @property
+    def rollouts(self) -> int:
+        """The batch's size: plants x offsets (paired: plants) x noise realizations."""
+        P = _leading(self.plants)
+        R = 1 if self.keys is None else self.keys.shape[0]
+        return P * R if self.options.get("pairing") == "paired" else P * self.X0s.shape[0] * R
+
+    def simulate(self, params: Any = None, split: bool = False, **options):
+        """The batch's :class:`fosmc_jax.Result` (leading axis: the rollouts, in plant, offset,
+        realization order) with ``params`` (see :meth:`controller`; None: the problem's own);
+        ``split``: over this process's devices (:func:`fosmc_jax._simulator.sharding.simulate_split`,
+        the tuner's loss). ``options`` override the problem's ``simulate_batch`` options."""
         run = simulate_split if split else simulate_batch
-        ctrl = self.controller(p)
+        ctrl = self.controller(params)
         return run(
             self.plants, ctrl, self.reference, self.X0s, self.dt, keys=self.keys, **dict(self.options, **options)
         )
+
+
+def _leading(tree) -> int:
+    import jax
+
+    return jax.tree.leaves(tree)[0].shape[0]
+
+
+def _checked(kind: str, base: Any, p: Mapping) -> dict:
+    """``p``'s entries as arrays of ``base``'s dtype and shape, named by the kind's parameters;
+    one-line ``ValueError``s naming the entry otherwise."""
+    space = SPACES[kind]
+    unknown = sorted(set(p) - set(space.names))
+    if unknown:
+        raise ValueError(f"params: unknown name(s) {', '.join(map(repr, unknown))} for controller kind '{kind}' "
+                         f"(its parameters: {', '.join(space.names)})")  # fmt: skip
+    out = {}
+    for param in space.params:
+        if param.name not in p:
+            continue
+        old = getattr(base, param.name)
+        value = p[param.name]
+        try:
+            value = jnp.asarray(value, jnp.result_type(old))
+        except TypeError:
+            raise ValueError(f"params.{param.name}: expected numbers, got {type(value).__name__}") from None
+        if value.shape != old.shape:
+            raise ValueError(f"params.{param.name}: expected shape {old.shape}, got {value.shape}")
+        concrete = _concrete(value)
+        if concrete is not None and not np.all(np.isfinite(concrete)):
+            raise ValueError(f"params.{param.name}: expected finite numbers, got {concrete.tolist()}")
+        out[param.name] = value
+    return out
+
+
+def _concrete(x) -> np.ndarray | None:
+    """``x``'s values where they are known now (not under ``jit``, ``grad`` or ``vmap``)."""
+    import jax
+
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x)

@@ -59,12 +59,33 @@ class Trace(NamedTuple):
 
 
 class Result(NamedTuple):
-    """One rollout's outcome (leading batch axes when vmapped)."""
+    """One rollout's outcome (a leading batch axis from :func:`simulate_batch`). A diverged
+    rollout's ``metrics`` are NaN (its ``diverged`` flag and ``diverged_at`` say when); means
+    over a batch leave it out: :meth:`mean`, :meth:`summary`."""
 
     metrics: _metrics.Metrics
     diverged: Array  # bool
     diverged_at: Array  # time (s) of the first bad step, +inf if none
     trace: Trace | None
+
+    def mean(self) -> _metrics.Metrics:
+        """Each metric's mean over the rollouts that did not diverge, per joint ((3,) each;
+        NaN where all diverged); traceable, for losses: ``res.mean().rms_error.mean()``.
+        ``res.survivors`` counts the rollouts it averages."""
+        diverged = jnp.reshape(self.diverged, (-1,))
+        return _metrics.Metrics(*(_metrics.mean_over_survivors(jnp.reshape(m, (-1, 3)), diverged)
+                                  for m in self.metrics))  # fmt: skip
+
+    @property
+    def survivors(self) -> Array:
+        """The number of rollouts that did not diverge."""
+        return jnp.sum(~jnp.asarray(self.diverged, bool))
+
+    def summary(self) -> dict:
+        """Over the rollouts that did not diverge, per metric and joint: the mean, the max and
+        the 5th, 50th and 95th percentiles, with the number left out (NumPy, for reports; what
+        ``fosmc simulate`` prints)."""
+        return _metrics.batch_summary(self.metrics, jnp.reshape(self.diverged, (-1,)))
 
 
 #: The carries' fields through which a state's derivative flows to the next step (``truncate_every``).
@@ -319,7 +340,7 @@ def simulate(
         detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in _DYNAMIC})
         carry = _in_blocks(advance, carry, n_steps, detach, whole(checkpoint_every), whole(truncate_every))
 
-    metrics = _metrics.finish(carry.acc, n_steps * dt)
+    metrics = _metrics.masked(_metrics.finish(carry.acc, n_steps * dt), carry.diverged)
     return Result(metrics, carry.diverged, carry.diverged_at, trace)
 
 
@@ -490,7 +511,8 @@ def _linear_batch(
     acc = acc._replace(count=carry.acc[0].count[..., None])
     metrics = _metrics.finish(acc, n_steps * dt)
     flat = lambda a: a.reshape((P * O,) + a.shape[len(lanes) :])
-    return Result(jax.tree.map(flat, metrics), flat(carry.diverged), flat(carry.diverged_at), None)
+    diverged = flat(carry.diverged)
+    return Result(_metrics.masked(jax.tree.map(flat, metrics), diverged), diverged, flat(carry.diverged_at), None)
 
 
 def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **how) -> _Batch:
@@ -539,14 +561,21 @@ def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, 
     3.5x faster than the scan's and compiled 6x sooner (benchmarks/results/linear_paths.md)."""
     kernel = native and jax.default_backend() == "cpu" and _native.available()
     switching, law = options["switching"], options["law"]
-    rest = {k: v for k, v in options.items() if k not in ("switching", "law")}
+    # the traced options are arguments: closed over, they would leak from the custom_jvp rule
+    names = [k for k in ("divergence_bound", "chattering_cutoff") if k in options]
+    static = {k: v for k, v in options.items() if k not in names}
+    rest = {k: v for k, v in static.items() if k not in ("switching", "law")}
 
-    def vmap_path(plants, params, reference, X0s, dt):  # simulate_batch's own, one realization
-        return simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest)
+    def vmap_path(plants, params, reference, X0s, dt, *traced):  # simulate_batch's own, one realization
+        return simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest,
+                              **dict(zip(names, traced)))  # fmt: skip
 
-    run = jax.custom_jvp(lambda *args: _linear_batch(*args, native=kernel, **options))
+    def scan_path(plants, params, reference, X0s, dt, *traced):
+        return _linear_batch(plants, params, reference, X0s, dt, native=kernel, **static, **dict(zip(names, traced)))
+
+    run = jax.custom_jvp(scan_path)
     run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
-    return run(plants, controller, reference, X0s, dt)
+    return run(plants, controller, reference, X0s, dt, *(jnp.asarray(options[k], X0s.dtype) for k in names))
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC + ("fast", "native"))
@@ -589,25 +618,19 @@ def simulate_batch(
     key = options.pop("key", None)
     if keys is None:
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
+    # traced options are vmap_path's arguments: closed over, they would leak from the custom_jvp rules
+    traced = (options.pop("divergence_bound", 1e6), options.pop("chattering_cutoff", _metrics.CHATTERING_CUTOFF))
 
-    def vmap_path(plants, ctrl, reference, X0s, dt):
-        one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, **options)
+    def vmap_path(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
+        one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, divergence_bound=bound,
+                                              chattering_cutoff=cutoff, **options)  # fmt: skip
         batched = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))
         result = batched(plants, X0s, keys)
         return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
 
     options.setdefault("integrator", "rk4")
+    args = (plants, ctrl, reference, X0s, dt, keys, *(jnp.asarray(x, X0s.dtype) for x in traced))
     arm_fast = fast and native and keys.shape[0] == 1 and not options.get("save_every")
     if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
-        return _arm_native.simulate_batch(plants, ctrl, reference, X0s, dt, vmap_path, **_native_options(options))
-    return vmap_path(plants, ctrl, reference, X0s, dt)
-
-
-def _native_options(options: dict) -> dict:
-    """simulate's options that the arm's kernel reads, with simulate's defaults."""
-    return dict(
-        n_steps=options["n_steps"],
-        integrator=options["integrator"],
-        divergence_bound=options.get("divergence_bound", 1e6),
-        chattering_cutoff=options.get("chattering_cutoff", _metrics.CHATTERING_CUTOFF),
-    )
+        return _arm_native.simulate_batch(args, vmap_path, n_steps=options["n_steps"], integrator=options["integrator"])
+    return vmap_path(*args)
