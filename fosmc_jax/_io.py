@@ -1,7 +1,9 @@
-"""Atomic file output: nothing the package writes is ever left half-written."""
+"""Atomic file output: nothing the package writes is ever left half-written; every result file
+carries the versions that produced it (:func:`versions`)."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import tempfile
@@ -10,6 +12,35 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+#: Version of the metric definitions in ``fosmc_jax/_simulator/metrics.py`` and docs/metrics.md,
+#: raised with every change to what a metric means (CHANGELOG.md): 1, before issue 22: ``chattering_hf``
+#: from the held samples (it lost about 1 - exp(-2 pi f_c dt) of each jump); 2, issue 22:
+#: ``chattering_hf`` the exact integral of the held control through the low-pass; 3, issue 24: a
+#: diverged rollout's metrics are NaN (null in JSON). Files without it predate versioning (1 or 2).
+METRICS_VERSION = 3
+#: The key under which every result file holds :func:`versions`.
+VERSIONS_KEY = "fosmc_jax"
+
+
+def versions() -> dict[str, Any]:
+    """``{"version": fosmc_jax.__version__, "metrics_version": METRICS_VERSION}``: what every
+    file the package writes carries under :data:`VERSIONS_KEY` (:func:`stamped`,
+    :func:`stamped_arrays`)."""
+    from fosmc_jax import __version__  # the package's face defines it; loaded before any result exists
+
+    return {"version": __version__, "metrics_version": METRICS_VERSION}
+
+
+def stamped(result: dict[str, Any]) -> dict[str, Any]:
+    """``result`` with :func:`versions` under :data:`VERSIONS_KEY`, first (a JSON file's head)."""
+    return {VERSIONS_KEY: versions(), **{k: v for k, v in result.items() if k != VERSIONS_KEY}}
+
+
+def stamped_arrays(arrays: dict[str, Any]) -> dict[str, Any]:
+    """Arrays for ``np.savez`` with :func:`versions` as the JSON text of a 0-d string array
+    under :data:`VERSIONS_KEY` (read back with ``json.loads(z["fosmc_jax"].item())``; no pickle)."""
+    return {VERSIONS_KEY: np.array(json.dumps(versions())), **{k: v for k, v in arrays.items() if k != VERSIONS_KEY}}
 
 
 def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:

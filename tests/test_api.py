@@ -105,7 +105,8 @@ def test_tune_equals_cli_result_json(capsys, toml, tmp_path):
     assert as_json(r) == written
     assert r["start"]["global_candidates"] == 4 and len(r["history"]["loss"]) == 2
     # the printed lines come from the same result
-    assert out.splitlines()[0].startswith("rms_error    initial " + f"{r['initial']['metrics']['rms_error'][0]:.4e}")
+    first = out.splitlines()[0]
+    assert first.startswith("rms_error (rad)") and f"initial {r['initial']['metrics']['rms_error'][0]:.4e}" in first
 
 
 @pytest.mark.slow  # two front studies (~20 s on 2 cores)
@@ -172,5 +173,5 @@ def test_bad_input_raises_the_clis_one_line_error(capsys, tmp_path, argv, call):
 
 
 def test_config_of_refuses_other_types():
-    with pytest.raises(fj.ConfigError, match="config: expected a TOML path, a dict or None, got int"):
+    with pytest.raises(fj.ConfigError, match="config: expected a TOML path, a preset name .*, a dict or None, got int"):
         fj.run_bounds(42)

@@ -60,7 +60,7 @@ def test_simulate_npz_holds_the_json_values(capsys, tmp_path):
     assert code == 0 and "batch of 4" in out and "rollout" not in out.splitlines()[0]  # the summary only
     a, b = np.load(both), np.load(alone)
     assert sorted(a) == sorted(b) == sorted([*METRIC_NAMES, "diverged", "diverged_at", "plant_index",
-                                             "offset_index", "realization_index"])  # fmt: skip
+                                             "offset_index", "realization_index", "fosmc_jax"])  # fmt: skip
     for k in a:
         assert a[k].dtype == b[k].dtype and np.array_equal(a[k], b[k]), k
     assert a["rms_error"].dtype == np.float32 and a["rms_error"].shape == (4, 3)

@@ -81,7 +81,7 @@ def test_tune_killed_with_sigkill_resumes_to_the_uninterrupted_result(tmp_path, 
     deadline = time.monotonic() + 240
     try:
         for line in proc.stderr:  # progress lines; kill mid-run, after some checkpoints
-            if line.startswith("step    4/") or time.monotonic() > deadline:
+            if line.startswith("tune: step    4/") or time.monotonic() > deadline:
                 break
         os.kill(proc.pid, signal.SIGKILL)
     finally:

@@ -135,7 +135,7 @@ def test_resume_equals_uninterrupted(tmp_path):
         pass
 
     def killer(msg):
-        if msg.startswith("step    5/"):
+        if msg.startswith("tune: step    5/"):
             raise Killed  # dies after step 5 is logged: the last checkpoint is at step 4
 
     with pytest.raises(Killed):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import functools
 import json
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -36,8 +37,8 @@ import numpy as np
 
 from .._design import paper as _paper
 from .._design.gains import summarize
-from .._io import jsonable, write_text
-from .._simulator.metrics import METRIC_NAMES, batch_summary
+from .._io import jsonable, stamped, write_text
+from .._simulator.metrics import METRIC_NAMES, UNITS, batch_summary
 from .._simulator.rollout import simulate_batch
 from . import config as _config
 from .config import ConfigError
@@ -62,13 +63,9 @@ def _with_x64(f):
 
 
 def config_of(config: Config) -> dict[str, Any]:
-    """The resolved config of a TOML path, a user dict (validated, defaults filled in), a
-    resolved config (returned as a copy), or ``None`` (the paper's defaults)."""
-    if config is None or isinstance(config, (str, Path)):
-        return _config.load(config)
-    if isinstance(config, dict):
-        return _config.resolve(config)
-    raise ConfigError(f"config: expected a TOML path, a dict or None, got {type(config).__name__}")
+    """The resolved config (:func:`fosmc_jax._app.config.as_config`: a TOML path, a preset's
+    name, a user dict, a resolved config, or ``None`` for the paper's defaults)."""
+    return _config.as_config(config)
 
 
 def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
@@ -110,11 +107,12 @@ def run_simulate(
     ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
     it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
 
-    Returns ``{"rollouts": [{"plant_index", "offset_index", "realization_index", "metrics":
-    {name: (3,)}, "diverged", "diverged_at"}, ...], "summary": batch_summary, "config":
-    resolved config}``: what ``--json`` prints. With ``records=False``, ``"arrays"`` instead of
-    ``"rollouts"``: the same fields as NumPy arrays over the rollouts (what ``--npz`` writes,
-    and ``--json`` prints as records; no Python object per rollout).
+    Returns ``{"fosmc_jax": {"version", "metrics_version"}, "rollouts": [{"plant_index",
+    "offset_index", "realization_index", "metrics": {name: (3,)}, "diverged", "diverged_at"},
+    ...], "summary": batch_summary, "config": resolved config}``: what ``--json`` prints. With
+    ``records=False``, ``"arrays"`` instead of ``"rollouts"``: the same fields as NumPy arrays
+    over the rollouts (what ``--npz`` writes, with the versions, and ``--json`` prints as
+    records; no Python object per rollout).
     """
     cfg = config_of(config)
     devices = jax.local_device_count() if devices is None else devices
@@ -152,10 +150,10 @@ def run_simulate(
                   realization_index=r % n_real)  # fmt: skip
     summary = batch_summary(result.metrics, result.diverged)
     if not records:
-        out = {"arrays": arrays, "summary": summary, "config": cfg}
+        out = stamped({"arrays": arrays, "summary": summary, "config": cfg})
         return dict(out, trace=result.trace) if keep_trace else out
     rollouts = list(rollout_records(arrays))
-    out = {"rollouts": rollouts, "summary": summary, "config": cfg}
+    out = stamped({"rollouts": rollouts, "summary": summary, "config": cfg})
     if keep_trace:
         out["trace"] = result.trace
     return out
@@ -349,6 +347,48 @@ def run_certify(
 # ---------------------------------------------------------------------------- tune
 
 
+def one_plant(cfg: dict) -> str | None:
+    """What the one plant of a resolved config's batch is, or None where the batch holds several.
+
+    One plant: ``plant.kind = "linear"`` with ``plant.uncertainty = "none"`` (the nominal model,
+    the default config's) or ``"fixed"`` (the model plus ``plant.dA_rows``, ``plant.dB_rows``),
+    or ``"sample"`` / ``"vertices"`` with ``plant.samples = 1`` or a box of zero width;
+    ``plant.kind = "arm"`` with one distinct payload. Initial offsets (``sim.initial_offset``)
+    and noise realizations (``sensors.realizations``) vary the start and the measurements, not
+    the plant, so they do not count."""
+    plant = cfg["plant"]
+    if plant["kind"] == "arm":
+        payloads = sorted(set(plant["payloads"]))
+        return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 else None
+    if plant["uncertainty"] == "none":
+        return "the nominal linear model"
+    if plant["uncertainty"] == "fixed":
+        return "the linear model plus plant.dA_rows, plant.dB_rows"
+    box = plant["box"]
+    flat = all(np.array_equal(box[f"{m}_lower"], box[f"{m}_upper"]) for m in ("A", "B"))
+    return "one plant of the box" if plant["samples"] == 1 or flat else None
+
+
+def metric_label(name: str) -> str:
+    """A metric's name with its unit, and what it is where its name does not say it."""
+    return f"{name} ({UNITS[name]}{', total variation' if name == 'chattering' else ''})"
+
+
+def _warn_one_plant(cfg: dict, command: str) -> None:
+    """``tune`` and ``front`` on a batch of :func:`one_plant`: a UserWarning that what they find
+    holds for that plant only, and which keys add plant uncertainty."""
+    what = one_plant(cfg)
+    if what is not None:
+        warnings.warn(
+            f"{command}: the config's batch holds one plant ({what}) and no plant uncertainty: what {command} "
+            "finds is optimal for that plant only. For an uncertain plant set [plant] uncertainty = 'sample' or "
+            "'vertices' with samples > 1 (plants from [plant.box]) for kind = 'linear', or several [plant] "
+            "payloads for kind = 'arm' (as tuning/configs/realistic_arm.toml does)",
+            UserWarning,
+            stacklevel=4,  # the caller of run_tune / run_front (through _with_x64)
+        )
+
+
 @_with_x64
 def run_tune(
     config: Config = None,
@@ -371,9 +411,12 @@ def run_tune(
     ``steps`` overrides ``tune.steps``. ``out``: folder for ``result.json``, ``tuning.png``
     and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
     parameters); ``resume`` continues from its checkpoint. Returns what
-    ``result.json`` holds: ``{"initial": {"params", "metrics", ...}, "start": {"params",
-    "global_candidates"}, "final": {...}, "objective", "history", "config"}``, ``params`` by
-    the kind's names (e.g. ``{"k": [...], "phi": [...]}``).
+    ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
+    {"params", "metrics", ...}, "start": {"params", "global_candidates"}, "final": {...},
+    "objective", "history", "config"}``, ``params`` by the kind's names (e.g. ``{"k": [...],
+    "phi": [...]}``). On a batch of one plant (:func:`one_plant`: the default config's nominal
+    model) it warns (``UserWarning``) that the optimum holds for that plant only. Its ``log``
+    lines start with ``tune:``; its step lines name the objective's metrics.
     """
     from .._search import tune as T
 
@@ -393,6 +436,7 @@ def run_tune(
                           f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
+    _warn_one_plant(cfg, "tune")
     plain, problem, p0 = _config.tuning_problems(cfg)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -407,6 +451,10 @@ def run_tune(
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     initial = T.evaluate(plain, p0)
     obj = T.objective_of(tcfg, m)
+    log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
+        f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
+        f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
+        f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
     start_params = p0
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
@@ -414,7 +462,7 @@ def run_tune(
         from .._search.front import global_stage
 
         start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
-                                           log=log)  # fmt: skip
+                                           log=log, command="tune")  # fmt: skip
         log(f"tune: global stage: the best of {tcfg['global_candidates']} candidates scores {score:.4f} "
             "(the config's parameters score about 0 with the log scale)")  # fmt: skip
     try:
@@ -425,11 +473,13 @@ def run_tune(
     settings = T.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
                           tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
     start = time.perf_counter()
-    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume, log=log)
+    terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
+    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
+                       terms=terms, log=log)  # fmt: skip
     final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
-    result = {
+    result = stamped({
         "initial": {"params": as_dict(p0), **initial},
         "start": {
             "params": as_dict(start_params),
@@ -439,7 +489,7 @@ def run_tune(
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg,
-    }
+    })  # fmt: skip
     if out is not None:
         from .plots import plot_tuning
 
@@ -482,11 +532,12 @@ def run_front(
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
     this call).
 
-    Returns what ``front.json`` holds: ``{"axes", "points": [{params, metrics, held_out,
-    diverged}], "stages", "references", "held_out_batch", "config"}``, ``params`` by the
-    kind's names, ``references`` the paper's FOSMC (Table 1's sets, SGN) whatever the kind.
-    With ``candidates`` and ``steps`` given the result is deterministic except
-    ``stages.wall_time_s``.
+    Returns what ``front.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"},
+    "axes", "points": [{params, metrics, held_out, diverged}], "stages", "references",
+    "held_out_batch", "config"}``, ``params`` by the kind's names, ``references`` the paper's
+    FOSMC (Table 1's sets, SGN) whatever the kind. With ``candidates`` and ``steps`` given the
+    result is deterministic except ``stages.wall_time_s``. On a batch of one plant
+    (:func:`one_plant`) it warns as ``run_tune`` does. Its ``log`` lines start with ``front:``.
     """
     from .._search import front as F
     from . import study
@@ -505,6 +556,7 @@ def run_front(
             json.loads(Path(path).read_text())
         except (OSError, ValueError) as e:
             raise ConfigError(f"--compare: cannot read {path}: {e}") from None
+    _warn_one_plant(cfg, "front")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)

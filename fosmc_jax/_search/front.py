@@ -53,6 +53,7 @@ import numpy as np
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as Spec
 
+from .._io import stamped
 from .._simulator.metrics import METRIC_NAMES, mean_over_survivors
 from . import tune as T
 from .pareto import nondominated
@@ -198,11 +199,11 @@ class Evaluator:
         return self._run
 
     def __call__(self, params: T.Params, chunk: int, log: Callable[[str], None] = print, what: str = "evaluating",
-                 deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+                 deadline: float | None = None, command: str = "front") -> dict[str, np.ndarray]:  # fmt: skip
         """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
         {metric: (n, 3)} and ``diverged`` (n,) counts, in chunks of ``chunk``; with a
         ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
-        passes (one at least)."""
+        passes (one at least). Progress lines ``{command}: {what} i/n`` go to ``log``."""
         n = jax.tree.leaves(params)[0].shape[0]
         run, devices = self.compiled(), self.devices
         padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
@@ -217,7 +218,7 @@ class Evaluator:
             parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
             now = time.perf_counter()
             if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
-                log(f"front: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
+                log(f"{command}: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
                 shown = now
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
@@ -228,22 +229,24 @@ def evaluator(problem: T.Problem | Evaluator) -> Evaluator:
 
 
 def evaluate_many(problem: T.Problem | Evaluator, params: T.Params, chunk: int, log: Callable[[str], None] = print,
-                  what: str = "evaluating", deadline: float | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+                  what: str = "evaluating", deadline: float | None = None, command: str = "front"
+                  ) -> dict[str, np.ndarray]:  # fmt: skip
     """:class:`Evaluator`'s call: a problem is compiled afresh for this call, an evaluator reuses
     its compilation."""
-    return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline)
+    return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline, command=command)
 
 
 def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
-                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print
+                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print, command: str = "tune"
                  ) -> tuple[T.Params, float]:  # fmt: skip
     """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
     (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
-    by ``obj`` on their batch-mean metrics; returns the best and its score."""
+    by ``obj`` on their batch-mean metrics; returns the best and its score. Its progress lines
+    start with ``command``."""
     cands = sample_candidates(p0, n, seed)
     free = p0._fields if free is None else free
     cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
-    m = evaluate_many(problem, cands, chunk, log=log, what="global stage")
+    m = evaluate_many(problem, cands, chunk, log=log, what="global stage", command=command)
     means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
     J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
     best = int(np.nanargmin(J))
@@ -347,9 +350,10 @@ def run(
     """Find the front (see module docstring). With sizes from the budget (``settings.candidates``
     or ``settings.steps`` 0) the run returns by ``deadline`` (a ``time.perf_counter()`` value;
     None: ``settings.budget`` from now), leaving ``reserve_per_point`` seconds per front point
-    for what follows (the caller's held-out evaluation). Returns {"points": [...], "stages":
-    {...}} with every point's parameters, plain mean metrics and diverged count; non-dominated
-    only, sorted by chattering. The search space is that of ``p0``'s controller kind
+    for what follows (the caller's held-out evaluation). Returns {"fosmc_jax": versions, "axes",
+    "points": [...], "stages": {...}} (``fosmc_jax._io.stamped``: front.json's head) with every
+    point's parameters, plain mean metrics and diverged count; non-dominated only, sorted by
+    chattering. The search space is that of ``p0``'s controller kind
     (:func:`fosmc_jax._search.tune.space_of`)."""
     t0 = time.perf_counter()
     space = T.space_of(p0)
@@ -516,7 +520,7 @@ def run(
               "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
               "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
-    return {"axes": list(AXES), "points": points, "stages": stages}
+    return stamped({"axes": list(AXES), "points": points, "stages": stages})
 
 
 def _same_simulation(a: T.Problem, b: T.Problem) -> bool:

@@ -277,6 +277,7 @@ def run(
     *,
     checkpoint: Path | None = None,
     resume: bool = False,
+    terms: tuple[str, str] = ("error", "chattering"),
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
@@ -288,6 +289,8 @@ def run(
     rollouts diverge: a flat penalty with zero gradient that Adam's momentum does not leave),
     and the history (per step: loss, error, chattering, gradient norm, skipped, internal
     params; ``best_step``: the index of the returned parameters, ``steps`` for the last update).
+    Every line of ``log`` starts with ``tune:``; ``terms`` names the loss's two parts in its step
+    lines (``fosmc tune``: the objective's metrics, e.g. ``rms_error term``).
     """
     free = u0._fields if settings.free is None else settings.free
     labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
@@ -338,8 +341,8 @@ def run(
         for k, v in (("loss", value), ("error", err), ("chattering", chat), ("grad_norm", gnorm)):
             history[k].append(float(v))
         history["skipped"].append(not finite)
-        log(f"step {step + 1:4d}/{settings.steps}  loss {float(value):.5f}  error {float(err):.5f}  "
-            f"chattering {float(chat):.5f}  |grad| {gnorm:.3e}  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
+        log(f"tune: step {step + 1:4d}/{settings.steps}  loss {float(value):.5f}  {terms[0]} {float(err):.5f}  "
+            f"{terms[1]} {float(chat):.5f}  |grad| {gnorm:.3e}  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
         done = step + 1
         if (
             checkpoint is not None
