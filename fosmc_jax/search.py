@@ -1,7 +1,8 @@
 """Search and tuning, the layer behind ``fosmc tune`` and ``fosmc front``, for research
 scripts: tuning problems and objectives, the gradient tuner, the front's staged search and its
-pieces, the peers it is compared with (CMA-ES, NSGA-II), and the Pareto indicators a front is
-judged by. The problems come from a config: :func:`fosmc_jax.config.tuning_problems`.
+pieces, the choice of one point of a front (:func:`select`, ``fosmc select``), the peers it is
+compared with (CMA-ES, NSGA-II), and the Pareto indicators a front is judged by. The problems
+come from a config: :func:`fosmc_jax.config.tuning_problems`.
 
     import fosmc_jax.config as fc, fosmc_jax.search as fs
     plain, train, p0 = fc.tuning_problems(fc.load("tuning/configs/realistic_arm.toml"))
@@ -33,6 +34,7 @@ from ._search.front import Settings as FrontSettings
 from ._search.front import run as front_search
 from ._search.pareto import additive_epsilon, dominated_by, epsilon, hypervolume, nondominated
 from ._search.peers import cma_es, cma_front, log_grid, nsga2, optuna_nsga2, random_search
+from ._search.select import controller_toml, select
 from ._search.tune import (
     SPACES,
     GammaFloor,
@@ -107,6 +109,9 @@ __all__ = [
     "pick_starts",
     "point_of",
     "sample_candidates",
+    # choosing a front point (fosmc_jax._search.select)
+    "controller_toml",
+    "select",
     # the peers (fosmc_jax._search.peers)
     "cma_es",
     "cma_front",

@@ -17,7 +17,7 @@ import numpy as np
 
 from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
-from .._io import atomic_write, jsonable
+from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
 from .._simulator.metrics import METRIC_NAMES, UNITS
 from . import commands as C
 from . import config as _config
@@ -70,7 +70,7 @@ def cmd_simulate(args) -> int:
 
         def write(tmp):
             with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to a name
-                np.savez(f, **r["arrays"])
+                np.savez(f, **stamped_arrays(r["arrays"]))
 
         atomic_write(args.npz, write)
         _log(f"fosmc: wrote {args.npz}")
@@ -92,13 +92,15 @@ def _simulate_json(r: dict) -> str:
     per array (records of NumPy rows through ``jsonable`` and an indented dump cost 1 s at
     16,384 rollouts, more than the simulation; BENCHMARKS.md, issue 13). Non-finite numbers
     become null, as ``jsonable`` makes them (the records hold only numbers and booleans, so the
-    tokens cannot be in a string)."""
+    tokens cannot be in a string). The versions (``"fosmc_jax"``, from ``run_simulate``) come
+    first, the rollouts next."""
     records = C.rollout_records({k: v.tolist() for k, v in r["arrays"].items()})
     rows = ",\n  ".join(json.dumps(x) for x in records)
     if "NaN" in rows or "Infinity" in rows:
         rows = re.sub(r"-?Infinity|NaN", "null", rows)
-    rest = json.dumps(jsonable({k: v for k, v in r.items() if k not in ("arrays", "trace")}), indent=1)
-    return '{\n "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
+    head = f' "{VERSIONS_KEY}": {json.dumps(r[VERSIONS_KEY])},\n' if VERSIONS_KEY in r else ""
+    rest = json.dumps(jsonable({k: v for k, v in r.items() if k not in ("arrays", "trace", VERSIONS_KEY)}), indent=1)
+    return "{\n" + head + ' "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
 
 
 def _print_rollouts(rollouts: list[dict]) -> None:
@@ -190,9 +192,17 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_tune(args) -> int:
+    """The objective's two metrics with their units, initial and final, then the chattering
+    measure the objective does not use (total variation or ``chattering_hf``), labelled so."""
     r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force, log=_log)
-    for name in ("rms_error", "chattering"):
-        print(f"{name:<12} initial {_fmt3(r['initial']['metrics'][name])}   final {_fmt3(r['final']['metrics'][name])}")
+    optimised = (r["objective"]["error_metric"], r["objective"]["chattering_metric"])
+    rows = [(name, C.metric_label(name)) for name in optimised]
+    rows += [(name, C.metric_label(name) + ", not in the objective")
+             for name in ("chattering_hf", "chattering") if name not in optimised]  # fmt: skip
+    width = max(len(label) for _, label in rows)
+    for name, label in rows:
+        initial, final = (_fmt3(r[k]["metrics"][name]) for k in ("initial", "final"))
+        print(f"{label:<{width}}  initial {initial}   final {final}")
     return 0
 
 
@@ -213,6 +223,30 @@ def cmd_front(args) -> int:
     for i, pt in enumerate(result["points"]):
         e, c = (float(np.mean(pt["metrics"][k])) for k in AXES)
         print(f"point {i:3d}  {AXES[0]} {e:.4e} rad  {AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- select
+
+
+def cmd_select(args) -> int:
+    from .._search.front import AXES
+    from .._search.select import controller_toml, select
+
+    try:
+        r = select(args.front, max_error=args.max_error, max_chattering=args.max_chattering)
+        toml = controller_toml(r["params"])
+    except ValueError as e:
+        raise _config.ConfigError(str(e)) from None
+    if args.json:
+        print(json.dumps(jsonable(r), indent=1))
+        return 0
+    bounded, bound = (AXES[0], args.max_error) if args.max_error is not None else (AXES[1], args.max_chattering)
+    other = AXES[1 - AXES.index(bounded)]
+    print(f"point {r['index']}: the least mean {other} with mean {bounded} <= {bound:g} {UNITS[bounded]}")
+    for k in AXES:
+        print(f"  mean {k:<14} {r['mean'][k]:.4e} {UNITS[k]}")
+    print(f"# point {r['index']} of {args.front}, for the config's [controller] table:\n{toml}")
     return 0
 
 
@@ -306,6 +340,15 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     f.set_defaults(func=cmd_front)
+    e = sub.add_parser("select", help="the front point that best meets a bound on error or chattering; its TOML")
+    e.add_argument("--front", required=True, metavar="JSON", help="a `fosmc front` front.json")
+    bound = e.add_mutually_exclusive_group(required=True)
+    bound.add_argument("--max-error", type=float, metavar="E",
+                       help="the least mean chattering_hf among the points of mean rms_error <= E (rad)")  # fmt: skip
+    bound.add_argument("--max-chattering", type=float, metavar="C",
+                       help="the least mean rms_error among the points of mean chattering_hf <= C (V)")  # fmt: skip
+    e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    e.set_defaults(func=cmd_select)
     t = sub.add_parser("tune", help="gradient-based tuning of the controller kind's parameters (optax)")
     t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
     t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
