@@ -99,6 +99,7 @@ def tuned(tmp_path_factory):
     return result, lines, out
 
 
+@pytest.mark.slow  # a real (tiny) run: 10-14 s of compilation
 def test_tune_logs_name_tune_and_the_objectives_metrics(tuned):
     result, lines, _ = tuned
     assert lines and all(line.startswith("tune: ") for line in lines), [x for x in lines if not x.startswith("tune")]
@@ -139,6 +140,7 @@ def fronted(tmp_path_factory):
     return result, lines, out
 
 
+@pytest.mark.slow  # a real (tiny) run: 10-14 s of compilation
 def test_front_logs_name_front_and_its_file_carries_the_versions(fronted):
     result, lines, out = fronted
     assert lines and all(line.startswith("front: ") for line in lines), [x for x in lines if not x.startswith("front")]

@@ -18,7 +18,7 @@ import numpy as np
 from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
-from .._simulator.metrics import METRIC_NAMES, UNITS
+from .._simulator.metrics import METRIC_NAMES, PERCENTILES, UNITS
 from . import commands as C
 from . import config as _config
 
@@ -48,23 +48,32 @@ def _log(msg: str) -> None:
 
 
 def cmd_simulate(args) -> int:
+    """Per-rollout metrics and the batch's summary; for a Monte-Carlo batch (a ``[sample]``
+    table) the summary with percentiles, and ``--plot`` draws histograms instead of traces."""
+    sampled = C.config_of(args.config)["sample"]["count"] > 0
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
-                       keep_trace=bool(args.plot), records=not (args.json or args.npz), log=_log)  # fmt: skip
+                       keep_trace=bool(args.plot) and not sampled, records=not (args.json or args.npz or sampled),
+                       log=_log)  # fmt: skip
     cfg, summary = r["config"], r["summary"]
     index = (
         r["arrays"] if "arrays" in r else {k: [x[k] for x in r["rollouts"]] for k in ("plant_index", "offset_index")}
     )
     n = len(index["plant_index"])
-    if args.plot:
+    title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
+             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
+    if args.plot and sampled:
+        from .plots import plot_histograms
+
+        plot_histograms(r["arrays"], ("rms_error", "chattering_hf"), UNITS, args.plot, title=title)
+        _log(f"fosmc: wrote {args.plot}")
+    elif args.plot:
         from .plots import plot_rollouts
 
         shown = min(n, 12)
         tr = r.pop("trace")
         pairs = zip(index["plant_index"][:shown], index["offset_index"][:shown])
         labels = [f"plant {p}, offset {o}" for p, o in pairs]
-        plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot,
-                      title=f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
-                            f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
+        plot_rollouts(np.asarray(tr.t[0]), tr.X[:shown], tr.X_d[:shown], tr.U[:shown], labels, args.plot, title=title)
         _log(f"fosmc: wrote {args.plot}")
     if args.npz:
 
@@ -77,12 +86,14 @@ def cmd_simulate(args) -> int:
     if args.json:
         print(_simulate_json(r))
     else:
-        if not args.npz:
+        if not (args.npz or sampled):
             _print_rollouts(r["rollouts"])
-        if n > 1 or args.npz:  # with --npz the summary is all that is printed
+        if n > 1 or args.npz:  # with --npz (or a sample) the summary is all that is printed
             print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
                 print(f"  {name:<19} mean {_fmt3(summary['mean'][name])}   max {_fmt3(summary['max'][name])}")
+                if sampled:
+                    print(" " * 21 + "   ".join(f"p{q} {_fmt3(summary[f'p{q}'][name])}" for q in PERCENTILES))
     return 0
 
 

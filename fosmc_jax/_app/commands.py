@@ -109,7 +109,9 @@ def run_simulate(
 
     Returns ``{"fosmc_jax": {"version", "metrics_version"}, "rollouts": [{"plant_index",
     "offset_index", "realization_index", "metrics": {name: (3,)}, "diverged", "diverged_at"},
-    ...], "summary": batch_summary, "config": resolved config}``: what ``--json`` prints. With
+    ...], "summary": batch_summary, "config": resolved config}``: what ``--json`` prints; with
+    a ``[sample]`` table also ``"sampled"``: its draws (``payloads``, ``offsets``), indexed by
+    ``plant_index`` and ``offset_index``. With
     ``records=False``, ``"arrays"`` instead of ``"rollouts"``: the same fields as NumPy arrays
     over the rollouts (what ``--npz`` writes, with the versions, and ``--json`` prints as
     records; no Python object per rollout).
@@ -125,9 +127,9 @@ def run_simulate(
         m = _config.sample_steps(cfg)
         cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
     problem = _config.build(cfg)
-    n_plants = jax.tree.leaves(problem.plants)[0].shape[0]
-    n_offsets, n_real = problem.X0s.shape[0], 1 if problem.keys is None else problem.keys.shape[0]
-    n_rollouts = n_plants * n_offsets * n_real
+    n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
+    paired = cfg["sim"]["pairing"] == "paired"
+    per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
     log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
         f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s): "
         "compiling and running ...")  # fmt: skip
@@ -146,14 +148,15 @@ def run_simulate(
     r = np.arange(n_rollouts)
     arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
     arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
-                  plant_index=r // (n_offsets * n_real), offset_index=r // n_real % n_offsets,
-                  realization_index=r % n_real)  # fmt: skip
+                  plant_index=r // (per_plant * n_real), realization_index=r % n_real,
+                  offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
     summary = batch_summary(result.metrics, result.diverged)
+    sampled = {"sampled": {k: v.tolist() for k, v in _config.draws(cfg).items()}} if cfg["sample"]["count"] else {}
     if not records:
-        out = stamped({"arrays": arrays, "summary": summary, "config": cfg})
+        out = stamped({"arrays": arrays, "summary": summary, **sampled, "config": cfg})
         return dict(out, trace=result.trace) if keep_trace else out
     rollouts = list(rollout_records(arrays))
-    out = stamped({"rollouts": rollouts, "summary": summary, "config": cfg})
+    out = stamped({"rollouts": rollouts, "summary": summary, **sampled, "config": cfg})
     if keep_trace:
         out["trace"] = result.trace
     return out

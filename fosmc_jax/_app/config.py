@@ -30,7 +30,7 @@ from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
 from .._simulator.problem import Problem
-from .._simulator.rollout import INTEGRATORS
+from .._simulator.rollout import INTEGRATORS, PAIRINGS
 
 try:  # Python >= 3.11
     import tomllib
@@ -104,7 +104,9 @@ def defaults() -> dict[str, Any]:
             "precision": "float64",
             "save_every": 0,
             "divergence_bound": 1e6,
+            "pairing": "cross",
         },
+        "sample": {"count": 0, "seed": 0, "payloads": [], "offsets": [0.0] * 9},
         "tune": {
             "params": ["delta", "gamma", "poles"],
             "weight_error": 1.0,
@@ -228,6 +230,21 @@ def _payloads(key: str, value: Any) -> Any:
     return _array((len(value),), what, lambda a: np.all((a >= lo) & (a <= hi)))(key, value)
 
 
+def _payload_range(key: str, value: Any) -> Any:
+    lo, hi = PAYLOAD_RANGE
+    what = f"[low, high] within [{lo:g}, {hi:g}] kg, low <= high (or [] : no payloads drawn)"
+    if value == []:
+        return []
+    return _array((2,), what, lambda a: lo <= a[0] <= a[1] <= hi)(key, value)
+
+
+def _offset_scales(key: str, value: Any) -> Any:
+    what = "a non-negative number or 9 of them (standard deviations of the initial offsets; 0: none drawn)"
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value] * 9
+    return _array((9,), what, lambda a: np.all(a >= 0))(key, value)
+
+
 def _offsets(key: str, value: Any) -> Any:
     what = "9 numbers, or a non-empty list of lists of 9 numbers"
     a = np.asarray(value, dtype=object)
@@ -306,6 +323,13 @@ SCHEMA: dict[str, Any] = {
         "precision": _choice(PRECISIONS),
         "save_every": _integer("a non-negative integer", lambda n: n >= 0),
         "divergence_bound": _number("a positive number", lambda x: x > 0),
+        "pairing": _choice(PAIRINGS),
+    },
+    "sample": {
+        "count": _integer("a non-negative integer (0: no sampling)", lambda n: n >= 0),
+        "seed": _integer("a non-negative integer", lambda n: n >= 0),
+        "payloads": _payload_range,
+        "offsets": _offset_scales,
     },
     "tune": {
         "params": _names(lambda: tuple(name for space in SPACES.values() for name in space.names)),
@@ -357,8 +381,21 @@ def _merge(schema: dict, base: dict, user: Any, prefix: str) -> dict:
             known = ", ".join(sorted(schema))
             raise ConfigError(f"{name}: unknown key (known here: {known})")
         rule = schema[key]
-        out[key] = _merge(rule, base[key], value, name) if isinstance(rule, dict) else rule(name, value)
+        out[key] = _merge(rule, base[key], value, name) if isinstance(rule, dict) else rule(name, _plain(name, value))
     return out
+
+
+def _plain(key: str, value: Any) -> Any:
+    """NumPy and JAX arrays and scalars as the Python numbers and lists a TOML file gives."""
+    if isinstance(value, (list, tuple)):
+        return [_plain(key, v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if hasattr(value, "__array__") and not isinstance(value, (str, bytes)):
+        if isinstance(value, jax.core.Tracer):
+            raise ConfigError(f"{key}: expected concrete numbers, got a traced value (build the config outside jit)")
+        return np.asarray(value).tolist()
+    return value
 
 
 def resolve(user: dict | None = None) -> dict[str, Any]:
@@ -398,6 +435,14 @@ def _check_consistency(cfg: dict) -> None:
     sim, ctl, model, box = cfg["sim"], cfg["controller"], cfg["model"], cfg["plant"]["box"]
     if sim["dt"] > sim["t_final"]:
         raise ConfigError(f"sim.dt: expected at most sim.t_final = {sim['t_final']}, got {sim['dt']}")
+    sample = cfg["sample"]
+    drawn = bool(sample["payloads"]) or any(sample["offsets"])
+    if sample["count"] and not drawn:
+        raise ConfigError("sample.count: nothing to draw (set sample.payloads = [low, high] or sample.offsets)")
+    if drawn and not sample["count"]:
+        raise ConfigError("sample.count: expected a positive number of draws with sample.payloads or sample.offsets")
+    if sample["payloads"] and cfg["plant"]["kind"] != "arm":
+        raise ConfigError("sample.payloads: applies to plant.kind = 'arm' only")
     if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
         raise ConfigError("plant.uncertainty: applies to kind = 'linear' only (the arm's uncertainty is its payloads)")
     tune = cfg["tune"]
@@ -549,6 +594,22 @@ def as_config(config: str | Path | dict | None) -> dict[str, Any]:
                       f"got {type(config).__name__}")  # fmt: skip
 
 
+def draws(cfg: dict) -> dict[str, np.ndarray]:
+    """The ``[sample]`` table's Monte-Carlo draws, float64, seeded by ``sample.seed``: ``payloads``
+    (count,) ~ U(low, high) kg when ``sample.payloads`` is set (drawn first), ``offsets``
+    (count, 9) ~ N(0, diag(sample.offsets)^2) when any scale is positive (a scale of 0 leaves
+    that state's offset 0); {} without sampling."""
+    sample = cfg["sample"]
+    if not sample["count"]:
+        return {}
+    rng, n, out = np.random.default_rng(sample["seed"]), sample["count"], {}
+    if sample["payloads"]:
+        out["payloads"] = rng.uniform(*sample["payloads"], size=n)
+    if any(sample["offsets"]):
+        out["offsets"] = rng.standard_normal((n, 9)) * np.asarray(sample["offsets"])
+    return out
+
+
 def build(config: str | Path | dict | None = None) -> Problem:
     """The simulation a config describes (a TOML path, a preset's name such as
     ``"realistic_arm"``, a dict, or ``None``: the paper's defaults; see :func:`as_config`), as a
@@ -558,7 +619,10 @@ def build(config: str | Path | dict | None = None) -> Problem:
     The plants are the linear model's uncertainty realizations (``kind = "linear"``) or one arm
     per payload (``kind = "arm"``). The initial states are X_d(0) + each ``sim.initial_offset``;
     the batch is every plant crossed with every initial state, crossed with every noise
-    realization of a digital loop (in that order). The problem's ``base`` holds the kind's
+    realization of a digital loop (in that order); with ``sim.pairing = "paired"`` the i-th plant
+    runs from the i-th initial state only (one plant or one initial state: repeated). A
+    ``[sample]`` table's draws (:func:`draws`) replace ``plant.payloads`` and
+    ``sim.initial_offset``. The problem's ``base`` holds the kind's
     parameters: the FOSMC's :class:`FOSMCParams`, or the SMC's or super-twisting's law with
     the config's gains.
 
@@ -575,16 +639,25 @@ def build(config: str | Path | dict | None = None) -> Problem:
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=float), dtype)
     ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
     reference = reference_of(cfg, dtype)
+    drawn = draws(cfg)
     if plant["kind"] == "arm":
-        plants = arm_sweep(cast(plant["payloads"]))
+        plants = arm_sweep(cast(drawn.get("payloads", plant["payloads"])))
     else:
         plants = uncertain_plants(
             model["A_rows"], model["B_rows"], plant["uncertainty"], box=box_of(cfg),
             dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
         )  # fmt: skip
         plants = type(plants)(*(cast(x) for x in plants))
-    offsets = np.atleast_2d(np.asarray(cfg["sim"]["initial_offset"], dtype=float))
+    offsets = np.atleast_2d(np.asarray(drawn.get("offsets", cfg["sim"]["initial_offset"]), dtype=float))
     X0s = desired_state(reference(jnp.zeros((), dtype)))[None] + cast(offsets)
+    P = jax.tree.leaves(plants)[0].shape[0]
+    if cfg["sim"]["pairing"] == "paired" and 1 == len(offsets) < P:  # one initial state: every plant's
+        X0s = jnp.repeat(X0s, P, axis=0)
+    elif cfg["sim"]["pairing"] == "paired" and 1 == P < len(offsets):  # one plant: from every state
+        plants = jax.tree.map(lambda x: jnp.repeat(x, len(offsets), axis=0), plants)
+    elif cfg["sim"]["pairing"] == "paired" and P != len(offsets):
+        raise ConfigError(f"sim.pairing: 'paired' needs as many initial offsets as plants, got {P} plant(s) and "
+                          f"{len(offsets)} offset(s) (a [sample] table with count draws both)")  # fmt: skip
     options = {
         "n_steps": n_steps(cfg),
         "integrator": cfg["sim"]["integrator"],
@@ -592,6 +665,7 @@ def build(config: str | Path | dict | None = None) -> Problem:
         "law": ctl["law"],
         "save_every": cfg["sim"]["save_every"],
         "divergence_bound": cfg["sim"]["divergence_bound"],
+        "pairing": cfg["sim"]["pairing"],
     }
     dt = jnp.asarray(cfg["sim"]["dt"], dtype)
     params = controller_of(cfg, dtype)

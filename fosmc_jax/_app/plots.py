@@ -52,6 +52,30 @@ def plot_rollouts(t, X, X_d, U, labels, path: str | Path, title: str = "") -> No
     save_figure(fig, path)
 
 
+def plot_histograms(arrays: dict, names, units: dict, path: str | Path, title: str = "") -> None:
+    """A Monte-Carlo batch's distribution: one histogram per joint (columns) of each metric in
+    ``names`` (rows), over the rollouts that did not diverge, with the 5th, 50th and 95th
+    percentiles marked. ``arrays``: {name: (N, 3)} and ``diverged`` (N,)."""
+    ok = ~np.asarray(arrays["diverged"], bool)
+    fig, axes = plt.subplots(len(names), 3, figsize=(13, 3.4 * len(names)), squeeze=False)
+    for i, name in enumerate(names):
+        v = np.asarray(arrays[name])[ok]
+        for j in range(3):
+            ax = axes[i, j]
+            if len(v):
+                ax.hist(v[:, j], bins=min(40, max(5, len(v) // 5)), color="C0", alpha=0.8)
+                for q, style, label in ((5, ":", "5th, 95th percentiles"), (50, "-", "median"), (95, ":", None)):
+                    ax.axvline(np.percentile(v[:, j], q), color="k", ls=style, lw=1, label=label)
+            ax.set_xlabel(f"{name} ({units[name]})")
+            ax.set_ylabel("rollouts")
+            ax.set_title(JOINTS[j])
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8, loc="best")
+    fig.suptitle(f"{title}{'; ' if title else ''}{ok.sum()} of {ok.size} rollouts (diverged left out)")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
 def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy: bool = False,
                       styles=None, xlim=None) -> None:  # fmt: skip
     """One panel per joint, several labelled time series in each.

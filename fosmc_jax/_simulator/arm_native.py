@@ -202,18 +202,23 @@ def _folded(advance):
     return run
 
 
-def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, divergence_bound, chattering_cutoff):
+def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, divergence_bound, chattering_cutoff,
+                  paired=False):  # fmt: skip
     from .rollout import Result, start
 
     dtype = X0s.dtype
     dt = jnp.asarray(dt, dtype)
-    P, O = plants.payload.shape[0], X0s.shape[0]
+    P = plants.payload.shape[0]
+    O = 1 if paired else X0s.shape[0]  # initial states per plant
     N = P * O
     digital = type(ctrl) is DigitalLoop
     bound = jnp.asarray(divergence_bound, dtype)
     one = lambda plant, X0: start(plant, ctrl, reference, X0, None, bound)
-    carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
-    carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
+    if paired:
+        carry = jax.vmap(one)(plants, X0s)
+    else:
+        carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
+        carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
     acc3 = jax.vmap(lambda plant, state: plant.accelerations(state), (0, 0))(
         jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
     )
@@ -235,15 +240,16 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     return Result(_metrics.masked(_metrics.finish(acc, n_steps * dt), diverged), diverged, out[DIVERGED_AT], None)
 
 
-def simulate_batch(args: tuple, vmap_path, *, n_steps: int, integrator: str) -> Result:  # noqa: F821
+def simulate_batch(args: tuple, vmap_path, *, n_steps: int, integrator: str, paired: bool = False) -> Result:  # noqa: F821
     """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold) for ``args`` =
-    (plants, ctrl, reference, X0s, dt, keys, divergence_bound, chattering_cutoff); the loop
-    draws no noise, so ``keys`` only reach the derivatives, which are those of
-    ``vmap_path(*args)``, the ``vmap`` of ``simulate``."""
+    (plants, ctrl, reference, X0s, dt, keys, divergence_bound, chattering_cutoff), plants
+    crossed with initial states or (``paired``) the i-th with the i-th; the loop draws no
+    noise, so ``keys`` only reach the derivatives, which are those of ``vmap_path(*args)``,
+    the ``vmap`` of ``simulate``."""
 
     def kernel(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
         return _native_batch(plants, ctrl, reference, X0s, dt, n_steps=n_steps, integrator=integrator,
-                             divergence_bound=bound, chattering_cutoff=cutoff)  # fmt: skip
+                             divergence_bound=bound, chattering_cutoff=cutoff, paired=paired)  # fmt: skip
 
     run = jax.custom_jvp(kernel)
     run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))

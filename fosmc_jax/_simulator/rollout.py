@@ -44,6 +44,7 @@ from .._plants.reference import desired_state
 from . import arm_native as _arm_native
 from . import metrics as _metrics
 from . import native as _native
+from .checks import check_inputs
 
 INTEGRATORS = ("euler", "rk4")
 
@@ -202,7 +203,7 @@ _STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoin
 
 
 @functools.partial(jax.jit, static_argnames=_STATIC)
-def simulate(
+def _simulate(
     plant,
     controller,
     reference,
@@ -567,7 +568,7 @@ def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, 
     rest = {k: v for k, v in static.items() if k not in ("switching", "law")}
 
     def vmap_path(plants, params, reference, X0s, dt, *traced):  # simulate_batch's own, one realization
-        return simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest,
+        return _simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest,
                               **dict(zip(names, traced)))  # fmt: skip
 
     def scan_path(plants, params, reference, X0s, dt, *traced):
@@ -578,8 +579,13 @@ def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, 
     return run(plants, controller, reference, X0s, dt, *(jnp.asarray(options[k], X0s.dtype) for k in names))
 
 
-@functools.partial(jax.jit, static_argnames=_STATIC + ("fast", "native"))
-def simulate_batch(
+#: How :func:`simulate_batch` combines plants and initial states: every plant with every
+#: initial state, or the i-th plant with the i-th initial state (a Monte-Carlo sample).
+PAIRINGS = ("cross", "paired")
+
+
+@functools.partial(jax.jit, static_argnames=_STATIC + ("fast", "native", "pairing"))
+def _simulate_batch(
     plants,
     controller,
     reference,
@@ -587,6 +593,7 @@ def simulate_batch(
     dt: Array,
     *,
     keys: Array | None = None,
+    pairing: str = "cross",
     fast: bool = True,
     native: bool = True,
     **options,
@@ -594,8 +601,10 @@ def simulate_batch(
     """Every plant in ``plants`` (leading axis P) crossed with every initial state in ``X0s``
     (O, 9), and with every key in ``keys`` (R keys, e.g. ``jax.random.split(key, R)``; one
     noise realization each): P x O (x R) rollouts of :func:`simulate`, returned flattened in
-    plant, offset, realization order, shape (P*O*R, ...). ``options`` are :func:`simulate`'s
-    keyword arguments (``key`` too, when ``keys`` is None).
+    plant, offset, realization order, shape (P*O*R, ...). With ``pairing = "paired"``
+    (static), the i-th plant runs from the i-th initial state only (P = O): P (x R) rollouts,
+    a Monte-Carlo sample's. ``options`` are :func:`simulate`'s keyword arguments (``key`` too,
+    when ``keys`` is None).
 
     With ``fast`` (static), two batches without a trace (``save_every`` = 0) run a fast path
     with the same results to rounding: :class:`LinearPlant` under the ideal-loop FOSMC (its
@@ -610,8 +619,15 @@ def simulate_batch(
     out: the linear fast path runs its ``lax.scan``, the arm the ``vmap`` path (the benchmarks'
     scan-only timings; ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
+    paired = pairing == "paired"
+    if pairing not in PAIRINGS:
+        raise ValueError(f"pairing: expected one of {', '.join(PAIRINGS)}, got {pairing!r}")
+    if paired and jax.tree.leaves(plants)[0].shape[0] != X0s.shape[0]:
+        raise ValueError(f"pairing = 'paired': expected as many initial states as plants "
+                         f"({jax.tree.leaves(plants)[0].shape[0]}), got {X0s.shape[0]}")  # fmt: skip
     one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
-    if fast and one_key and isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not options.get("save_every"):
+    linear = isinstance(plants, LinearPlant) and type(ctrl) is FOSMC
+    if fast and linear and not paired and one_key and not options.get("save_every"):  # paired: the vmap path
         options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
         options.update(switching=ctrl.switching, law=ctrl.law)
         return _fast_batch(plants, ctrl.params, reference, X0s, dt, native=native, **options)
@@ -622,15 +638,40 @@ def simulate_batch(
     traced = (options.pop("divergence_bound", 1e6), options.pop("chattering_cutoff", _metrics.CHATTERING_CUTOFF))
 
     def vmap_path(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
-        one = lambda plant, X0, key: simulate(plant, ctrl, reference, X0, dt, key=key, divergence_bound=bound,
+        one = lambda plant, X0, key: _simulate(plant, ctrl, reference, X0, dt, key=key, divergence_bound=bound,
                                               chattering_cutoff=cutoff, **options)  # fmt: skip
-        batched = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))
-        result = batched(plants, X0s, keys)
-        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), result)
+        if paired:
+            result = jax.vmap(jax.vmap(one, (None, None, 0)), (0, 0, None))(plants, X0s, keys)
+        else:
+            result = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))(
+                plants, X0s, keys
+            )
+        lead = 2 if paired else 3
+        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[lead:]), result)
 
     options.setdefault("integrator", "rk4")
     args = (plants, ctrl, reference, X0s, dt, keys, *(jnp.asarray(x, X0s.dtype) for x in traced))
     arm_fast = fast and native and keys.shape[0] == 1 and not options.get("save_every")
     if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
-        return _arm_native.simulate_batch(args, vmap_path, n_steps=options["n_steps"], integrator=options["integrator"])
+        return _arm_native.simulate_batch(args, vmap_path, n_steps=options["n_steps"], integrator=options["integrator"],
+                                          paired=paired)  # fmt: skip
     return vmap_path(*args)
+
+
+def _checked(jitted, batch: bool):
+    """``jitted`` behind :func:`fosmc_jax._simulator.checks.check_inputs`: its inputs refused
+    with a one-line error naming the field where wrong (shapes always, values where concrete),
+    lists turned into arrays; the jitted function's ``lower`` and ``_cache_size`` kept."""
+
+    @functools.wraps(jitted)
+    def run(plant, controller, reference, X0, dt, **options):
+        plant, controller, reference, X0, dt = check_inputs(plant, controller, reference, X0, dt, batch, options)
+        return jitted(plant, controller, reference, X0, dt, **options)
+
+    run.__name__ = run.__qualname__ = jitted.__name__.lstrip("_")
+    run.lower, run._cache_size = jitted.lower, jitted._cache_size
+    return run
+
+
+simulate = _checked(_simulate, batch=False)
+simulate_batch = _checked(_simulate_batch, batch=True)

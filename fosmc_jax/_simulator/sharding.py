@@ -151,25 +151,33 @@ def simulate_sharded(
     The initial states ``X0s`` (O, 9) are split over the devices (padded with copies of the
     last one up to a multiple of their number, the padding dropped from the results); if O
     does not divide but the number of plants P does, the plants are split instead. Each
-    device runs ``simulate_batch`` on its slice. ``options`` are ``simulate_batch``'s.
+    device runs ``simulate_batch`` on its slice. ``options`` are ``simulate_batch``'s; with
+    ``pairing = "paired"`` plants and initial states are split alike (both padded).
 
     Returns the :class:`Result` of all P x O (x R, for R ``keys``) rollouts, plant-major,
-    shape (P*O*R, ...), equal to ``simulate_batch``'s.
+    shape (P*O*R, ...) (paired: (P*R, ...)), equal to ``simulate_batch``'s.
     """
     mesh = batch_mesh(devices)
     n = mesh.devices.size
     P = jax.tree.leaves(plants)[0].shape[0]
     O = X0s.shape[0]
-    split_plants = O % n != 0 and P % n == 0
-    pad = 0 if split_plants else (-O) % n
-    if pad:
-        X0s = jnp.concatenate([jnp.asarray(X0s), jnp.repeat(jnp.asarray(X0s)[-1:], pad, axis=0)])
-    over = Spec(AXIS)
-    plant_spec, x0_spec = (over, Spec()) if split_plants else (Spec(), over)
     if keys is None:
         key = options.pop("key", None)
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
     R = keys.shape[0]
+    over = Spec(AXIS)
+    if options.get("pairing") == "paired":  # the i-th plant with the i-th state: both split alike
+        pad = (-P) % n
+        extend = lambda x: jnp.concatenate([jnp.asarray(x), jnp.repeat(jnp.asarray(x)[-1:], pad, axis=0)])
+        if pad:
+            plants, X0s = jax.tree.map(extend, plants), extend(X0s)
+        result = _run(mesh, over, over, options, plants, controller, reference, X0s, dt, keys)
+        return jax.tree.map(lambda r: r[:P].reshape((P * R,) + r.shape[2:]), result)
+    split_plants = O % n != 0 and P % n == 0
+    pad = 0 if split_plants else (-O) % n
+    if pad:
+        X0s = jnp.concatenate([jnp.asarray(X0s), jnp.repeat(jnp.asarray(X0s)[-1:], pad, axis=0)])
+    plant_spec, x0_spec = (over, Spec()) if split_plants else (Spec(), over)
     result = _run(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys)
     return jax.tree.map(lambda r: r[:, :O].reshape((P * O * R,) + r.shape[3:]), result)
 
@@ -206,25 +214,31 @@ def simulate_split(plants, controller, reference, X0s, dt, *, keys: Array | None
     Returns the same :class:`Result`, plant-major, (P*O*R, ...)."""
     n = jax.local_device_count()
     P, O = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0]
-    if n == 1 or (P % n and O % n):
+    paired = options.get("pairing") == "paired"
+    if n == 1 or (P % n and (paired or O % n)):
         return simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
     mesh = Mesh(np.asarray(jax.local_devices()), (AXIS,))
-    plant_spec, x0_spec = (Spec(), Spec(AXIS)) if O % n == 0 else (Spec(AXIS), Spec())
+    if paired:
+        plant_spec = x0_spec = Spec(AXIS)
+    else:
+        plant_spec, x0_spec = (Spec(), Spec(AXIS)) if O % n == 0 else (Spec(AXIS), Spec())
     if keys is None:
         key = options.pop("key", None)
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
     r = _split(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys)
-    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[3:]), r)
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2 if paired else 3 :]), r)
 
 
 def _split(mesh, plant_spec, x0_spec, options, plants, controller, reference, X0s, dt, keys) -> Result:
     """The rollouts under ``jax.shard_map``: each device runs ``simulate_batch`` on its plants or
-    initial states; results (P, O, R, ...), split on the axis that was."""
+    initial states (paired: both); results (P, O, R, ...) (paired: (P, R, ...)), split on the
+    axis that was."""
 
     def local(plants, controller, reference, X0s, dt, keys):
         p, o, r = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0], keys.shape[0]
         res = simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
-        return jax.tree.map(lambda x: x.reshape((p, o, r) + x.shape[1:]), res)
+        lead = (p, r) if options.get("pairing") == "paired" else (p, o, r)
+        return jax.tree.map(lambda x: x.reshape(lead + x.shape[1:]), res)
 
     out = Spec(AXIS) if plant_spec == Spec(AXIS) else Spec(None, AXIS)
     return jax.shard_map(
