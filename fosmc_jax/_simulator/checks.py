@@ -1,0 +1,348 @@
+"""The simulator's inputs checked at the API's edge (:func:`check_inputs`).
+
+:func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` run :func:`check_inputs` on
+every Python call, before their jitted programs. Every rule is one entry of :data:`RULES`
+(the package's plant, controller and reference types, field by field) or of
+:data:`ARGUMENTS` (X0, dt, the keys): shapes are checked always, tracers included (under
+``jit``, ``grad`` and ``vmap`` shapes are known), values (finite, signs, ranges) wherever they
+are concrete. A type that is not in :data:`RULES` (a user's controller, plant or reference)
+passes as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import warnings
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, FOSMCParams
+from .._controllers.smc import SMC
+from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
+from .._controllers.surface import SurfaceParams
+from .._design.gains import stable_step
+from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
+from .._plants.arm import PAYLOAD_RANGE, Arm, ArmParams
+from .._plants.linear import LinearPlant
+from .._plants.reference import Cycloid, Sinusoid
+
+#: A field's ``shape`` when it holds an object checked by its own type's rules (if any).
+NESTED = "nested"
+#: A field's ``shape`` when it is static (a Python value fixing shapes or code paths).
+STATIC = "static"
+#: The last entry of a key's ``shape``: 2 for raw keys (uint32 pairs), none for typed keys.
+KEY = "key"
+
+
+class Field(NamedTuple):
+    """How one field is checked.
+
+    ``shape``: the unbatched shape, a name (``"O"``) standing for any length; or
+    :data:`NESTED`, :data:`STATIC`. ``rule``: for an array, an elementwise test of its
+    concrete values (NumPy in, booleans out); for a static field, a test of its value; None:
+    no test. ``what``: what is expected, in the errors. ``optional``: None is accepted."""
+
+    shape: tuple | str
+    rule: Callable[[Any], Any] | None
+    what: str
+    optional: bool = False
+
+
+# Elementwise tests; NaN fails every one of them.
+_finite = np.isfinite
+_positive = lambda a: np.isfinite(a) & (a > 0)
+_non_negative = lambda a: np.isfinite(a) & (a >= 0)
+_left_half_plane = lambda a: np.isfinite(a) & (np.real(a) < 0)
+_positive_or_inf = lambda a: a > 0
+
+
+def _within(lo: float, hi: float) -> Callable[[Any], Any]:
+    return lambda a: (a >= lo) & (a <= hi)
+
+
+def _one_of(choices: tuple[str, ...]) -> Field:
+    return Field(STATIC, lambda v: v in choices, f"one of {', '.join(choices)}")
+
+
+def _integer(least: int) -> Field:
+    return Field(STATIC, lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= least,
+                 f"an integer >= {least}")  # fmt: skip
+
+
+_NESTED = Field(NESTED, None, "")
+_MATRIX_3x9 = Field((3, 9), _finite, "a 3x9 matrix of finite numbers")
+_ROWS = {"a_rows": Field((3, 9), _finite, "a 3x9 matrix of finite numbers (rows 3, 6, 9 of A)"),
+         "b_rows": Field((3, 3), _finite, "a 3x3 matrix of finite numbers (rows 3, 6, 9 of B)")}  # fmt: skip
+_ANGLES = Field((3,), _finite, "3 finite numbers (rad)")
+_GAINS = Field((3,), _positive, "3 positive numbers")
+_PERIOD = Field((), _positive, "a positive number (s)")
+_LENGTH = Field((), _non_negative, "a non-negative length (m)")
+_MASS = Field((), _non_negative, "a non-negative mass (kg)")
+_INERTIAS = Field((3,), _non_negative, "3 non-negative inertias (kg m^2)")
+_LO, _HI = PAYLOAD_RANGE
+
+#: The package's types, field by field (from their docstrings and the config's validators,
+#: ``fosmc_jax._app.config.SCHEMA``). In a batch of plants every array has a leading axis P too.
+RULES: dict[type, dict[str, Field]] = {
+    FOSMCParams: {
+        "C": _MATRIX_3x9,
+        "poles": Field((3, 3), _left_half_plane, "a 3x3 matrix of poles with negative real parts (1/s)"),
+        "gamma": Field((3,), _non_negative, "3 non-negative numbers"),
+        "delta": Field((3,), _positive, "3 positive numbers"),
+        **_ROWS,
+    },
+    FOSMC: {"params": _NESTED, "switching": _one_of(SWITCHING), "law": _one_of(LAWS)},
+    DiscreteFOSMC: {"params": _NESTED, "period": _PERIOD, "switching": _one_of(SWITCHING), "law": _one_of(LAWS)},
+    SurfaceParams: {"C": _MATRIX_3x9, **_ROWS},
+    SMC: {"surface": _NESTED, "k": _GAINS, "phi": Field((3,), _positive, "3 positive boundary-layer widths")},
+    SuperTwisting: {
+        "surface": _NESTED,
+        "k1": _GAINS,
+        "k2": _GAINS,
+        "period": Field((), _non_negative, "a non-negative number (s; 0: the ideal loop)"),
+    },
+    ContinuousSuperTwisting: {"law": _NESTED},
+    Sensors: {
+        "counts": Field((3,), _non_negative, "3 non-negative encoder counts per revolution (0: exact)"),
+        "noise_std": Field((9,), _non_negative, "9 non-negative standard deviations, or None", optional=True),
+        "derivatives": _one_of(DERIVATIVES),
+    },
+    DigitalLoop: {
+        "law": _NESTED,
+        "sensors": _NESTED,
+        "u_max": Field((3,), _positive_or_inf, "3 positive numbers (V; inf: no limit)"),
+        "period": _PERIOD,
+        "sample_steps": _integer(1),
+        "delay": _integer(0),
+    },
+    LinearPlant: dict(_ROWS),
+    ArmParams: {
+        "d1": Field((), _finite, "a finite number (m)"),
+        "d2": Field((), _finite, "a finite number (m)"),
+        "d3": Field((), _finite, "a finite number (m)"),
+        "l2": _LENGTH,
+        "l3": _LENGTH,
+        "c2": _LENGTH,
+        "c3": _LENGTH,
+        "m2": _MASS,
+        "m3": _MASS,
+        "I1": Field((), _non_negative, "a non-negative inertia (kg m^2)"),
+        "I2": _INERTIAS,
+        "I3": _INERTIAS,
+        "Jm": _INERTIAS,
+        "F": Field((3,), _non_negative, "3 non-negative friction coefficients (N m s/rad)"),
+        "g": Field((), _finite, "a finite number (m/s^2)"),
+        "R": Field((3,), _non_negative, "3 non-negative resistances (ohm)"),
+        "L": Field((3,), _positive, "3 positive inductances (H)"),
+        "Kt": Field((3,), _positive, "3 positive torque constants (N m/A)"),
+        "Kb": Field((3,), _non_negative, "3 non-negative back-EMF constants (V s/rad)"),
+    },
+    Arm: {"params": _NESTED, "payload": Field((), _within(_LO, _HI), f"payloads in [{_LO:g}, {_HI:g}] kg")},
+    Cycloid: {"start": _ANGLES, "end": _ANGLES, "duration": _PERIOD},
+    Sinusoid: {
+        "offset": _ANGLES,
+        "amplitude": _ANGLES,
+        "frequency": Field((3,), _finite, "3 finite numbers (rad/s)"),
+        "phase": _ANGLES,
+    },
+}
+
+_DT = Field((), _positive, "a positive finite number (s)")
+_ONE_KEY = Field((KEY,), None, "a key (jax.random.PRNGKey(seed): shape (2,); typed: ())")
+#: The arguments of :func:`fosmc_jax.simulate` (False) and :func:`fosmc_jax.simulate_batch`
+#: (True): the initial state(s), the step and the noise key(s) (options ``key``, ``keys``).
+ARGUMENTS: dict[bool, dict[str, Field]] = {
+    False: {"X0": Field((9,), _finite, "9 finite numbers"), "dt": _DT, "key": _ONE_KEY},
+    True: {
+        "X0s": Field(("O", 9), _finite, "initial states of 9 finite numbers each"),
+        "dt": _DT,
+        "keys": Field(("R", KEY), None, "R keys (jax.random.split(key, R): shape (R, 2); typed: (R,))"),
+        "key": _ONE_KEY,
+    },
+}
+
+
+def _shape_text(shape: tuple) -> str:
+    return "(" + ", ".join(map(str, shape)) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _matches(shape: tuple, expected: tuple) -> bool:
+    """Whether ``shape`` is ``expected``, where a name (``"O"``) stands for any length."""
+    return len(shape) == len(expected) and all(isinstance(e, str) or e == n for e, n in zip(expected, shape))
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _replaced(obj: Any, changes: dict) -> Any:
+    return dataclasses.replace(obj, **changes) if dataclasses.is_dataclass(obj) else obj._replace(**changes)
+
+
+class _Walk:
+    """One call's walk over the inputs: the dtype lists become, the leading axis of a batch
+    of plants (set by its first array), and the concrete FOSMC parameters met (for the step
+    warning)."""
+
+    def __init__(self, X0: Any):
+        self.X0 = X0
+        self.lead: tuple | None = ()
+        self.lead_path = ""
+        self.fosmc: list[tuple[str, FOSMCParams]] = []
+
+    @functools.cached_property
+    def dtype(self) -> Any:
+        """X0's floating dtype, else JAX's default float (the dtype lists become)."""
+        dtype = getattr(self.X0, "dtype", None)
+        return dtype if dtype is not None and jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
+
+    def object(self, obj: Any, path: str) -> Any:
+        """``obj`` with its fields checked and lists in them made arrays, if its type is in
+        :data:`RULES` (recursively); as it is otherwise."""
+        fields = RULES.get(type(obj))
+        if fields is None:
+            return obj
+        changes = {}
+        for name, field in fields.items():
+            value = getattr(obj, name)
+            sub = f"{path}.{name}"
+            if field.shape is NESTED:
+                new = self.object(value, sub)
+            elif field.shape is STATIC:
+                if not field.rule(value):
+                    raise ValueError(f"{sub}: expected {field.what}, got {_short(value)}")
+                continue
+            else:
+                new = self.array(value, sub, field)
+            if new is not value:
+                changes[name] = new
+        obj = _replaced(obj, changes) if changes else obj
+        if type(obj) is FOSMCParams:
+            self.fosmc.append((path, obj))
+        return obj
+
+    def array(self, value: Any, path: str, field: Field) -> Any:
+        """``value`` (a list or tuple made an array) of ``field``'s shape (with the batch's
+        leading axis), its concrete values passing ``field.rule``."""
+        if value is None:
+            if field.optional:
+                return None
+            raise ValueError(f"{path}: expected {field.what}, got None")
+        if type(value) in (list, tuple):
+            try:
+                value = jnp.asarray(value, self.dtype)
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}: expected {field.what}, got {_short(value)}") from None
+        shape = getattr(value, "shape", None)
+        if shape is None:
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ValueError(f"{path}: expected {field.what}, got {type(value).__name__}")
+            shape = ()
+        expected = field.shape
+        if expected and expected[-1] == KEY:
+            typed = jax.dtypes.issubdtype(value.dtype, jax.dtypes.prng_key) if hasattr(value, "dtype") else False
+            expected = expected[:-1] if typed else expected[:-1] + (2,)
+        self.fit(path, tuple(shape), expected)
+        if field.rule is not None and not isinstance(value, jax.core.Tracer):
+            a = np.asarray(value)
+            if a.dtype.kind not in "biufc":
+                raise ValueError(f"{path}: expected {field.what}, got an array of {a.dtype}")
+            ok = field.rule(a)
+            if not ok.all():
+                i = np.unravel_index(np.flatnonzero(~ok)[0], a.shape)
+                at = "" if not i else f" at index {int(i[0])}" if len(i) == 1 else f" at index {tuple(map(int, i))}"
+                raise ValueError(f"{path}: expected {field.what}, got {a[i]}{at}")
+        return value
+
+    def fit(self, path: str, shape: tuple, expected: tuple) -> None:
+        """A one-line error unless ``shape`` is ``expected`` (names: any length) behind the
+        batch's leading axis, which the first array of a batch of plants sets."""
+        lead = self.lead
+        full = ("P",) + expected if lead is None else lead + expected
+        if shape != full and not _matches(shape, full):
+            if lead is None:
+                note = " (a leading axis of P plants)"
+            else:
+                note = f" (P = {lead[0]}, as {self.lead_path})" if lead else ""
+            raise ValueError(f"{path}: expected shape {_shape_text(full)}{note}, got {shape}")
+        if lead is None:
+            self.lead, self.lead_path = shape[:1], path
+
+
+# stable_step runs JAX in float64 (eigenvalues): 7 ms, where the rest of the check takes tens
+# of microseconds. The check runs on every call, nearly always with the same parameters (but
+# for a search's candidates, which are traced): a small cache of floats, keyed by the bytes.
+@functools.lru_cache(maxsize=256)
+def _stable_step(a_rows: bytes, b_rows: bytes, poles: bytes, poles_dtype: str, integrator: str) -> float:
+    """:func:`fosmc_jax.stable_step` of the rows and poles given as bytes (float64; the poles
+    of ``poles_dtype``), cached."""
+    a = np.frombuffer(a_rows).reshape(3, 9)
+    b = np.frombuffer(b_rows).reshape(3, 3)
+    p = np.frombuffer(poles, poles_dtype).reshape(3, 3)
+    with jax.ensure_compile_time_eval():  # concrete inputs: computed now, also inside a jit trace
+        return stable_step(a, b, p, integrator)
+
+
+def _step_limit(walk: _Walk, dt: Any, integrator: str) -> str | None:
+    """The warning's text when a concrete FOSMC in the controller has a stable step below
+    a concrete ``dt`` for a known ``integrator``; None otherwise."""
+    if not walk.fosmc or isinstance(dt, jax.core.Tracer):
+        return None
+    from .rollout import INTEGRATORS  # rollout imports this module
+
+    if integrator not in INTEGRATORS:
+        return None
+    dt = float(np.asarray(dt))
+    for path, params in walk.fosmc:
+        rows = (params.a_rows, params.b_rows, params.poles)
+        if any(isinstance(x, jax.core.Tracer) for x in rows):
+            continue
+        a, b = (np.asarray(x, np.float64).tobytes() for x in rows[:2])
+        p = np.asarray(rows[2])
+        p = p.astype(np.complex128 if np.iscomplexobj(p) else np.float64)
+        h = _stable_step(a, b, p.tobytes(), p.dtype.str, integrator)
+        if dt > h:
+            return (f"dt = {dt:g} s exceeds the {integrator} stability limit {h:.3g} s of the nominal model's "
+                    f"fastest mode ({path}): expect divergence")  # fmt: skip
+    return None
+
+
+def check_inputs(
+    plant: Any, controller: Any, reference: Any, X0: Any, dt: Any, batch: bool, options: dict
+) -> tuple[Any, ...]:
+    """(plant, controller, reference, X0, dt) checked and normalised for :func:`fosmc_jax.simulate`
+    (``batch`` False: X0 (9,), unbatched plant) or :func:`fosmc_jax.simulate_batch` (True:
+    ``plants`` with a leading axis P on every leaf, X0s (O, 9), ``options["keys"]`` (R, 2) or R
+    typed keys); ``options`` are theirs (read, not changed).
+
+    The rules are :data:`RULES` and :data:`ARGUMENTS`. Lists and tuples of numbers in the
+    fields of those types, and X0 and dt given as lists, become arrays of X0's floating dtype
+    (JAX's default float if X0 is not an array); other types are left alone. Raises a one-line
+    ``ValueError`` naming the field by its path (``controller.params.delta``): on a wrong shape
+    always (under ``jit``, ``grad`` and ``vmap`` too), on a non-finite or out-of-range value
+    where the values are concrete. Warns (``UserWarning``) when dt exceeds
+    :func:`fosmc_jax.stable_step` of a concrete :class:`FOSMCParams` in the controller for
+    ``options["integrator"]`` (default ``rk4``).
+    """
+    names = ARGUMENTS[batch]
+    x0_name, plant_name = ("X0s", "plants") if batch else ("X0", "plant")
+    walk = _Walk(X0)
+    X0 = walk.array(X0, x0_name, names[x0_name])
+    dt = walk.array(dt, "dt", names["dt"])
+    for key in ("keys", "key"):
+        if key in names and options.get(key) is not None:
+            walk.array(options[key], key, names[key])
+    controller = walk.object(controller, "controller")
+    reference = walk.object(reference, "reference")
+    walk.lead = None if batch else ()
+    plant = walk.object(plant, plant_name)
+    message = _step_limit(walk, dt, options.get("integrator", "rk4"))
+    if message is not None:
+        warnings.warn(message, stacklevel=3)  # the caller of simulate / simulate_batch
+    return plant, controller, reference, X0, dt
