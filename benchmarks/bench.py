@@ -308,7 +308,16 @@ ARM_RMS_TOL = {"float32": 1e-4, "float64": 1e-9}
 #: same file: tests/test_digital_loop.py checks it).
 PRESET = Path(__file__).resolve().parents[1] / "tuning" / "configs" / "realistic_arm.toml"
 #: simulate_batch's static options (compiled in); the others are traced arguments of the compiled call.
-STATIC_OPTIONS = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
+STATIC_OPTIONS = (
+    "n_steps",
+    "integrator",
+    "switching",
+    "law",
+    "save_every",
+    "checkpoint_every",
+    "truncate_every",
+    "pairing",
+)
 
 
 def split(batch: int) -> tuple[int, int]:
