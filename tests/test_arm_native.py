@@ -112,6 +112,7 @@ def test_float32_within_1e_4(integrator):
     assert_close(fast, slow, rtol=1e-4)
 
 
+@pytest.mark.slow  # two programs of a 2 x 3 batch: ~16 s
 def test_divergence_and_bad_input_flagged_as_simulate_does():
     """A NaN initial state is flagged at t = 0, a rollout pushed past the divergence bound is
     flagged at the same step as simulate flags it, and neither changes its batch neighbours."""

@@ -90,6 +90,7 @@ def test_fast_batch_float32():
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, np.float32(1e-3), **opts), rtol=1e-4)
 
 
+@pytest.mark.slow  # forward mode through the kernel's custom_jvp: ~17 s
 def test_fast_batch_forward_mode_and_mixed_precision():
     """Forward-mode derivatives through the fast path (the kernel's are the scan's), and plants
     in float32 with float64 states (the kernel runs in the promoted dtype, as the scan)."""
@@ -122,6 +123,7 @@ def test_kernel_refuses_buffers_off_its_layout_with_an_error():
                                                   switching="ratio", law="paper"))  # fmt: skip
 
 
+@pytest.mark.slow  # ~13 s
 def test_scan_loop_equals_vmap_of_simulate():
     """The fast path's ``lax.scan`` loop, which runs where the native kernel cannot be built
     (and under reverse-mode derivatives); the cases above run the kernel where it is."""

@@ -111,6 +111,7 @@ def test_tune_logs_name_tune_and_the_objectives_metrics(tuned):
     assert result["objective"]["chattering_metric"] == "chattering_hf"
 
 
+@pytest.mark.slow  # a real (tiny) run: 10-14 s of compilation
 def test_tune_prints_the_metrics_it_optimises_with_their_units(tuned, monkeypatch, capsys):
     result = tuned[0]
     monkeypatch.setattr(C, "run_tune", lambda *a, **k: result)  # the printing only
@@ -122,6 +123,7 @@ def test_tune_prints_the_metrics_it_optimises_with_their_units(tuned, monkeypatc
     assert rows[1].split("final ")[1].split() == [f"{x:.4e}" for x in final]
 
 
+@pytest.mark.slow  # a real (tiny) run: 10-14 s of compilation
 def test_tune_result_carries_the_versions_and_resimulates(tuned, capsys):
     result, _, out = tuned
     written = json.loads((out / "result.json").read_text())

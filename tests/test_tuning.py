@@ -123,6 +123,7 @@ def test_the_best_iterate_is_returned_when_a_step_lands_on_a_flat_penalty():
     np.testing.assert_array_equal(u.delta, hist["params"][hist["best_step"]][0])
 
 
+@pytest.mark.slow  # two tuning runs: ~10 s
 def test_resume_equals_uninterrupted(tmp_path):
     prob = problem(n_steps=100)
     obj = T.Objective(error_ref=0.05, chattering_ref=5.0)

@@ -440,7 +440,8 @@ def _check_consistency(cfg: dict) -> None:
     if sample["count"] and not drawn:
         raise ConfigError("sample.count: nothing to draw (set sample.payloads = [low, high] or sample.offsets)")
     if drawn and not sample["count"]:
-        raise ConfigError("sample.count: expected a positive number of draws with sample.payloads or sample.offsets")
+        key = "payloads" if sample["payloads"] else "offsets"
+        raise ConfigError(f"sample.{key}: draws nothing without sample.count, the number of draws (0 by default)")
     if sample["payloads"] and cfg["plant"]["kind"] != "arm":
         raise ConfigError("sample.payloads: applies to plant.kind = 'arm' only")
     if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
