@@ -39,6 +39,7 @@ def random_states(n, seed=0):
 # ---------------------------------------------------------------------------- physics
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_energy_conserved_without_motors_friction_gravity():
     params = P._replace(F=np.zeros(3), g=0.0)
     m = 4.0
@@ -63,6 +64,7 @@ def test_energy_conserved_without_motors_friction_gravity():
     assert abs(float(e1 - e0)) < 1e-9 * float(e0)
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_energy_balance_with_gravity():
     """With gravity on (no friction, no motor torque), kinetic + potential is conserved."""
     params = P._replace(F=np.zeros(3))
@@ -119,6 +121,7 @@ def test_init_observe_roundtrip():
         np.testing.assert_allclose(arm.observe(arm.init(X)), X, atol=1e-10)
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_jerk_is_jvp_of_acceleration_and_matches_third_order_rows():
     rng = np.random.default_rng(3)
     arm = Arm(P, 6.0)
@@ -136,6 +139,7 @@ def test_jerk_is_jvp_of_acceleration_and_matches_third_order_rows():
         np.testing.assert_allclose(a[:, 0], 0.0, atol=1e-12)  # no theta_1 dependence
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_b_rows_is_Minv_Kt_over_L():
     X = random_states(1, seed=4)[0]
     a, b = jax.jit(third_order_rows)(Arm(P, 2.0), X)  # one compilation, not op by op
@@ -143,6 +147,7 @@ def test_b_rows_is_Minv_Kt_over_L():
     np.testing.assert_allclose(M @ b, np.diag(np.asarray(P.Kt) / np.asarray(P.L)), rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_float32_follows_inputs():
     arm = arm_sweep(jnp.array([0.0, 10.0], jnp.float32))
     one = jax.tree.map(lambda x: x[1], arm)

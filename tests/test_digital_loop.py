@@ -61,6 +61,7 @@ def test_sample_period_dt_equals_the_ideal_loop_with_euler():
     assert float(np.max(ideal.metrics.rms_error)) > 1e-4  # a non-trivial run
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_config_with_sample_period_dt_equals_the_ideal_loop(capsys, tmp_path):
     base = {"sim": {"t_final": 0.05, "dt": 1e-3, "integrator": "euler"}}
     digital = {**base, "controller": {"sample_period": 1e-3}}
@@ -176,6 +177,7 @@ def test_measurements_reach_the_law_by_hand():
 # ---------------------------------------------------------------------------- noise and seeds
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_noise_realizations_are_reproducible_and_distinct():
     noisy = loop(period_steps=5, noise=(1e-3, 1e-2, 1.0) * 3)
     keys = jax.random.split(jax.random.PRNGKey(3), 2)

@@ -353,6 +353,7 @@ def test_vmap_of_simulate_equals_one_by_one():
 # ------------------------------------------------------------------ (4) no recompilation
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_second_call_with_new_values_does_not_recompile():
     opts = dict(n_steps=37, integrator="euler", switching="tanh", law="equivalent")  # a config no other test uses
     before = fj.simulate._cache_size()
@@ -426,6 +427,7 @@ def test_second_call_does_not_recompile_by_compile_events():
 # ------------------------------------------------------------------ (5) float32
 
 
+@pytest.mark.slow  # moved from the default tier (4-min budget): 4-8 s
 def test_float32_run_stays_float32_and_agrees_with_float64():
     n, dt = 300, 1e-3
     res = {}
