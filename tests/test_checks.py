@@ -98,18 +98,21 @@ def test_out_of_range_parameters_are_refused():
             ref, X0, dt)  # fmt: skip
 
 
-@pytest.mark.parametrize("payload", [-2.0, 50.0])
-def test_a_payload_outside_the_papers_range_is_refused(payload):
+def test_a_negative_payload_is_refused_and_the_range_is_the_configs():
+    """The low level refuses a negative payload; the range (the paper's arm: PAYLOAD_RANGE) is
+    the configured arm's, [arm] payload_range, checked by the config (an Arm does not carry it)."""
     _, ctrl, ref, X0, dt = inputs()
-    lo, hi = fj.PAYLOAD_RANGE
-    message = refused(r"plant\.payload: ", fj.Arm(fj.ARM_PARAMS, payload), ctrl, ref, X0, dt)
-    assert message == f"plant.payload: expected payloads in [{lo:g}, {hi:g}] kg, got {payload}"
-    arms = fj.arm_sweep(jnp.array([0.0, payload]))
+    message = refused(r"plant\.payload: ", fj.Arm(fj.ARM_PARAMS, -2.0), ctrl, ref, X0, dt)
+    assert message == "plant.payload: expected a non-negative payload (kg), got -2.0"
+    arms = fj.arm_sweep(jnp.array([0.0, -2.0]))
     message = refused(r"plants\.payload: ", arms, ctrl, ref, X0[None], dt, batch=True)
-    assert message.endswith(f"got {payload} at index 1")
-    # the paper's own payloads, one arm or a batch, pass
-    check(fj.Arm(fj.ARM_PARAMS, hi), ctrl, ref, X0, dt)
+    assert message.endswith("got -2.0 at index 1")
     check(fj.arm_sweep(jnp.array(fj.PAYLOAD_RANGE)), ctrl, ref, X0[None], dt, batch=True)
+    with pytest.raises(
+        fj.ConfigError, match=r"^plant.payloads: expected payloads within arm.payload_range = \[0, 10\]"
+    ):
+        fj.config.resolve({"plant": {"kind": "arm", "payloads": [1.0, 50.0]}})
+    fj.config.resolve({"plant": {"kind": "arm", "payloads": [1.0, 50.0]}, "arm": {"payload_range": [0.0, 60.0]}})
 
 
 def test_a_delta_given_as_a_list_runs_as_the_array():

@@ -22,8 +22,7 @@ from .._certificate.hitting import (
 )
 from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS, summarize
-from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE
-from .config import ConfigError, box_of, controller_of, reference_of
+from .config import ConfigError, arm_params_of, box_of, controller_of, reference_of
 
 
 def certify(
@@ -54,8 +53,8 @@ def certify(
     norm in ``s_norms`` (default (1,) for ``sign``, where |s| does not matter; else
     (0.1, 1, 10, 100) x max(delta)). Plants: ``plant`` (default the config's plant.kind):
     ``linear``: the config's box around model.A_rows/B_rows, ``vertices = "all"`` (exact,
-    closed form) or an int N (N explicit vertices, seeded sample); ``arm``: the arm of
-    :mod:`fosmc_jax._plants.arm` at ``n_payloads`` payloads evenly over PAYLOAD_RANGE, its true rows
+    closed form) or an int N (N explicit vertices, seeded sample); ``arm``: the config's ``[arm]``
+    at ``n_payloads`` payloads evenly over its ``payload_range``, its true rows
     ``third_order_rows`` at X = X_d + Z. ``switching`` defaults to ``sign`` (the theorem's law;
     pass the config's ``controller.switching`` to check what is simulated); ``law`` defaults to
     the config's. ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
@@ -135,13 +134,14 @@ def certify(
                 label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
                 points = evaluations = n_pts * codes.size
         else:
-            payloads = np.linspace(*PAYLOAD_RANGE, n_payloads)
-            params = jax.tree.map(lambda p: jnp.asarray(p, jnp.float64), ARM_PARAMS)
+            payload_range = tuple(cfg["arm"]["payload_range"])
+            payloads = np.linspace(*payload_range, n_payloads)
+            params = arm_params_of(cfg, jnp.float64)
             values = arm_values(ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law)  # (P, T, nZ, nS)
             vmax, k = argmax(values)
             ip, it, iz, i_s = np.unravel_index(int(k), values.shape)
             where = {"payload": float(payloads[ip])}
-            label = f"arm at {n_payloads} payloads evenly over {PAYLOAD_RANGE} kg"
+            label = f"arm at {n_payloads} payloads evenly over {payload_range} kg"
             points = evaluations = n_pts * n_payloads
         vmax = float(vmax)
         where = {"t": float(times[it]), "Z": Zs[iz].tolist(), "s": S[i_s].tolist(), **where}

@@ -195,11 +195,11 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
     cfg = config_of(config)
     arm = cfg["plant"]["kind"] == "arm"
     if arm:
-        from .._plants.arm import ARM_PARAMS, arm_box, envelope_samples
+        from .._plants.arm import arm_box, envelope_samples
 
         lo, hi = min(cfg["plant"]["payloads"]), max(cfg["plant"]["payloads"])
-        log(f"fosmc bounds: sampling the arm's rows along the reference, payloads {lo:g}..{hi:g} kg ...")
-        abox = arm_box(ARM_PARAMS, np.linspace(lo, hi, 11), envelope_samples())
+        log(f"fosmc bounds: sampling the [arm]'s rows along the reference, payloads {lo:g}..{hi:g} kg ...")
+        abox = arm_box(_config.arm_params_of(cfg, np.float64), np.linspace(lo, hi, 11), envelope_samples())
         a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
     else:
         box = _config.box_of(cfg)

@@ -25,7 +25,7 @@ from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
-from .._plants.arm import PAYLOAD_RANGE, arm_sweep
+from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, ArmParams, arm_sweep
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
@@ -107,6 +107,11 @@ def defaults() -> dict[str, Any]:
             "pairing": "cross",
         },
         "sample": {"count": 0, "seed": 0, "payloads": [], "offsets": [0.0] * 9},
+        # the arm of plant.kind = "arm": every ArmParams field (the calibrated values) and its payload range
+        "arm": {
+            **{k: np.asarray(v).tolist() for k, v in ARM_PARAMS._asdict().items()},
+            "payload_range": list(PAYLOAD_RANGE),
+        },  # fmt: skip
         "tune": {
             "params": ["delta", "gamma", "poles"],
             "weight_error": 1.0,
@@ -223,19 +228,23 @@ def _names(choices: Callable[[], tuple[str, ...]]):
 
 
 def _payloads(key: str, value: Any) -> Any:
-    lo, hi = PAYLOAD_RANGE
-    what = f"a non-empty list of payloads in [{lo:g}, {hi:g}] kg"
+    what = "a non-empty list of non-negative payloads (kg; within arm.payload_range)"
     if not isinstance(value, list) or not value:
         raise ConfigError(f"{key}: expected {what}, got {_short(value)}")
-    return _array((len(value),), what, lambda a: np.all((a >= lo) & (a <= hi)))(key, value)
+    return _array((len(value),), what, lambda a: np.all(a >= 0))(key, value)
 
 
 def _payload_range(key: str, value: Any) -> Any:
-    lo, hi = PAYLOAD_RANGE
-    what = f"[low, high] within [{lo:g}, {hi:g}] kg, low <= high (or [] : no payloads drawn)"
-    if value == []:
+    what = "[low, high] kg with 0 <= low <= high (or []: no payloads drawn)"
+    if value == [] and key == "sample.payloads":
         return []
-    return _array((2,), what, lambda a: lo <= a[0] <= a[1] <= hi)(key, value)
+    return _array((2,), what, lambda a: 0 <= a[0] <= a[1])(key, value)
+
+
+def _principal_inertias(key: str, value: Any) -> Any:
+    """A link's principal moments: positive, each at most the sum of the other two."""
+    what = "3 positive principal inertias (kg m^2), each at most the sum of the other two"
+    return _array((3,), what, lambda a: np.all(a > 0) and np.all(2 * a <= a.sum() * (1 + 1e-12)))(key, value)
 
 
 def _offset_scales(key: str, value: Any) -> Any:
@@ -324,6 +333,28 @@ SCHEMA: dict[str, Any] = {
         "save_every": _integer("a non-negative integer", lambda n: n >= 0),
         "divergence_bound": _number("a positive number", lambda x: x > 0),
         "pairing": _choice(PAIRINGS),
+    },
+    "arm": {
+        "d1": _number("a number (m)"),
+        "d2": _number("a number (m)"),
+        "d3": _number("a number (m)"),
+        "l2": _number("a positive length (m)", lambda x: x > 0),
+        "l3": _number("a positive length (m)", lambda x: x > 0),
+        "c2": _number("a non-negative distance (m; at most arm.l2)", lambda x: x >= 0),
+        "c3": _number("a non-negative distance (m; at most arm.l3)", lambda x: x >= 0),
+        "m2": _number("a positive mass (kg)", lambda x: x > 0),
+        "m3": _number("a positive mass (kg)", lambda x: x > 0),
+        "I1": _number("a positive inertia (kg m^2)", lambda x: x > 0),
+        "I2": _principal_inertias,
+        "I3": _principal_inertias,
+        "Jm": _array((3,), "3 positive rotor inertias (kg m^2)", lambda a: np.all(a > 0)),
+        "F": _array((3,), "3 non-negative viscous friction coefficients (N m s/rad)", lambda a: np.all(a >= 0)),
+        "g": _number("a non-negative number (m/s^2)", lambda x: x >= 0),
+        "R": _array((3,), "3 positive resistances (ohm)", lambda a: np.all(a > 0)),
+        "L": _array((3,), "3 positive inductances (H)", lambda a: np.all(a > 0)),
+        "Kt": _array((3,), "3 positive torque constants (N m/A)", lambda a: np.all(a > 0)),
+        "Kb": _array((3,), "3 positive back-EMF constants (V s/rad)", lambda a: np.all(a > 0)),
+        "payload_range": _payload_range,
     },
     "sample": {
         "count": _integer("a non-negative integer (0: no sampling)", lambda n: n >= 0),
@@ -444,6 +475,7 @@ def _check_consistency(cfg: dict) -> None:
         raise ConfigError(f"sample.{key}: draws nothing without sample.count, the number of draws (0 by default)")
     if sample["payloads"] and cfg["plant"]["kind"] != "arm":
         raise ConfigError("sample.payloads: applies to plant.kind = 'arm' only")
+    _check_arm(cfg)
     if cfg["plant"]["kind"] == "arm" and cfg["plant"]["uncertainty"] != "none":
         raise ConfigError("plant.uncertainty: applies to kind = 'linear' only (the arm's uncertainty is its payloads)")
     tune = cfg["tune"]
@@ -478,6 +510,25 @@ def _check_consistency(cfg: dict) -> None:
             "nominal model's fastest mode: expect divergence",
             stacklevel=2,
         )
+
+
+def _check_arm(cfg: dict) -> None:
+    """The ``[arm]`` table's cross-field rules, and the payloads within its range."""
+    arm = cfg["arm"]
+    for j in (2, 3):
+        if arm[f"c{j}"] > arm[f"l{j}"]:
+            raise ConfigError(f"arm.c{j}: expected the centre of mass of link {j} within the link, at most arm.l{j} = "
+                              f"{arm[f'l{j}']:g} m, got {arm[f'c{j}']:g}")  # fmt: skip
+    lo, hi = arm["payload_range"]
+    for key, values in (("plant.payloads", cfg["plant"]["payloads"]), ("sample.payloads", cfg["sample"]["payloads"])):
+        if values and not lo <= min(values) <= max(values) <= hi:
+            raise ConfigError(f"{key}: expected payloads within arm.payload_range = [{lo:g}, {hi:g}] kg, "
+                              f"got {_short(values)}")  # fmt: skip
+
+
+def arm_params_of(cfg: dict, dtype) -> ArmParams:
+    """The ``[arm]`` table's :class:`fosmc_jax.ArmParams`, as arrays of ``dtype``."""
+    return ArmParams(**{k: jnp.asarray(np.asarray(cfg["arm"][k], dtype=float), dtype) for k in ArmParams._fields})
 
 
 def sample_steps(cfg: dict) -> int:
@@ -642,7 +693,7 @@ def build(config: str | Path | dict | None = None) -> Problem:
     reference = reference_of(cfg, dtype)
     drawn = draws(cfg)
     if plant["kind"] == "arm":
-        plants = arm_sweep(cast(drawn.get("payloads", plant["payloads"])))
+        plants = arm_sweep(cast(drawn.get("payloads", plant["payloads"])), arm_params_of(cfg, dtype))
     else:
         plants = uncertain_plants(
             model["A_rows"], model["B_rows"], plant["uncertainty"], box=box_of(cfg),

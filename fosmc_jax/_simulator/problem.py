@@ -58,6 +58,37 @@ class Problem(NamedTuple):
             params = dataclasses.replace(params, **new) if dataclasses.is_dataclass(params) else params._replace(**new)
         return params if self.make is None else self.make(params)
 
+    def with_arm(self, changes: Mapping) -> Problem:
+        """The problem with the arm's physical parameters ``changes`` ({field of
+        :class:`fosmc_jax.ArmParams`: value}, e.g. ``{"F": F}``; each value of the field's own
+        shape, () or (3,)) in every plant of the batch; differentiable in them::
+
+            loss = lambda F: problem.with_arm({"F": F}).simulate(fast=False).mean().rms_error.mean()
+            jax.grad(loss)(problem.arm_params()["F"])
+        """
+        from .._plants.arm import Arm
+
+        if not isinstance(self.plants, Arm):
+            raise ValueError(f"with_arm: the problem's plants are {type(self.plants).__name__}, not the arm")
+        fields = self.plants.params
+        unknown = sorted(set(changes) - set(fields._fields))
+        if unknown:
+            raise ValueError(f"with_arm: unknown arm parameter(s) {', '.join(map(repr, unknown))} "
+                             f"(ArmParams: {', '.join(fields._fields)})")  # fmt: skip
+        new = {}
+        for name, value in changes.items():
+            old = getattr(fields, name)  # (P, ...) : one row per plant
+            value = jnp.asarray(value, old.dtype)
+            if value.shape != old.shape[1:]:
+                raise ValueError(f"with_arm: arm.{name}: expected shape {old.shape[1:]}, got {value.shape}")
+            new[name] = jnp.broadcast_to(value, old.shape)
+        return self._replace(plants=self.plants._replace(params=fields._replace(**new)))
+
+    def arm_params(self) -> dict:
+        """The arm's physical parameters (of the first plant; every plant of a config's batch
+        shares them), by :class:`fosmc_jax.ArmParams` field."""
+        return {name: value[0] for name, value in self.plants.params._asdict().items()}
+
     @property
     def args(self) -> tuple:
         """``simulate_batch``'s positional arguments with the base parameters."""

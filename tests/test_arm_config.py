@@ -1,0 +1,78 @@
+"""Your arm in the config (issue 25, items 1 and 7): the [arm] table's keys, validated, used by
+build, bounds and certify; gradients with respect to the arm's parameters."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fosmc_jax as fj
+
+ARM = {"plant": {"kind": "arm", "payloads": [0.0, 5.0]}, "sim": {"t_final": 0.1, "dt": 1e-3}}
+
+
+def test_the_arm_table_defaults_to_the_calibrated_arm_and_builds_the_configured_one():
+    cfg = fj.config.resolve(ARM)
+    assert set(cfg["arm"]) == set(fj.ArmParams._fields) | {"payload_range"}
+    assert cfg["arm"]["payload_range"] == list(fj.PAYLOAD_RANGE)
+    for name, value in fj.ARM_PARAMS._asdict().items():
+        np.testing.assert_array_equal(cfg["arm"][name], value)
+    mine = fj.build({**ARM, "arm": {"F": [0.5, 0.4, 0.3], "m3": 20.0}})
+    np.testing.assert_array_equal(np.asarray(mine.plants.params.F), [[0.5, 0.4, 0.3]] * 2)
+    np.testing.assert_array_equal(np.asarray(mine.plants.params.m3), [20.0, 20.0])
+    assert float(mine.arm_params()["m3"]) == 20.0
+
+
+@pytest.mark.parametrize(
+    "arm, message",
+    [({"m2": -1.0}, "arm.m2: expected a positive mass"),
+     ({"I2": [1.0, 1.0, 3.0]}, "arm.I2: expected 3 positive principal inertias"),
+     ({"R": [0.1, 0.0, 0.1]}, "arm.R: expected 3 positive resistances"),
+     ({"F": [0.1, np.nan, 0.1]}, "arm.F: expected 3 non-negative viscous friction coefficients"),
+     ({"c2": 0.5, "l2": 0.3}, "arm.c2: expected the centre of mass of link 2 within the link"),
+     ({"payload_range": [2.0, 1.0]}, r"arm.payload_range: expected \[low, high\]"),
+     ({"payload_range": [0.0, 4.0]}, r"plant.payloads: expected payloads within arm.payload_range = \[0, 4\]")],
+)  # fmt: skip
+def test_a_bad_arm_is_refused_in_one_line_naming_the_key(arm, message):
+    with pytest.raises(fj.ConfigError, match="^" + message) as e:
+        fj.config.resolve({**ARM, "arm": arm})
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.slow  # the arm's box twice: ~10 s
+def test_bounds_and_certify_use_the_configured_arm():
+    """A heavier link 3 changes the nominal rows fosmc bounds derives from the arm (it used
+    the calibrated arm whatever the config said)."""
+    base = fj.run_bounds(ARM)
+    heavy = fj.run_bounds({**ARM, "arm": {"m3": 80.0}})
+    assert not np.allclose(heavy["nominal_B_rows"], base["nominal_B_rows"])
+    cfg = fj.config.resolve({**ARM, "arm": {"payload_range": [0.0, 6.0]}})
+    cert = fj.certify(cfg, n_times=3, n_z=2, n_s=26, n_payloads=2)
+    assert "evenly over (0.0, 6.0) kg" in cert.vertices and 0 <= cert.where["payload"] <= 6.0
+
+
+@pytest.mark.slow  # the arm in reverse mode: ~40 s
+def test_gradients_in_the_arms_parameters_equal_central_differences():
+    """d(mean rms_error)/dF and /dKt through with_arm (one arm, 0.1 s), against central
+    differences (relative steps 1e-2 for F, whose joint-1 derivative is 1e-8 and drowns in
+    rounding below it, and 1e-4 for Kt): measured 3e-6 and 1e-6 apart, asserted to 1e-4 and 1e-5."""
+    problem = fj.build({**ARM, "plant": {"kind": "arm", "payloads": [5.0]}})
+    x0 = {name: np.asarray(problem.arm_params()[name]) for name in ("F", "Kt")}
+    loss = lambda x: problem.with_arm(x).simulate(fast=False).mean().rms_error.mean()
+    grad = jax.grad(loss)({k: jnp.asarray(v) for k, v in x0.items()})
+    for name, step, rtol in (("F", 1e-2, 1e-4), ("Kt", 1e-4, 1e-5)):
+        fd = []
+        for j, e in enumerate(np.diag(step * x0[name])):
+            up, down = dict(x0, **{name: x0[name] + e}), dict(x0, **{name: x0[name] - e})
+            fd.append((float(loss(up)) - float(loss(down))) / (2 * e[j]))
+        np.testing.assert_allclose(np.asarray(grad[name]), fd, rtol=rtol, err_msg=name)
+
+
+def test_with_arm_refuses_unknown_names_wrong_shapes_and_linear_plants():
+    problem = fj.build(ARM)
+    with pytest.raises(ValueError, match=r"^with_arm: unknown arm parameter\(s\) 'friction'"):
+        problem.with_arm({"friction": 1.0})
+    with pytest.raises(ValueError, match=r"^with_arm: arm.F: expected shape \(3,\), got \(2,\)"):
+        problem.with_arm({"F": [1.0, 2.0]})
+    with pytest.raises(ValueError, match="^with_arm: the problem's plants are LinearPlant"):
+        fj.build({"sim": {"t_final": 0.1}}).with_arm({"F": [1.0, 1.0, 1.0]})
