@@ -13,7 +13,7 @@ ARM = {"plant": {"kind": "arm", "payloads": [0.0, 5.0]}, "sim": {"t_final": 0.1,
 
 def test_the_arm_table_defaults_to_the_calibrated_arm_and_builds_the_configured_one():
     cfg = fj.config.resolve(ARM)
-    assert set(cfg["arm"]) == set(fj.ArmParams._fields) | {"payload_range"}
+    assert set(cfg["arm"]) == set(fj.ArmParams._fields) | {"payload_range", "uncertainty"}
     assert cfg["arm"]["payload_range"] == list(fj.PAYLOAD_RANGE)
     for name, value in fj.ARM_PARAMS._asdict().items():
         np.testing.assert_array_equal(cfg["arm"][name], value)
@@ -76,3 +76,69 @@ def test_with_arm_refuses_unknown_names_wrong_shapes_and_linear_plants():
         problem.with_arm({"F": [1.0, 2.0]})
     with pytest.raises(ValueError, match="^with_arm: the problem's plants are LinearPlant"):
         fj.build({"sim": {"t_final": 0.1}}).with_arm({"F": [1.0, 1.0, 1.0]})
+
+
+UNCERTAIN = {**ARM, "arm": {"uncertainty": {"F": 0.3, "Kt": [0.1, 0.1, 0.2], "samples": 3, "seed": 7}}}
+
+
+def test_sampled_arms_draw_within_their_ranges_and_cross_with_payloads_arm_first():
+    cfg = fj.config.resolve(UNCERTAIN)
+    arms = fj.config.draws(cfg)["arms"]
+    F, Kt = np.asarray(cfg["arm"]["F"]), np.asarray(cfg["arm"]["Kt"])
+    assert arms["F"].shape == (3, 3) and np.all(np.abs(arms["F"] / F - 1) <= 0.3)
+    assert np.all(np.abs(arms["Kt"] / Kt - 1) <= [0.1, 0.1, 0.2]) and not np.allclose(arms["F"], F)
+    np.testing.assert_array_equal(arms["m2"], [cfg["arm"]["m2"]] * 3)  # what does not vary stays
+    problem = fj.build(UNCERTAIN)
+    assert problem.rollouts == 6  # 3 arms x 2 payloads, arm first
+    np.testing.assert_array_equal(np.asarray(problem.plants.payload), [0.0, 5.0] * 3)
+    np.testing.assert_array_equal(np.asarray(problem.plants.params.F), np.repeat(arms["F"], 2, axis=0))
+    # the corners of the ranges: 2^(3 + 3) = 64 when every corner is asked for
+    corners = fj.config.draws(fj.config.resolve(
+        {**ARM, "arm": {"uncertainty": {"F": 0.3, "Kt": 0.1, "sampling": "vertices"}}}))["arms"]  # fmt: skip
+    assert corners["F"].shape == (64, 3) and np.allclose(np.abs(corners["F"] / F - 1), 0.3)
+    assert len({tuple(np.sign(row)) for row in np.concatenate([corners["F"] / F - 1, corners["Kt"] / Kt - 1], 1)}) == 64
+
+
+@pytest.mark.parametrize(
+    "uncertainty, message",
+    [({"F": 1.2, "samples": 2}, r"arm.uncertainty.F: expected a relative half-width in \[0, 1\)"),
+     ({"F": 0.3}, "arm.uncertainty.samples: expected a positive number of sampled arms"),
+     ({"samples": 4}, "arm.uncertainty.samples: nothing varies"),
+     ({"m2": [0.1, 0.1, 0.1], "samples": 2}, r"arm.uncertainty.m2: expected a relative half-width")],
+)  # fmt: skip
+def test_bad_arm_uncertainty_is_refused_naming_the_key(uncertainty, message):
+    with pytest.raises(fj.ConfigError, match="^" + message):
+        fj.config.resolve({**ARM, "arm": {"uncertainty": uncertainty}})
+    with pytest.raises(fj.ConfigError, match="^arm.uncertainty: applies to plant.kind = 'arm' only"):
+        fj.config.resolve({"arm": {"uncertainty": {"F": 0.3, "samples": 2}}})
+
+
+@pytest.mark.slow  # the arm's kernel and one rollout at a time: ~15 s
+def test_sampled_arms_paired_and_in_the_json_equal_their_rollouts_one_by_one(capsys, tmp_path):
+    """Paired: arm i with payload i and offset i; each rollout equals fj.simulate of that arm;
+    --json names each rollout's arm_index and lists the arms' parameters."""
+    import json
+
+    from fosmc_jax._app.cli import main
+
+    user = {
+        **UNCERTAIN,
+        "plant": {"kind": "arm", "payloads": [0.0, 5.0, 2.0]},
+        "sim": {**ARM["sim"], "pairing": "paired"},
+    }
+    problem = fj.build(user)
+    assert problem.rollouts == 3
+    batch = problem.simulate()
+    options = {k: v for k, v in problem.options.items() if k != "pairing"}
+    for i in range(3):
+        plant = jax.tree.map(lambda x, i=i: x[i], problem.plants)
+        one = fj.simulate(plant, problem.controller(), problem.reference, problem.X0s[i], problem.dt, **options)
+        np.testing.assert_allclose(batch.metrics.rms_error[i], one.metrics.rms_error, rtol=1e-9)
+    path = tmp_path / "u.toml"
+    path.write_text('[plant]\nkind = "arm"\npayloads = [0.0, 5.0]\n[sim]\nt_final = 0.1\ndt = 1e-3\n'
+                    '[arm.uncertainty]\nF = 0.3\nKt = [0.1, 0.1, 0.2]\nsamples = 3\nseed = 7\n')  # fmt: skip
+    assert main(["simulate", "--config", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["arm_index"] for r in out["rollouts"]] == [0, 0, 1, 1, 2, 2]
+    drawn = fj.config.draws(fj.config.load(path))["arms"]
+    assert len(out["arms"]) == 3 and np.allclose(out["arms"][2]["F"], drawn["F"][2])

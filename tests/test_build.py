@@ -127,7 +127,7 @@ def test_sample_and_pairing_errors_name_their_key():
              r"sample.payloads: expected \[low, high\]": {"plant": {"kind": "arm"},
                                                           "sample": {"count": 5, "payloads": [2, 1]}},
              "sample.offsets: draws nothing without sample.count": {"sample": {"offsets": 0.1}},
-             "sim.pairing: 'paired' needs as many initial offsets as plants":
+             "sim.pairing: 'paired' needs as many of each, or one":
                  {"plant": {"kind": "arm", "payloads": [1, 2]},
                   "sim": {"pairing": "paired", "initial_offset": [[0] * 9] * 3}}}  # fmt: skip
     for message, user in cases.items():

@@ -111,7 +111,8 @@ def run_simulate(
     "offset_index", "realization_index", "metrics": {name: (3,)}, "diverged", "diverged_at"},
     ...], "summary": batch_summary, "config": resolved config}``: what ``--json`` prints; with
     a ``[sample]`` table also ``"sampled"``: its draws (``payloads``, ``offsets``), indexed by
-    ``plant_index`` and ``offset_index``. With
+    ``plant_index`` and ``offset_index``; with ``[arm.uncertainty]`` each rollout's
+    ``arm_index`` and ``"arms"``: each sampled arm's parameters by ``[arm]`` key. With
     ``records=False``, ``"arrays"`` instead of ``"rollouts"``: the same fields as NumPy arrays
     over the rollouts (what ``--npz`` writes, with the versions, and ``--json`` prints as
     records; no Python object per rollout).
@@ -151,7 +152,14 @@ def run_simulate(
                   plant_index=r // (per_plant * n_real), realization_index=r % n_real,
                   offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
     summary = batch_summary(result.metrics, result.diverged)
-    sampled = {"sampled": {k: v.tolist() for k, v in _config.draws(cfg).items()}} if cfg["sample"]["count"] else {}
+    drawn = _config.draws(cfg)
+    sampled = {"sampled": {k: v.tolist() for k, v in drawn.items() if k != "arms"}} if cfg["sample"]["count"] else {}
+    if "arms" in drawn:  # [arm.uncertainty]: which sampled arm each rollout ran, and each arm's parameters
+        arms = drawn["arms"]
+        n_arms = len(arms["F"])
+        per_arm = 1 if paired else jax.tree.leaves(problem.plants)[0].shape[0] // n_arms  # payloads per arm
+        arrays["arm_index"] = arrays["plant_index"] // per_arm
+        sampled["arms"] = [{k: v[i].tolist() for k, v in arms.items()} for i in range(n_arms)]
     if not records:
         out = stamped({"arrays": arrays, "summary": summary, **sampled, "config": cfg})
         return dict(out, trace=result.trace) if keep_trace else out
@@ -164,10 +172,12 @@ def run_simulate(
 
 def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
     """``run_simulate``'s records, one per rollout, from its ``arrays`` (NumPy arrays, or their
-    ``tolist()``, as ``--json`` passes them to json's encoder): indices, ``metrics`` rows,
-    ``diverged`` and ``diverged_at``."""
+    ``tolist()``, as ``--json`` passes them to json's encoder): indices (``arm_index`` too with
+    sampled arms), ``metrics`` rows, ``diverged`` and ``diverged_at``."""
+    arms = "arm_index" in arrays
     for i in range(len(arrays["diverged"])):
         yield {
+            **({"arm_index": int(arrays["arm_index"][i])} if arms else {}),
             "plant_index": int(arrays["plant_index"][i]),
             "offset_index": int(arrays["offset_index"][i]),
             "realization_index": int(arrays["realization_index"][i]),
@@ -356,13 +366,15 @@ def one_plant(cfg: dict) -> str | None:
     One plant: ``plant.kind = "linear"`` with ``plant.uncertainty = "none"`` (the nominal model,
     the default config's) or ``"fixed"`` (the model plus ``plant.dA_rows``, ``plant.dB_rows``),
     or ``"sample"`` / ``"vertices"`` with ``plant.samples = 1`` or a box of zero width;
-    ``plant.kind = "arm"`` with one distinct payload. Initial offsets (``sim.initial_offset``)
+    ``plant.kind = "arm"`` with one distinct payload (drawn by ``[sample]`` or listed) and no
+    sampled arms (``[arm.uncertainty]``). Initial offsets (``sim.initial_offset``)
     and noise realizations (``sensors.realizations``) vary the start and the measurements, not
     the plant, so they do not count."""
     plant = cfg["plant"]
     if plant["kind"] == "arm":
         payloads = sorted(set(plant["payloads"]))
-        return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 else None
+        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_samples(cfg) is not None
+        return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 and not varied else None
     if plant["uncertainty"] == "none":
         return "the nominal linear model"
     if plant["uncertainty"] == "fixed":

@@ -25,7 +25,7 @@ from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
-from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, ArmParams, arm_sweep
+from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
@@ -47,6 +47,8 @@ BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
 PRECISIONS = ("float32", "float64")
+#: How ``[arm.uncertainty]`` draws its arms: uniformly in the ranges, or at their corners.
+ARM_SAMPLING = ("uniform", "vertices")
 #: The configs that ship with the package, by name (``build("realistic_arm")``).
 PRESETS = {path.stem: path for path in sorted((Path(__file__).parent / "presets").glob("*.toml"))}
 
@@ -111,6 +113,8 @@ def defaults() -> dict[str, Any]:
         "arm": {
             **{k: np.asarray(v).tolist() for k, v in ARM_PARAMS._asdict().items()},
             "payload_range": list(PAYLOAD_RANGE),
+            # relative half-widths of sampled arms (0: the field does not vary), their number and draw
+            "uncertainty": {**{k: 0.0 for k in ArmParams._fields}, "samples": 0, "seed": 0, "sampling": "uniform"},
         },  # fmt: skip
         "tune": {
             "params": ["delta", "gamma", "poles"],
@@ -241,6 +245,15 @@ def _payload_range(key: str, value: Any) -> Any:
     return _array((2,), what, lambda a: 0 <= a[0] <= a[1])(key, value)
 
 
+def _half_width(key: str, value: Any) -> Any:
+    """A relative half-width in [0, 1): one number, or one per joint for the per-joint fields."""
+    what = "a relative half-width in [0, 1) (0.3: x U(0.7, 1.3)), or 3 of them for a per-joint parameter"
+    name = key.rsplit(".", 1)[1]
+    if isinstance(value, list) and np.ndim(getattr(ARM_PARAMS, name)) == 1:
+        return _array((3,), what, lambda a: np.all((a >= 0) & (a < 1)))(key, value)
+    return _number(what, lambda x: 0 <= x < 1)(key, value)
+
+
 def _principal_inertias(key: str, value: Any) -> Any:
     """A link's principal moments: positive, each at most the sum of the other two."""
     what = "3 positive principal inertias (kg m^2), each at most the sum of the other two"
@@ -355,6 +368,14 @@ SCHEMA: dict[str, Any] = {
         "Kt": _array((3,), "3 positive torque constants (N m/A)", lambda a: np.all(a > 0)),
         "Kb": _array((3,), "3 positive back-EMF constants (V s/rad)", lambda a: np.all(a > 0)),
         "payload_range": _payload_range,
+        "uncertainty": {
+            **{k: _half_width for k in ArmParams._fields},
+            "samples": _integer(
+                "a non-negative integer (0: no sampled arms; with vertices: every corner)", lambda n: n >= 0
+            ),  # fmt: skip
+            "seed": _integer("a non-negative integer", lambda n: n >= 0),
+            "sampling": _choice(ARM_SAMPLING),
+        },
     },
     "sample": {
         "count": _integer("a non-negative integer (0: no sampling)", lambda n: n >= 0),
@@ -515,6 +536,14 @@ def _check_consistency(cfg: dict) -> None:
 def _check_arm(cfg: dict) -> None:
     """The ``[arm]`` table's cross-field rules, and the payloads within its range."""
     arm = cfg["arm"]
+    unc = arm["uncertainty"]
+    varies = any(np.any(np.asarray(unc[k]) > 0) for k in ArmParams._fields)
+    if varies and cfg["plant"]["kind"] != "arm":
+        raise ConfigError("arm.uncertainty: applies to plant.kind = 'arm' only")
+    if varies and not unc["samples"] and unc["sampling"] == "uniform":
+        raise ConfigError("arm.uncertainty.samples: expected a positive number of sampled arms with half-widths set")
+    if unc["samples"] and not varies:
+        raise ConfigError("arm.uncertainty.samples: nothing varies (set a half-width, e.g. arm.uncertainty.F = 0.3)")
     for j in (2, 3):
         if arm[f"c{j}"] > arm[f"l{j}"]:
             raise ConfigError(f"arm.c{j}: expected the centre of mass of link {j} within the link, at most arm.l{j} = "
@@ -651,15 +680,64 @@ def draws(cfg: dict) -> dict[str, np.ndarray]:
     (count,) ~ U(low, high) kg when ``sample.payloads`` is set (drawn first), ``offsets``
     (count, 9) ~ N(0, diag(sample.offsets)^2) when any scale is positive (a scale of 0 leaves
     that state's offset 0); {} without sampling."""
-    sample = cfg["sample"]
+    sample, out = cfg["sample"], {}
+    arms = arm_samples(cfg)
+    if arms is not None:
+        out["arms"] = arms
     if not sample["count"]:
-        return {}
-    rng, n, out = np.random.default_rng(sample["seed"]), sample["count"], {}
+        return out
+    rng, n = np.random.default_rng(sample["seed"]), sample["count"]
     if sample["payloads"]:
         out["payloads"] = rng.uniform(*sample["payloads"], size=n)
     if any(sample["offsets"]):
         out["offsets"] = rng.standard_normal((n, 9)) * np.asarray(sample["offsets"])
     return out
+
+
+def arm_samples(cfg: dict) -> dict[str, np.ndarray] | None:
+    """``[arm.uncertainty]``'s arms, {field: (N, ...)} float64 (None: none): each field x (1 + h u),
+    h its relative half-width, u ~ U(-1, 1) per entry (``sampling = "uniform"``, ``samples``
+    arms, seeded), or u = +-1 at the corners of the ranges (``"vertices"``: every corner of the
+    m varying entries when ``samples`` is 0 or at least 2^m, else that many distinct corners,
+    seeded). The nominal arm is not one of them."""
+    unc, arm = cfg["arm"]["uncertainty"], cfg["arm"]
+    widths = {k: np.broadcast_to(np.asarray(unc[k], float), np.shape(arm[k])) for k in ArmParams._fields}
+    flat = np.concatenate([w.ravel() for w in widths.values()])
+    live = np.flatnonzero(flat > 0)
+    if not live.size:
+        return None
+    rng = np.random.default_rng(unc["seed"])
+    if unc["sampling"] == "uniform":
+        u = rng.uniform(-1.0, 1.0, (unc["samples"], flat.size))
+    else:
+        m = live.size
+        if m > 24:
+            raise ConfigError(f"arm.uncertainty.sampling: 'vertices' of {m} varying entries is 2^{m} corners; "
+                              "use 'uniform'")  # fmt: skip
+        n = 2**m if not unc["samples"] or unc["samples"] >= 2**m else unc["samples"]
+        codes = np.arange(n) if n == 2**m else rng.choice(2**m, size=n, replace=False)
+        u = np.zeros((n, flat.size))
+        u[:, live] = 2.0 * ((codes[:, None] >> np.arange(m)) & 1) - 1.0
+    out, i = {}, 0
+    for k, w in widths.items():
+        size = w.size
+        out[k] = np.asarray(arm[k], float) * (1.0 + w * u[:, i : i + size].reshape((-1,) + w.shape))
+        i += size
+    return out
+
+
+def _paired_length(lengths: dict[str, int]) -> int:
+    """The common length of what ``sim.pairing = "paired"`` pairs (a length of 1 is repeated)."""
+    longer = {n for n in lengths.values() if n > 1}
+    if len(longer) > 1:
+        named = ", ".join(f"{name} ({n})" for name, n in lengths.items())
+        raise ConfigError(f"sim.pairing: 'paired' needs as many of each, or one: got {named}")
+    return longer.pop() if longer else 1
+
+
+def _repeat(x, n: int):
+    """``x`` (leading length 1 or n) with leading length n."""
+    return x if len(x) == n else (jnp if isinstance(x, jax.Array) else np).repeat(x, n, axis=0)
 
 
 def build(config: str | Path | dict | None = None) -> Problem:
@@ -692,24 +770,30 @@ def build(config: str | Path | dict | None = None) -> Problem:
     ctl, model, plant = cfg["controller"], cfg["model"], cfg["plant"]
     reference = reference_of(cfg, dtype)
     drawn = draws(cfg)
+    paired = cfg["sim"]["pairing"] == "paired"
+    offsets = np.atleast_2d(np.asarray(drawn.get("offsets", cfg["sim"]["initial_offset"]), dtype=float))
     if plant["kind"] == "arm":
-        plants = arm_sweep(cast(drawn.get("payloads", plant["payloads"])), arm_params_of(cfg, dtype))
+        payloads = np.asarray(drawn.get("payloads", plant["payloads"]), dtype=float)
+        arms = drawn.get("arms") or {k: np.asarray(cfg["arm"][k], float)[None] for k in ArmParams._fields}
+        n_arms = len(arms["F"])
+        if paired:  # the i-th arm sample with the i-th payload and the i-th initial state
+            n = _paired_length({"arm samples": n_arms, "payloads": len(payloads), "initial offsets": len(offsets)})
+            arms, payloads, offsets = ({k: _repeat(v, n) for k, v in arms.items()}, _repeat(payloads, n),
+                                       _repeat(offsets, n))  # fmt: skip
+        else:  # every arm sample with every payload, the arm sample first
+            arms = {k: np.repeat(v, len(payloads), axis=0) for k, v in arms.items()}
+            payloads = np.tile(payloads, n_arms)
+        plants = Arm(ArmParams(**{k: cast(v) for k, v in arms.items()}), cast(payloads))
     else:
         plants = uncertain_plants(
             model["A_rows"], model["B_rows"], plant["uncertainty"], box=box_of(cfg),
             dA_rows=plant["dA_rows"], dB_rows=plant["dB_rows"], samples=plant["samples"], seed=plant["seed"],
         )  # fmt: skip
         plants = type(plants)(*(cast(x) for x in plants))
-    offsets = np.atleast_2d(np.asarray(drawn.get("offsets", cfg["sim"]["initial_offset"]), dtype=float))
+        if paired:
+            n = _paired_length({"plants": len(plants.a_rows), "initial offsets": len(offsets)})
+            plants, offsets = jax.tree.map(lambda x: _repeat(x, n), plants), _repeat(offsets, n)
     X0s = desired_state(reference(jnp.zeros((), dtype)))[None] + cast(offsets)
-    P = jax.tree.leaves(plants)[0].shape[0]
-    if cfg["sim"]["pairing"] == "paired" and 1 == len(offsets) < P:  # one initial state: every plant's
-        X0s = jnp.repeat(X0s, P, axis=0)
-    elif cfg["sim"]["pairing"] == "paired" and 1 == P < len(offsets):  # one plant: from every state
-        plants = jax.tree.map(lambda x: jnp.repeat(x, len(offsets), axis=0), plants)
-    elif cfg["sim"]["pairing"] == "paired" and P != len(offsets):
-        raise ConfigError(f"sim.pairing: 'paired' needs as many initial offsets as plants, got {P} plant(s) and "
-                          f"{len(offsets)} offset(s) (a [sample] table with count draws both)")  # fmt: skip
     options = {
         "n_steps": n_steps(cfg),
         "integrator": cfg["sim"]["integrator"],

@@ -61,7 +61,8 @@ class Problem(NamedTuple):
     def with_arm(self, changes: Mapping) -> Problem:
         """The problem with the arm's physical parameters ``changes`` ({field of
         :class:`fosmc_jax.ArmParams`: value}, e.g. ``{"F": F}``; each value of the field's own
-        shape, () or (3,)) in every plant of the batch; differentiable in them::
+        shape, () or (3,)) in every plant of the batch (sampled arms lose that field's spread);
+        differentiable in them::
 
             loss = lambda F: problem.with_arm({"F": F}).simulate(fast=False).mean().rms_error.mean()
             jax.grad(loss)(problem.arm_params()["F"])
@@ -85,8 +86,9 @@ class Problem(NamedTuple):
         return self._replace(plants=self.plants._replace(params=fields._replace(**new)))
 
     def arm_params(self) -> dict:
-        """The arm's physical parameters (of the first plant; every plant of a config's batch
-        shares them), by :class:`fosmc_jax.ArmParams` field."""
+        """The arm's physical parameters, by :class:`fosmc_jax.ArmParams` field: the first
+        plant's (every plant of a config's batch shares them, unless ``[arm.uncertainty]``
+        samples arms)."""
         return {name: value[0] for name, value in self.plants.params._asdict().items()}
 
     @property
