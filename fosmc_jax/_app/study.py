@@ -25,16 +25,21 @@ from . import config as _config
 
 def held_out_config(cfg: dict) -> dict:
     """The config's batch with what training did not see: arm payloads between and beside the
-    training ones (1, 3, 5, 7, 9 kg unless trained on; 2.5, 5, 7.5 kg until a front point
-    tuned on 0 and 10 kg was found to lose a joint at 1 and 8 kg, tuning/README.md), fresh
-    box samples (linear ``sample`` / ``vertices``), fresh noise seeds."""
+    training ones (at 0.1, 0.3, ..., 0.9 of ``arm.payload_range``: 1, 3, 5, 7, 9 kg on the
+    paper's arm, unless trained on; 2.5, 5, 7.5 kg until a front point tuned on 0 and 10 kg was
+    found to lose a joint at 1 and 8 kg, tuning/README.md), fresh box samples (linear
+    ``sample`` / ``vertices``), fresh sampled arms (``[arm.uncertainty]``), fresh ``[sample]``
+    draws and noise seeds."""
     held = copy.deepcopy(cfg)
     plant = held["plant"]
     if plant["kind"] == "arm":
-        fresh = [p for p in (1.0, 3.0, 5.0, 7.0, 9.0) if p not in plant["payloads"]]
-        plant["payloads"] = fresh or [(plant["payloads"][0] + 5.0) / 2]
+        lo, hi = held["arm"]["payload_range"]
+        fresh = [p for p in (lo + (hi - lo) * f for f in (0.1, 0.3, 0.5, 0.7, 0.9)) if p not in plant["payloads"]]
+        plant["payloads"] = fresh or [(plant["payloads"][0] + (lo + hi) / 2) / 2]
+        held["arm"]["uncertainty"]["seed"] += 1
     elif plant["uncertainty"] in ("sample", "vertices"):
         plant["seed"] += 1
+    held["sample"]["seed"] += 1
     held["sensors"]["seed"] += 1
     return _config.resolve(held)
 
