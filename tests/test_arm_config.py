@@ -142,3 +142,13 @@ def test_sampled_arms_paired_and_in_the_json_equal_their_rollouts_one_by_one(cap
     assert [r["arm_index"] for r in out["rollouts"]] == [0, 0, 1, 1, 2, 2]
     drawn = fj.config.draws(fj.config.load(path))["arms"]
     assert len(out["arms"]) == 3 and np.allclose(out["arms"][2]["F"], drawn["F"][2])
+
+
+def test_the_fronts_held_out_batch_has_fresh_arms_and_payloads_within_the_range():
+    cfg = fj.config.resolve({**UNCERTAIN, "plant": {"kind": "arm", "payloads": [0.0, 2.0]},
+                             "arm": {**UNCERTAIN["arm"], "payload_range": [0.0, 4.0]}})  # fmt: skip
+    held = fj.config.held_out_config(cfg)
+    assert held["plant"]["payloads"] == pytest.approx([0.4, 1.2, 2.8, 3.6])
+    assert not np.allclose(fj.config.draws(held)["arms"]["F"], fj.config.draws(cfg)["arms"]["F"])
+    paper = fj.config.held_out_config(fj.config.resolve({"plant": {"kind": "arm", "payloads": [0.0, 10.0]}}))
+    assert paper["plant"]["payloads"] == pytest.approx([1.0, 3.0, 5.0, 7.0, 9.0])
