@@ -22,6 +22,7 @@ import numpy as np
 
 from .._controllers import KINDS, SPACES
 from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
+from .._controllers.kind import space_of
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
@@ -887,12 +888,10 @@ def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
             params = data["final"]["params"]
         except (KeyError, TypeError):
             raise ConfigError(f"--params: {path} is not a fosmc tune result (no final.params) or front") from None
-    space = next((s for s in SPACES.values() if isinstance(params, dict) and params and set(params) <= set(s.names)),
-                 None)  # fmt: skip
-    if space is None:
-        kinds = "; ".join(f"{k}: {', '.join(s.names)}" for k, s in SPACES.items())
-        raise ConfigError(f"--params: {path}'s params are no controller kind's parameter set ({kinds}), "
-                          f"got {_short(params)}")  # fmt: skip
+    try:
+        space = space_of(params)
+    except ValueError as e:
+        raise ConfigError(f"--params: {path}'s {e}") from None
     kind = cfg["controller"]["kind"]
     if space.kind != kind:
         raise ConfigError(f"--params: {path} holds {space.kind} parameters ({', '.join(space.names)}), but the "

@@ -85,6 +85,19 @@ def register(kind: Kind) -> Kind:
     return kind
 
 
+def space_of(params: Any) -> Space:
+    """The registered kind whose parameter set holds every name of ``params`` (a dict by
+    parameter name, as result.json and front.json hold them); a one-line ``ValueError`` naming
+    every kind's parameters otherwise."""
+    if isinstance(params, dict) and params:
+        for kind in KINDS.values():
+            if set(params) <= set(kind.space.names):
+                return kind.space
+    kinds = "; ".join(f"{k.name}: {', '.join(k.space.names)}" for k in KINDS.values())
+    got = sorted(params) if isinstance(params, dict) else type(params).__name__
+    raise ValueError(f"params are no controller kind's parameter set ({kinds}), got {got}")
+
+
 class _Spaces(Mapping):
     """Every registered kind's :class:`Space` by name (a live view of :data:`KINDS`)."""
 

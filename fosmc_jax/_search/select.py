@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .._controllers import SPACES, Space
+from .._controllers.kind import space_of
 from .._simulator.metrics import UNITS
 from .front import AXES, axes
 
@@ -61,7 +61,7 @@ def controller_toml(params: dict) -> str:
     key (:class:`fosmc_jax.search.Param`'s ``key``: the FOSMC's ``delta``, ``gamma``,
     ``poles``; SMC's ``smc_k``, ``smc_phi``; super-twisting's ``st_k1``, ``st_k2``), values at
     full precision. Raises ``ValueError`` if the names are no kind's parameter set."""
-    space = _space(params)
+    space = space_of(params)
     lines = ["[controller]", f'kind = "{space.kind}"']
     for p in space.params:
         if p.name in params:
@@ -124,14 +124,3 @@ def _axes(data: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{name} is not a fosmc front: every point needs params and per-joint metrics "
                          f"{' and '.join(AXES)}")  # fmt: skip
     return axes(m)
-
-
-def _space(params: dict) -> Space:
-    """The controller kind whose parameter set holds every name of ``params``."""
-    space = next((s for s in SPACES.values() if isinstance(params, dict) and params and set(params) <= set(s.names)),
-                 None)  # fmt: skip
-    if space is None:
-        kinds = "; ".join(f"{k}: {', '.join(s.names)}" for k, s in SPACES.items())
-        got = sorted(params) if isinstance(params, dict) else type(params).__name__
-        raise ValueError(f"params are no controller kind's parameter set ({kinds}), got {got}")
-    return space
