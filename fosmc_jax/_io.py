@@ -69,6 +69,17 @@ def write_text(path: str | Path, text: str) -> None:
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
+def read_json(path: str | Path) -> Any:
+    """The JSON in the file ``path``; a one-line ``ValueError`` where it cannot be read or is
+    not JSON."""
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as e:
+        raise ValueError(f"cannot read {str(path)!r}: {e.strerror or e}") from None
+    except ValueError:
+        raise ValueError(f"{path} is not JSON") from None
+
+
 def jsonable(x: Any) -> Any:
     """Arrays to lists, non-finite floats to None (JSON has no NaN/inf)."""
     if isinstance(x, dict):

@@ -7,7 +7,6 @@ Most tests call check_inputs directly; those that simulate share one set of shap
 options (n_steps = 5, euler), so that they compile one program each."""
 
 import dataclasses
-import functools
 import timeit
 import warnings
 
@@ -15,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_interfaces import StatePD  # a user's law, defined once
 
 import fosmc_jax as fj
 from fosmc_jax import paper
@@ -219,22 +219,6 @@ def test_nested_objects_are_checked_with_their_path():
     listed = dataclasses.replace(listed, sensors=fj.Sensors([0, 0, 0]), u_max=[24.0] * 3)
     out = check(plant, listed, ref, X0, dt)[1]
     assert out.sensors.counts.dtype == X0.dtype and out.u_max.shape == (3,) and out.law is listed.law
-
-
-@functools.partial(jax.tree_util.register_dataclass, data_fields=["K", "a_rows", "b_rows"], meta_fields=[])
-@dataclasses.dataclass(frozen=True)
-class StatePD:
-    """A user's law (as in test_interfaces.py): U = Omega + K (X - X_d)."""
-
-    K: jax.Array
-    a_rows: jax.Array
-    b_rows: jax.Array
-
-    def init(self, X0, r0, key=None):
-        return ()
-
-    def update(self, state, Y, r, t):
-        return fj.feedforward(self.a_rows, self.b_rows, r) + self.K @ (Y - fj.desired_state(r)), state
 
 
 def test_a_users_controller_passes_unchecked_and_untouched():

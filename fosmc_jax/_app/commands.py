@@ -38,7 +38,7 @@ import numpy as np
 from .._design import paper as _paper
 from .._design.gains import summarize
 from .._io import jsonable, stamped, write_text
-from .._simulator.metrics import METRIC_NAMES, UNITS, batch_summary
+from .._simulator.metrics import METRIC_NAMES, UNITS
 from .._simulator.rollout import simulate_batch
 from . import config as _config
 from .config import ConfigError
@@ -73,12 +73,6 @@ def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
     if out.exists() and any(out.iterdir()) and not flags:
         raise ConfigError(f"--out: {out} exists and is not empty ({hint})")
     return out
-
-
-def _rollouts(problem) -> int:
-    """Rollouts in a problem's batch: plants x offsets x noise realizations."""
-    keys = 1 if problem.keys is None else problem.keys.shape[0]
-    return jax.tree.leaves(problem.plants)[0].shape[0] * problem.X0s.shape[0] * keys
 
 
 # ---------------------------------------------------------------------------- simulate
@@ -151,23 +145,17 @@ def run_simulate(
     arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at),
                   plant_index=r // (per_plant * n_real), realization_index=r % n_real,
                   offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
-    summary = batch_summary(result.metrics, result.diverged)
-    drawn = _config.draws(cfg)
-    sampled = {"sampled": {k: v.tolist() for k, v in drawn.items() if k != "arms"}} if cfg["sample"]["count"] else {}
+    drawn, extra = _config.draws(cfg), {}
+    if cfg["sample"]["count"]:
+        extra["sampled"] = {k: v.tolist() for k, v in drawn.items() if k != "arms"}
     if "arms" in drawn:  # [arm.uncertainty]: which sampled arm each rollout ran, and each arm's parameters
-        arms = drawn["arms"]
-        n_arms = len(arms["F"])
+        n_arms = len(drawn["arms"]["F"])
         per_arm = 1 if paired else jax.tree.leaves(problem.plants)[0].shape[0] // n_arms  # payloads per arm
         arrays["arm_index"] = arrays["plant_index"] // per_arm
-        sampled["arms"] = [{k: v[i].tolist() for k, v in arms.items()} for i in range(n_arms)]
-    if not records:
-        out = stamped({"arrays": arrays, "summary": summary, **sampled, "config": cfg})
-        return dict(out, trace=result.trace) if keep_trace else out
-    rollouts = list(rollout_records(arrays))
-    out = stamped({"rollouts": rollouts, "summary": summary, **sampled, "config": cfg})
-    if keep_trace:
-        out["trace"] = result.trace
-    return out
+        extra["arms"] = [{k: v[i].tolist() for k, v in drawn["arms"].items()} for i in range(n_arms)]
+    body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
+    out = stamped({**body, "summary": result.summary(), **extra, "config": cfg})
+    return dict(out, trace=result.trace) if keep_trace else out
 
 
 def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
@@ -461,7 +449,7 @@ def run_tune(
         d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
                       cfg["controller"]["poles"])  # fmt: skip
         floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
-    log(f"tune: {_rollouts(problem)} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
+    log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     initial = T.evaluate(plain, p0)

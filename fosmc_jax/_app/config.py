@@ -9,7 +9,6 @@ with a message that names the key and the expected form.
 from __future__ import annotations
 
 import copy
-import json
 import math
 import warnings
 from collections.abc import Callable
@@ -25,6 +24,7 @@ from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._controllers.kind import space_of
 from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
+from .._io import read_json
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
 from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams
 from .._plants.linear import UNCERTAINTY, uncertain_plants
@@ -239,11 +239,12 @@ def _payloads(key: str, value: Any) -> Any:
     return _array((len(value),), what, lambda a: np.all(a >= 0))(key, value)
 
 
-def _payload_range(key: str, value: Any) -> Any:
-    what = "[low, high] kg with 0 <= low <= high (or []: no payloads drawn)"
-    if value == [] and key == "sample.payloads":
-        return []
-    return _array((2,), what, lambda a: 0 <= a[0] <= a[1])(key, value)
+_payload_range = _array((2,), "[low, high] kg with 0 <= low <= high", lambda a: 0 <= a[0] <= a[1])
+
+
+def _sample_payloads(key: str, value: Any) -> Any:
+    """``[sample] payloads``: a range to draw from, or [] (none drawn)."""
+    return [] if value == [] else _payload_range(key, value)
 
 
 def _half_width(key: str, value: Any) -> Any:
@@ -381,7 +382,7 @@ SCHEMA: dict[str, Any] = {
     "sample": {
         "count": _integer("a non-negative integer (0: no sampling)", lambda n: n >= 0),
         "seed": _integer("a non-negative integer", lambda n: n >= 0),
-        "payloads": _payload_range,
+        "payloads": _sample_payloads,
         "offsets": _offset_scales,
     },
     "tune": {
@@ -871,11 +872,9 @@ def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
     their config keys (``smc_k``, ...), validated like those keys. A file of another kind's
     parameters is refused."""
     try:
-        data = json.loads(Path(path).read_text())
-    except OSError as e:
-        raise ConfigError(f"--params: cannot read {str(path)!r}: {e.strerror or e}") from None
-    except ValueError:
-        raise ConfigError(f"--params: {path} is not JSON") from None
+        data = read_json(path)
+    except ValueError as e:
+        raise ConfigError(f"--params: {e}") from None
     if isinstance(data, dict) and "points" in data:
         if point is None or not 0 <= point < len(data["points"]):
             raise ConfigError(f"--point: expected an index in [0, {len(data['points'])}) for the front {path}, "

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from .._controllers.kind import space_of
+from .._io import read_json
 from .._simulator.metrics import UNITS
 from .front import AXES, axes
 
@@ -94,13 +95,7 @@ def _load(front: str | Path | dict) -> tuple[dict, str]:
     if isinstance(front, dict):
         data, name = front, "the front"
     else:
-        name = str(front)
-        try:
-            data = json.loads(Path(front).read_text())
-        except OSError as e:
-            raise ValueError(f"cannot read {name!r}: {e.strerror or e}") from None
-        except ValueError:
-            raise ValueError(f"{name} is not JSON") from None
+        data, name = read_json(front), str(front)
     if not isinstance(data, dict) or not isinstance(data.get("points"), list):
         raise ValueError(f"{name} is not a fosmc front (no list of points; `fosmc front` writes front.json)")
     if not data["points"]:

@@ -7,10 +7,12 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._controllers.kind import SPACES
+from .._plants.arm import Arm
 from .rollout import simulate_batch
 from .sharding import simulate_split
 
@@ -67,8 +69,6 @@ class Problem(NamedTuple):
             loss = lambda F: problem.with_arm({"F": F}).simulate(fast=False).mean().rms_error.mean()
             jax.grad(loss)(problem.arm_params()["F"])
         """
-        from .._plants.arm import Arm
-
         if not isinstance(self.plants, Arm):
             raise ValueError(f"with_arm: the problem's plants are {type(self.plants).__name__}, not the arm")
         fields = self.plants.params
@@ -116,8 +116,6 @@ class Problem(NamedTuple):
 
 
 def _leading(tree) -> int:
-    import jax
-
     return jax.tree.leaves(tree)[0].shape[0]
 
 
@@ -150,8 +148,6 @@ def _checked(kind: str, base: Any, p: Mapping) -> dict:
 
 def _concrete(x) -> np.ndarray | None:
     """``x``'s values where they are known now (not under ``jit``, ``grad`` or ``vmap``)."""
-    import jax
-
     if isinstance(x, jax.core.Tracer):
         return None
     return np.asarray(x)
