@@ -109,7 +109,7 @@ def test_sampled_arms_draw_within_their_ranges_and_cross_with_payloads_arm_first
 def test_bad_arm_uncertainty_is_refused_naming_the_key(uncertainty, message):
     with pytest.raises(fj.ConfigError, match="^" + message):
         fj.config.resolve({**ARM, "arm": {"uncertainty": uncertainty}})
-    with pytest.raises(fj.ConfigError, match="^arm.uncertainty: applies to plant.kind = 'arm' only"):
+    with pytest.raises(fj.ConfigError, match="^arm.uncertainty.F: applies to plant.kind = 'arm' only"):
         fj.config.resolve({"arm": {"uncertainty": {"F": 0.3, "samples": 2}}})
 
 

@@ -7,6 +7,7 @@ strings inside arrays, unbounded step counts) are fixed; the tests at the end pi
 """
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -130,8 +131,11 @@ def _check_error(e: _config.ConfigError, cfg) -> None:
     assert _names_a_key(msg, cfg), msg
 
 
+# Derandomized by default, so that a CI run cannot go red on a draw no one can replay; set
+# FOSMC_HYPOTHESIS_RANDOM=1 (and FOSMC_HYPOTHESIS_EXAMPLES=5000) to explore fresh cases.
 FAST = settings(
-    max_examples=int(__import__("os").environ.get("FOSMC_HYPOTHESIS_EXAMPLES", 300)),
+    max_examples=int(os.environ.get("FOSMC_HYPOTHESIS_EXAMPLES", 300)),
+    derandomize=not os.environ.get("FOSMC_HYPOTHESIS_RANDOM"),
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )

@@ -539,9 +539,10 @@ def _check_arm(cfg: dict) -> None:
     """The ``[arm]`` table's cross-field rules, and the payloads within its range."""
     arm = cfg["arm"]
     unc = arm["uncertainty"]
-    varies = any(np.any(np.asarray(unc[k]) > 0) for k in ArmParams._fields)
+    varying = [k for k in ArmParams._fields if np.any(np.asarray(unc[k]) > 0)]
+    varies = bool(varying)
     if varies and cfg["plant"]["kind"] != "arm":
-        raise ConfigError("arm.uncertainty: applies to plant.kind = 'arm' only")
+        raise ConfigError(f"arm.uncertainty.{varying[0]}: applies to plant.kind = 'arm' only")
     if varies and not unc["samples"] and unc["sampling"] == "uniform":
         raise ConfigError("arm.uncertainty.samples: expected a positive number of sampled arms with half-widths set")
     if unc["samples"] and not varies:
