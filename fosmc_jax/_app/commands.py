@@ -416,12 +416,16 @@ def run_tune(
     parameters); ``resume`` continues from its checkpoint. Returns what
     ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
     {"params", "metrics", ...}, "start": {"params", "global_candidates"}, "final": {...},
-    "objective", "history", "config"}``, ``params`` by the kind's names (e.g. ``{"k": [...],
-    "phi": [...]}``). On a batch of one plant (:func:`one_plant`: the default config's nominal
-    model) it warns (``UserWarning``) that the optimum holds for that plant only. Its ``log``
-    lines start with ``tune:``; its step lines name the objective's metrics.
+    "held_out": {"metrics", ...}, "held_out_batch", "objective", "history", "config"}``
+    (``held_out``: the final parameters on :func:`fosmc_jax._app.study.held_out_config`'s
+    batch, fresh payloads, sampled arms and draws, as ``fosmc front`` evaluates its points),
+    ``params`` by the kind's names (e.g. ``{"k": [...], "phi": [...]}``). On a batch of one
+    plant (:func:`one_plant`: the default config's nominal model) it warns (``UserWarning``)
+    that the optimum holds for that plant only. Its ``log`` lines start with ``tune:``; its
+    step lines name the objective's metrics.
     """
     from .._search import tune as T
+    from . import study
 
     cfg = config_of(config)
     tcfg = cfg["tune"]
@@ -481,6 +485,12 @@ def run_tune(
                        terms=terms, log=log)  # fmt: skip
     final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
+    # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
+    held = study.held_out_config(cfg)
+    held_out = T.evaluate(_config.tuning_problems(held)[0], final_params)
+    log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
+        f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
+        f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip
     as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
     result = stamped({
         "initial": {"params": as_dict(p0), **initial},
@@ -489,6 +499,8 @@ def run_tune(
             "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
         },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
+        "held_out": held_out,
+        "held_out_batch": study.held_out_batch(held),
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg,

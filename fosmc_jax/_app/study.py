@@ -44,6 +44,15 @@ def held_out_config(cfg: dict) -> dict:
     return _config.resolve(held)
 
 
+def held_out_batch(held: dict) -> dict:
+    """What :func:`held_out_config`'s batch ``held`` draws, for a result file: the plant's kind,
+    payloads and box seed, the seeds of its sampled arms and ``[sample]`` draws."""
+    unc = held["arm"]["uncertainty"]
+    return {**{k: held["plant"][k] for k in ("kind", "payloads", "seed")},
+            "arm_samples": unc["samples"] if held["plant"]["kind"] == "arm" else 0,
+            "arm_seed": unc["seed"], "sample_seed": held["sample"]["seed"]}  # fmt: skip
+
+
 def references(cfg: dict, chunk: int, plain: Evaluator | None = None) -> dict[str, dict]:
     """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
     sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
@@ -103,7 +112,7 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     for i, pt in enumerate(result["points"]):
         pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)["metrics"]
     result["references"] = refs
-    result["held_out_batch"] = {k: held_out_config(cfg)["plant"][k] for k in ("kind", "payloads", "seed")}
+    result["held_out_batch"] = held_out_batch(held_out_config(cfg))
     result["config"] = cfg
     if out is not None:
         from .plots import plot_front
