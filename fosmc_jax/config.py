@@ -7,18 +7,22 @@ simulator and the tuner take. Errors are one-line :class:`ConfigError`\\ s namin
     sim = fc.build(cfg)  # a Problem: plants, base parameters, reference, initial states, dt, ...
     result = sim.simulate()  # the batch with the config's parameters
     plain, train, p0 = fc.tuning_problems(cfg)  # what fosmc tune and fosmc front search on
+    fc.design_model(cfg)  # the rows and box the controller is designed on ([model] from)
 """
 
 from ._app.config import (
     GRADIENT_WINDOW,
     PRESETS,
     ConfigError,
+    DesignModel,
     arm_params_of,
     arm_samples,
     as_config,
     box_of,
     build,
     defaults,
+    design_model,
+    design_summary,
     draws,
     load,
     resolve,
@@ -33,6 +37,7 @@ __all__ = [
     "GRADIENT_WINDOW",
     "PRESETS",
     "ConfigError",
+    "DesignModel",
     "arm_params_of",
     "arm_samples",
     "as_config",
@@ -40,6 +45,8 @@ __all__ = [
     "box_of",
     "build",
     "defaults",
+    "design_model",
+    "design_summary",
     "draws",
     "held_out_config",
     "load",

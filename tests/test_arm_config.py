@@ -39,7 +39,7 @@ def test_a_bad_arm_is_refused_in_one_line_naming_the_key(arm, message):
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.slow  # the arm's box twice: ~10 s
+@pytest.mark.slow  # both models' boxes (the arm's and the paper's, bounds shows both) twice: ~50 s under load
 def test_bounds_and_certify_use_the_configured_arm():
     """A heavier link 3 changes the nominal rows fosmc bounds derives from the arm (it used
     the calibrated arm whatever the config said)."""

@@ -264,9 +264,11 @@ def test_kernel_refuses_buffers_off_its_layout_with_an_error():
     call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct((56, 8), jnp.float64))
     attrs = dict(rk4=np.int32(0), digital=np.int32(0), kind=np.int32(0), switching=np.int32(1), law=np.int32(0),
                  difference=np.int32(0), delay=np.int32(0))  # fmt: skip
-    good = (jnp.zeros((139, 8)), jnp.zeros(4), jnp.zeros((4, 28)), jnp.zeros((56, 8)))
+    cols = 9 + _native.ARM_SAMPLE_COLS  # an Euler step's table row
+    good = (jnp.zeros((_native.ARM_LANE_ROWS, 8)), jnp.zeros(4), jnp.zeros((4, cols)), jnp.zeros((56, 8)))
     assert jax.block_until_ready(call(*good, **attrs)).shape == (56, 8)
-    bad = [(good[0][:, :4], *good[1:]), (good[0], jnp.zeros(3), *good[2:]), (*good[:2], jnp.zeros((4, 27)), good[3]),
+    bad = [(good[0][:, :4], *good[1:]), (good[0], jnp.zeros(3), *good[2:]),
+           (*good[:2], jnp.zeros((4, cols - 1)), good[3]), (good[0][:-1], *good[1:]),
            (good[0].astype(jnp.float32), *good[1:])]  # fmt: skip
     for args in bad:
         with pytest.raises(Exception, match="fosmc arm kernel"):

@@ -16,11 +16,10 @@ ARMS = {
 }
 
 
-@pytest.mark.parametrize("form", ["max", "cvar"])
-def test_worst_case_forms_run_over_the_sampled_arms(form):
+def test_worst_case_forms_run_over_the_sampled_arms():
     """The tuner's loss equals mean(J) + w x (max or CVaR of J) with J per rollout of the whole
     batch, sampled arms included (recomputed here in NumPy from the plain simulation)."""
-    cfg = _config.resolve({**ARMS, "tune": {"worst_case": form, "worst_weight": 2.0, "cvar_alpha": 0.5}})
+    cfg = _config.resolve({**ARMS, "tune": {"worst_weight": 2.0, "cvar_alpha": 0.5}})
     plain, _, p0 = _config.tuning_problems(cfg)
     assert plain.rollouts == 6
     r = plain.simulate(p0, split=True, fast=False)
@@ -32,9 +31,10 @@ def test_worst_case_forms_run_over_the_sampled_arms(form):
     J = obj.weight_error * np.log(E / E.mean()) + obj.weight_chattering * np.log(C / C.mean())
     # the arms differ: the worst rollout is not the same for every arm's payloads
     assert np.ptp(J.reshape(3, 2).mean(1)) > 1e-3
-    worst = J.max() if form == "max" else np.sort(J)[::-1][:3].mean()  # (1 - 0.5) x 6 = 3 worst
-    loss, _ = T.make_loss(plain, obj, None)(T.to_internal(p0, plain.base, None))
-    np.testing.assert_allclose(float(loss), J.mean() + 2.0 * worst, rtol=1e-4, atol=1e-5)
+    u0 = T.to_internal(p0, plain.base, None)
+    for form, worst in (("max", J.max()), ("cvar", np.sort(J)[::-1][:3].mean())):  # (1 - 0.5) x 6 = 3 worst
+        loss, _ = T.make_loss(plain, obj._replace(worst_case=form), None)(u0)
+        np.testing.assert_allclose(float(loss), J.mean() + 2.0 * worst, rtol=1e-4, atol=1e-5, err_msg=form)
 
 
 @pytest.mark.slow  # a tune of one step: the gradient's compilation, ~20 s

@@ -21,8 +21,8 @@ from .._certificate.hitting import (
     z_samples,
 )
 from .._design.box import code_of, vertex_codes, vertices_from_codes
-from .._design.gains import CONVENTIONS, summarize
-from .config import ConfigError, arm_params_of, box_of, controller_of, reference_of
+from .._design.gains import CONVENTIONS
+from .config import ConfigError, arm_params_of, box_of, controller_of, design_summary, reference_of
 
 
 def certify(
@@ -52,12 +52,14 @@ def certify(
     s directions from :func:`s_directions` (26 sign patterns + ``n_s - 26`` random), times each
     norm in ``s_norms`` (default (1,) for ``sign``, where |s| does not matter; else
     (0.1, 1, 10, 100) x max(delta)). Plants: ``plant`` (default the config's plant.kind):
-    ``linear``: the config's box around model.A_rows/B_rows, ``vertices = "all"`` (exact,
-    closed form) or an int N (N explicit vertices, seeded sample); ``arm``: the config's ``[arm]``
+    ``linear``: the box of the config's design model (``[plant.box]``, or the arm's with
+    ``model.from = "arm"``), ``vertices = "all"`` (exact, closed form) or an int N (N explicit
+    vertices, seeded sample); ``arm``: the config's ``[arm]``
     at ``n_payloads`` payloads evenly over its ``payload_range``, its true rows
     ``third_order_rows`` at X = X_d + Z. ``switching`` defaults to ``sign`` (the theorem's law;
     pass the config's ``controller.switching`` to check what is simulated); ``law`` defaults to
-    the config's. ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
+    the config's. The controller is the config's, on its design model's nominal rows
+    (``[model] from``). ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
     Runs in float64.
     """
     if cfg["controller"]["kind"] != "fosmc":
@@ -165,20 +167,14 @@ class BoundVerdict(NamedTuple):
 
 def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, float], list[BoundVerdict]]:
     """For each convention of (24)-(26) (``CONVENTIONS``), :func:`certify` at gamma = (1 +- eps)
-    times the bound computed from the config's box (alpha, beta by vertex enumeration), the
-    model and the poles. ``options`` go to :func:`certify`. Returns ({alpha, beta}, verdicts).
+    times the bound computed from the config's design model (``config.design_model``: its
+    box, alpha and beta by vertex enumeration, and its nominal rows) and the poles. ``options``
+    go to :func:`certify`. Returns ({alpha, beta}, verdicts).
 
     "Sufficient in this example" = no violation found above the bound (a sampled check, not a
     proof); "necessary" = a violation found just below it.
     """
-    box = box_of(cfg)
-    d = summarize(
-        cfg["model"]["A_rows"],
-        cfg["model"]["B_rows"],
-        box,
-        cfg["controller"]["C"],
-        cfg["controller"]["poles"],
-    )
+    d = design_summary(cfg)
     out = []
     for c in CONVENTIONS:
         bound = np.asarray(d.gamma_min[c], dtype=np.float64)

@@ -9,11 +9,13 @@ with a message that names the key and the expected form.
 from __future__ import annotations
 
 import copy
+import functools
+import json
 import math
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -23,10 +25,10 @@ from .._controllers import KINDS, SPACES
 from .._controllers.fosmc import LAWS, SWITCHING, FOSMCParams
 from .._controllers.kind import space_of
 from .._design import paper
-from .._design.gains import CONVENTIONS, DesignError, check_design, stable_step
+from .._design.gains import CONVENTIONS, DesignError, DesignSummary, check_design, stable_step, summarize
 from .._io import read_json
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
-from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams
+from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, rows_over
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
@@ -44,6 +46,8 @@ class ConfigError(ValueError):
 
 
 PLANT_KINDS = ("linear", "arm")
+#: What the controller is designed on (``[model] from``): the paper's rows, or rows derived from ``[arm]``.
+MODEL_SOURCES = ("paper", "arm")
 BOX_KEYS = ("A_lower", "A_upper", "B_lower", "B_upper")
 #: Longest run a config may ask for (steps); 1e8 steps of one rollout take minutes.
 MAX_STEPS = 10**8
@@ -62,7 +66,7 @@ def defaults() -> dict[str, Any]:
             "end": paper.THETA_END.tolist(),
             "duration": paper.TAU,
         },
-        "model": {"A_rows": paper.A_ROWS.tolist(), "B_rows": paper.B_ROWS.tolist()},
+        "model": {"from": "paper", "A_rows": paper.A_ROWS.tolist(), "B_rows": paper.B_ROWS.tolist()},
         "controller": {
             "C": paper.C.tolist(),
             "poles": paper.POLES.tolist(),
@@ -300,6 +304,7 @@ SCHEMA: dict[str, Any] = {
         "duration": _number("a positive number (s)", lambda x: x > 0),
     },
     "model": {
+        "from": _choice(MODEL_SOURCES),
         "A_rows": _array((3, 9), "a 3x9 matrix (rows 3, 6, 9 of A)"),
         "B_rows": _array((3, 3), "a 3x3 matrix (rows 3, 6, 9 of B)"),
     },
@@ -369,6 +374,13 @@ SCHEMA: dict[str, Any] = {
         "L": _array((3,), "3 positive inductances (H)", lambda a: np.all(a > 0)),
         "Kt": _array((3,), "3 positive torque constants (N m/A)", lambda a: np.all(a > 0)),
         "Kb": _array((3,), "3 positive back-EMF constants (V s/rad)", lambda a: np.all(a > 0)),
+        "Fc": _array((3,), "3 non-negative Coulomb friction levels (N m)", lambda a: np.all(a >= 0)),
+        "v_coulomb": _number("a positive velocity scale (rad/s)", lambda x: x > 0),
+        "tau_bias": _array((3,), "3 numbers (N m)"),
+        "tau_step": _array((3,), "3 numbers (N m)"),
+        "t_step": _number("a non-negative time (s)", lambda x: x >= 0),
+        "tau_sin": _array((3,), "3 numbers (N m)"),
+        "f_sin": _array((3,), "3 non-negative frequencies (Hz)", lambda a: np.all(a >= 0)),
         "payload_range": _payload_range,
         "uncertainty": {
             **{k: _half_width for k in ArmParams._fields},
@@ -522,11 +534,13 @@ def _check_consistency(cfg: dict) -> None:
             raise ConfigError(f"plant.box.{m}_lower: must not exceed plant.box.{m}_upper entrywise")
     if abs(np.linalg.det(np.asarray(model["B_rows"]))) < 1e-12:
         raise ConfigError("model.B_rows: must be invertible (B_bar)")
+    _check_model_from(cfg)
+    design = design_model(cfg)  # with from = "arm": derived here, once per arm (memoised)
     try:
-        check_design(np.asarray(model["B_rows"]), np.asarray(ctl["C"]), np.asarray(ctl["poles"]))
+        check_design(design.B_rows, np.asarray(ctl["C"]), np.asarray(ctl["poles"]))
     except DesignError as e:
         raise ConfigError(f"controller: {e}") from None
-    h = stable_step(model["A_rows"], model["B_rows"], ctl["poles"], sim["integrator"])
+    h = stable_step(design.A_rows, design.B_rows, ctl["poles"], sim["integrator"])
     if sim["dt"] > h:
         warnings.warn(
             f"sim.dt = {sim['dt']} s exceeds the {sim['integrator']} stability limit {h:.3g} s of the "
@@ -547,6 +561,10 @@ def _check_arm(cfg: dict) -> None:
         raise ConfigError("arm.uncertainty.samples: expected a positive number of sampled arms with half-widths set")
     if unc["samples"] and not varies:
         raise ConfigError("arm.uncertainty.samples: nothing varies (set a half-width, e.g. arm.uncertainty.F = 0.3)")
+    for k in varying:  # relative half-widths: a zero stays zero (the Coulomb and disturbance defaults)
+        if not np.any((np.broadcast_to(np.asarray(unc[k], float), np.shape(arm[k])) > 0) & (np.asarray(arm[k]) != 0)):
+            raise ConfigError(f"arm.uncertainty.{k}: a relative half-width of arm.{k} = {_short(arm[k])} varies "
+                              f"nothing (a zero stays zero); set arm.{k}, the nominal")  # fmt: skip
     for j in (2, 3):
         if arm[f"c{j}"] > arm[f"l{j}"]:
             raise ConfigError(f"arm.c{j}: expected the centre of mass of link {j} within the link, at most arm.l{j} = "
@@ -608,23 +626,178 @@ def _check_loop(cfg: dict) -> None:
 
 
 def box_of(cfg: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``[plant.box]`` as float64 arrays (A_lower, A_upper, B_lower, B_upper)."""
-    return tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
+    """The uncertainty box of the config's design model, float64 (A_lower, A_upper, B_lower,
+    B_upper): ``[plant.box]``, or the arm's with ``model.from = "arm"`` (:func:`design_model`)."""
+    return design_model(cfg).box
 
 
 def controller_of(cfg: dict, dtype, gamma=None) -> FOSMCParams:
-    """The :class:`FOSMCParams` a config describes (``gamma`` overrides ``controller.gamma``)."""
+    """The :class:`FOSMCParams` a config describes (``gamma`` overrides ``controller.gamma``),
+    on the nominal rows of its design model (:func:`design_model`)."""
     cast = lambda x: jnp.asarray(np.asarray(x, dtype=np.float64), dtype)
-    ctl, model = cfg["controller"], cfg["model"]
+    ctl, design = cfg["controller"], design_model(cfg)
     gamma = ctl["gamma"] if gamma is None else gamma
     return FOSMCParams(
         cast(ctl["C"]),
         cast(ctl["poles"]),
         cast(gamma),
         cast(ctl["delta"]),
-        cast(model["A_rows"]),
-        cast(model["B_rows"]),
+        cast(design.A_rows),
+        cast(design.B_rows),
     )
+
+
+# ---------------------------------------------------------------------------- the design model
+
+#: The arm's design model samples its rows at this many instants evenly over [0,
+#: trajectory.duration] (the reference's motion; X_d rests at its end afterwards) x this many
+#: payloads evenly over arm.payload_range: the 81 x 11 grid fosmc bounds sampled the arm on before.
+ARM_MODEL_TIMES, ARM_MODEL_PAYLOADS = 81, 11
+#: At most this many corners of [arm.uncertainty]'s ranges enter the arm's box: all 2^m corners of
+#: m varying entries up to 2^6, else a fixed draw of this many (each costs one evaluation of the
+#: 81 x 11 grid, 35-70 ms on 2 cores under load).
+ARM_MODEL_CORNERS = 64
+
+
+class DesignModel(NamedTuple):
+    """The model the FOSMC is designed on: K (16), Omega, alpha, beta (31) and the gamma bounds
+    (24)-(26) all follow from it. Rows 3, 6, 9 of A and B, float64 NumPy."""
+
+    source: str  # "paper": [model] A_rows, B_rows and [plant.box]; "arm": derived from [arm]
+    A_rows: np.ndarray  # (3, 9) nominal rows of A
+    B_rows: np.ndarray  # (3, 3) nominal rows of B (B_bar)
+    box: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # A_lower, A_upper, B_lower, B_upper
+    sampled: str  # where the rows come from, in words
+
+
+def design_model(cfg: dict, source: str | None = None) -> DesignModel:
+    """The design model of a resolved config, from ``source`` (default ``model.from``):
+    ``"paper"``: ``[model] A_rows``, ``B_rows`` and ``[plant.box]`` as given; ``"arm"`` (an arm
+    plant only): derived from ``[arm]`` along the configured reference (:func:`_arm_model`), once
+    per arm, ranges and reference (memoised on their values: the first derivation compiles and
+    evaluates the arm's rows, seconds; read-only arrays)."""
+    source = source or cfg["model"]["from"]
+    if source == "arm":
+        if cfg["plant"]["kind"] != "arm":
+            raise ConfigError(_not_an_arm(cfg))
+        return _arm_model(_arm_model_key(cfg))
+    rows = (np.asarray(cfg["model"][k], dtype=np.float64) for k in ("A_rows", "B_rows"))
+    box = tuple(np.asarray(cfg["plant"]["box"][k], dtype=np.float64) for k in BOX_KEYS)
+    return DesignModel("paper", *rows, box, "[model] A_rows, B_rows and [plant.box]")
+
+
+def design_summary(cfg: dict, source: str | None = None) -> DesignSummary:
+    """:func:`fosmc_jax.summarize` of the config's design model (:func:`design_model`) with its
+    C and poles: alpha, beta (31) by vertex enumeration of the box (seconds), K (16), CB and
+    the gamma bounds (24)-(26)."""
+    d = design_model(cfg, source)
+    return summarize(d.A_rows, d.B_rows, d.box, cfg["controller"]["C"], cfg["controller"]["poles"])
+
+
+def _not_an_arm(cfg: dict) -> str:
+    return (f"model.from: 'arm' derives the design model from [arm], for plant.kind = 'arm' only; got plant.kind "
+            f"= '{cfg['plant']['kind']}'")  # fmt: skip
+
+
+def _check_model_from(cfg: dict) -> None:
+    """``model.from = "arm"``: an arm plant, and none of the paper's rows or box it replaces set."""
+    if cfg["model"]["from"] != "arm":
+        return
+    if cfg["plant"]["kind"] != "arm":
+        raise ConfigError(_not_an_arm(cfg))
+    base = defaults()
+    tables = (("model", cfg["model"], base["model"], ("A_rows", "B_rows")),
+              ("plant.box", cfg["plant"]["box"], base["plant"]["box"], BOX_KEYS))  # fmt: skip
+    for name, table, default, keys in tables:
+        for k in keys:
+            if table[k] != default[k]:  # a resolved config holds the defaults: only a user's value differs
+                raise ConfigError(f"{name}.{k}: not used with model.from = 'arm' (the design model is derived from "
+                                  "[arm]); remove it, or set model.from = 'paper'")  # fmt: skip
+
+
+def _arm_model_key(cfg: dict) -> str:
+    """What the arm's design model depends on, as JSON text (the memo's key): the nominal arm,
+    its relative half-widths, ``arm.payload_range`` and ``[trajectory]``; not the number, seed
+    or sampling of ``[arm.uncertainty]``'s arms nor the payloads simulated, so that a config's
+    training, plain and held-out problems (``fosmc front``) share one controller."""
+    arm = cfg["arm"]
+    inputs = {"arm": {k: arm[k] for k in ArmParams._fields},
+              "widths": {k: arm["uncertainty"][k] for k in ArmParams._fields},
+              "payload_range": arm["payload_range"], "trajectory": cfg["trajectory"]}  # fmt: skip
+    return json.dumps(inputs, sort_keys=True)
+
+
+@functools.lru_cache(maxsize=16)
+def _arm_model(key: str) -> DesignModel:
+    """The arm's design model (``key``: :func:`_arm_model_key`), as the paper built its Appendix
+    box (docs/arm.md): the instantaneous rows :func:`fosmc_jax.third_order_rows` of each design arm
+    (the nominal ``[arm]`` and the corners of ``[arm.uncertainty]``'s ranges, :func:`_design_arms`)
+    at ``ARM_MODEL_PAYLOADS`` payloads evenly over ``arm.payload_range`` x the reference's states
+    X_d(t) at ``ARM_MODEL_TIMES`` instants evenly over [0, duration]; each arm's elementwise min
+    and max widened by the piecewise-linear interpolation error h^2/8 max|f''| along each axis
+    (h^2 f'' estimated by the largest second difference), so that the box also holds the rows
+    between the samples; the box is their hull and the nominal its midpoint."""
+    inputs = json.loads(key)
+    arms, which = _design_arms(inputs["arm"], inputs["widths"])
+    low, high = inputs["payload_range"]
+    duration = inputs["trajectory"]["duration"]
+    lower = upper = None
+    with jax.enable_x64(True):  # (not ensure_compile_time_eval: rows_over would compile a second time)
+        reference = reference_of(inputs, jnp.float64)
+        times = jnp.linspace(0.0, duration, ARM_MODEL_TIMES, dtype=jnp.float64)
+        states = jax.vmap(lambda t: desired_state(reference(t)))(times)
+        payloads = jnp.linspace(low, high, ARM_MODEL_PAYLOADS, dtype=jnp.float64)
+        for params in arms:
+            a, b = rows_over(params, payloads, states)
+            rows = np.concatenate([np.asarray(a), np.asarray(b)], axis=-1)  # (payloads, times, 3, 12)
+            margin = sum(np.abs(np.diff(rows, 2, axis=axis)).max(axis=(0, 1)) for axis in (0, 1)) / 8
+            lo, hi = rows.min(axis=(0, 1)) - margin, rows.max(axis=(0, 1)) + margin
+            lower = lo if lower is None else np.minimum(lower, lo)
+            upper = hi if upper is None else np.maximum(upper, hi)
+    nominal = (lower + upper) / 2
+
+    def frozen(x: np.ndarray) -> np.ndarray:
+        x = np.array(x)
+        x.flags.writeable = False  # shared by every caller of the memo
+        return x
+
+    box = tuple(frozen(x[:, cols]) for cols in (slice(9), slice(9, None)) for x in (lower, upper))
+    sampled = (f"{which}, at {ARM_MODEL_PAYLOADS} payloads over [{low:g}, {high:g}] kg x {ARM_MODEL_TIMES} states "
+               f"along the reference over [0, {duration:g}] s")  # fmt: skip
+    return DesignModel("arm", frozen(nominal[:, :9]), frozen(nominal[:, 9:]), box, sampled)
+
+
+def _design_arms(arm: dict, widths: dict) -> tuple[list[ArmParams], str]:
+    """The arms the design model is taken over, and their description: the nominal ``arm``
+    ({field: value}), then the corners nominal x (1 +- h) of the relative half-widths ``widths``
+    (every corner of the m entries with h > 0 up to ``ARM_MODEL_CORNERS``, else that many
+    distinct corners drawn with a fixed seed, whatever ``arm.uncertainty.seed``). Corners, not
+    the sampled arms: the rows are monotone in most parameters (B_bar = M^-1 diag(Kt/L), the
+    R/L and F terms), so the corners bound the rows of every arm drawn in the ranges, and the
+    design does not change with the draw."""
+    nominal = {k: np.asarray(arm[k], dtype=np.float64) for k in ArmParams._fields}
+    h = {k: np.broadcast_to(np.asarray(widths[k], dtype=np.float64), v.shape) for k, v in nominal.items()}
+    flat = np.concatenate([w.ravel() for w in h.values()])
+    live = np.flatnonzero(flat > 0)
+    m = live.size
+    if not m:
+        return [ArmParams(**nominal)], "the nominal arm"
+    if 2**m <= ARM_MODEL_CORNERS:
+        signs = 2.0 * ((np.arange(2**m)[:, None] >> np.arange(m)) & 1) - 1.0
+        which = f"the nominal arm and the {2**m} corners of [arm.uncertainty]'s ranges"
+    else:
+        signs = np.unique(np.random.default_rng(0).choice([-1.0, 1.0], (ARM_MODEL_CORNERS, m)), axis=0)
+        which = f"the nominal arm and {len(signs)} of the 2^{m} corners of [arm.uncertainty]'s ranges (a fixed draw)"
+    u = np.zeros((len(signs), flat.size))
+    u[:, live] = signs
+    arms = [ArmParams(**nominal)]
+    for row in u:
+        fields, i = {}, 0
+        for k, v in nominal.items():
+            fields[k] = v * (1.0 + h[k] * row[i : i + v.size].reshape(v.shape))
+            i += v.size
+        arms.append(ArmParams(**fields))
+    return arms, which
 
 
 def _law_and_loop(cfg: dict, dtype) -> tuple[Callable[[FOSMCParams], Any], Callable[[Any], Any]]:

@@ -13,11 +13,16 @@ on its own axis and a diagonal inertia tensor in its own frame; a point payload 
 ``payload`` (kg) sits at the tool, the far end of link 3. The rotor inertias ``Jm`` of the
 direct-drive motors add to the diagonal of M. With q = theta,
 
-    M(q) q'' + C(q, q') q' + G(q) + F q' = tau,
+    M(q) q'' + C(q, q') q' + G(q) + F q' + Fc tanh(q'/v_c) = tau + tau_ext(t),
 
 M from the link Jacobians (sum of m J_v^T J_v + J_w^T R I R^T J_w: symmetric positive
 definite by construction), C from the Christoffel symbols of M (so dM/dt - 2C is
-skew-symmetric), G = dV/dq from the potential energy V.
+skew-symmetric), G = dV/dq from the potential energy V. F q' is viscous friction,
+Fc tanh(q'/v_c) Coulomb friction smoothed over the velocity scale v_c (:func:`coulomb_friction`),
+tau_ext(t) an external torque per joint, constant + step + sinusoid (:func:`external_torque`):
+the disturbances of docs/arm.md, all zero in :data:`ARM_PARAMS`. The external torque depends
+on time, so the arm is a time-varying plant (``Arm.time_varying``: the simulator passes t to
+``observe`` and ``derivative``, :mod:`fosmc_jax._plants.base`).
 
 Motors, per joint: L di/dt = u - R i - Kb q', tau = Kt i. The plant's internal state is
 (q, q', i) (:class:`ArmState`); the controller sees X = [q1, q1', q1'', q2, ...] with q''
@@ -47,11 +52,27 @@ from .reference import Cycloid, desired_state
 PAYLOAD_RANGE = (0.0, 10.0)
 
 
+# The disturbances' defaults (read-only: shared by every ArmParams that takes them).
+_ZEROS, _ONES = np.zeros(3), np.ones(3)
+_ZEROS.flags.writeable = _ONES.flags.writeable = False
+
+#: Default smoothing scale v_c (rad/s) of the Coulomb term Fc tanh(q'/v_c): the friction
+#: reaches 99.5% of Fc at 3 v_c = 0.03 rad/s, under 2% of the paper's reference's peak rates
+#: (1.8, 1.7, 1.7 rad/s), so the motion sees nearly ideal Coulomb friction; near rest it acts as
+#: a viscous slope Fc/v_c (100 N m s/rad per N m of Fc), a mode of at most 0.37 Fc/v_c = 37 /s
+#: per N m (M^-1's largest eigenvalue over the paper's envelope is 0.37 /(kg m^2)), inside RK4's
+#: stability interval (2.78/dt) for Fc up to 75 N m at dt = 1e-3 s (docs/arm.md, "Friction and
+#: disturbances").
+V_COULOMB = 0.01
+
+
 class ArmParams(NamedTuple):
     """Physical parameters of the arm (a pytree; every leaf may be traced).
 
     Source of the values in :data:`ARM_PARAMS`: calibrated by ``tuning/calibrate_arm.py``
-    against the paper's (29) and Appendix box, except ``d1`` and ``g`` (fixed).
+    against the paper's (29) and Appendix box, except ``d1`` and ``g`` (fixed) and the
+    trailing Coulomb friction and external torques (none; their fields have defaults). The
+    external torque adds to the motors' Kt i on each joint (positive: along the joint's angle).
     Vectors (3,) are per joint 1, 2, 3; link tensors are (xx, yy, zz) principal moments about
     the link's centre of mass, in the link frame (z along the link, y along the joint axis).
     """
@@ -75,6 +96,15 @@ class ArmParams(NamedTuple):
     L: Array  # (3,) H, winding inductance
     Kt: Array  # (3,) N m/A, torque constant
     Kb: Array  # (3,) V s/rad, back-EMF constant (= Kt in SI for an ideal motor)
+    # Friction beyond F and external disturbances (docs/arm.md); defaults: none, so that the
+    # calibrated arm and every construction from the 19 fields above stay as they were.
+    Fc: Array = _ZEROS  # (3,) N m, Coulomb friction level: Fc tanh(q'/v_coulomb)
+    v_coulomb: Array = V_COULOMB  # rad/s, the Coulomb term's smoothing velocity scale (> 0)
+    tau_bias: Array = _ZEROS  # (3,) N m, constant external torque
+    tau_step: Array = _ZEROS  # (3,) N m, external torque step, on from t = t_step
+    t_step: Array = 1.0  # s, time of the step
+    tau_sin: Array = _ZEROS  # (3,) N m, amplitude of the sinusoidal external torque
+    f_sin: Array = _ONES  # (3,) Hz, its frequency: tau_sin sin(2 pi f_sin t)
 
 
 # Calibrated by tuning/calibrate_arm.py (paste its output here).
@@ -206,12 +236,36 @@ def kinetic_energy(params: ArmParams, payload: Array, theta: Array, dtheta: Arra
     return dtheta @ mass_matrix(params, payload, theta) @ dtheta / 2
 
 
+def coulomb_friction(params: ArmParams, dtheta: Array) -> Array:
+    """Coulomb friction torques Fc tanh(theta'/v_coulomb) (3,), N m, for rates ``dtheta`` (3,)."""
+    p = cast_params(params, dtheta.dtype)
+    return p.Fc * jnp.tanh(dtheta / p.v_coulomb)
+
+
+def external_torque(params: ArmParams, t: Array) -> Array:
+    """The external torque on each joint at time ``t`` (s), (3,) N m:
+    tau_bias + tau_step [t >= t_step] + tau_sin sin(2 pi f_sin t)."""
+    t = jnp.asarray(t)
+    p = cast_params(params, t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else jnp.result_type(float))
+    return jnp.stack(_external(p, t))
+
+
+def _external(p: ArmParams, t: Array) -> tuple[Array, Array, Array]:
+    """:func:`external_torque` as three scalars; ``p`` cast (the operations of arm_kernel.cc's
+    External, in their order)."""
+    t = jnp.asarray(t, p.t_step.dtype)
+    on = t >= p.t_step
+    w = (2 * np.pi) * p.f_sin
+    return tuple(p.tau_bias[j] + jnp.where(on, p.tau_step[j], 0) + p.tau_sin[j] * jnp.sin(w[j] * t) for j in range(3))
+
+
 def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Array, tau: Array) -> Array:
-    """theta'' = M^-1 (tau - C theta' - G - F theta'), rad/s^2, for joint torques ``tau`` (N m)."""
+    """theta'' = M^-1 (tau - C theta' - G - F theta' - Fc tanh(theta'/v_coulomb)), rad/s^2, for
+    joint torques ``tau`` (N m; the motors' and the external ones)."""
     p = cast_params(params, theta.dtype)
     M = mass_matrix(p, payload, theta)
     n = coriolis_matrix(p, payload, theta, dtheta) @ dtheta + gravity(p, payload, theta) + p.F * dtheta
-    return jnp.linalg.solve(M, tau - n)
+    return jnp.linalg.solve(M, tau - (n + coulomb_friction(p, dtheta)))
 
 
 # ---------------------------------------------------------------------------- closed form
@@ -362,45 +416,56 @@ class Arm(NamedTuple):
     ``grad`` reach it). Batched arms carry a leading axis on every leaf (see :func:`arm_sweep`).
     The time loop uses the closed form (:func:`_inertia`); :func:`mass_matrix`,
     :func:`coriolis_matrix` and :func:`gravity` are the same dynamics by autodiff.
+
+    A time-varying plant (``time_varying``): ``observe`` and ``derivative`` take the time t (s)
+    of the external torque (:func:`external_torque`; t = 0 when left out), which the simulator
+    passes (:func:`fosmc_jax._plants.base.observe_at`).
     """
 
     params: ArmParams
     payload: Array
+    #: The external torque depends on t: the simulator passes t to observe and derivative.
+    time_varying = True
 
     def init(self, X0: Array) -> ArmState:
-        """State with [theta, theta', theta''] = ``X0`` (9,): the currents are solved from
-        Kt i = M theta'' + C theta' + G + F theta'."""
+        """State with [theta, theta', theta''] = ``X0`` (9,) at t = 0: the currents are solved
+        from Kt i = M theta'' + C theta' + G + F theta' + Fc tanh(theta'/v_coulomb) - tau_ext(0)."""
         theta, dtheta, (a1, a2, a3) = tuple(X0[0::3]), tuple(X0[1::3]), tuple(X0[2::3])
         p = cast_params(self.params, X0.dtype)
         (m11, m12, m13, m22, m23, m33), n = _terms(p, self.payload, theta, dtheta)
+        d = _external(p, jnp.zeros((), X0.dtype))
         torque = (
-            m11 * a1 + m12 * a2 + m13 * a3 + n[0],
-            m12 * a1 + m22 * a2 + m23 * a3 + n[1],
-            m13 * a1 + m23 * a2 + m33 * a3 + n[2],
+            m11 * a1 + m12 * a2 + m13 * a3 + n[0] - d[0],
+            m12 * a1 + m22 * a2 + m23 * a3 + n[1] - d[1],
+            m13 * a1 + m23 * a2 + m33 * a3 + n[2] - d[2],
         )
         return ArmState(theta, dtheta, tuple(t / p.Kt[j] for j, t in enumerate(torque)))
 
-    def accelerations(self, state: ArmState) -> Array:
-        """theta'' (3,) from the state: M^-1 (Kt i - C theta' - G - F theta'), in closed form."""
-        return jnp.stack(_accelerations(self.params, self.payload, state))
+    def accelerations(self, state: ArmState, t: Array = 0.0) -> Array:
+        """theta'' (3,) from the state at time ``t`` (s): M^-1 (Kt i + tau_ext(t) - C theta' - G -
+        F theta' - Fc tanh(theta'/v_coulomb)), in closed form."""
+        return jnp.stack(_accelerations(self.params, self.payload, state, t))
 
-    def observe(self, state: ArmState) -> Array:
-        """X (9,) = [theta_1, theta_1', theta_1'', theta_2, ...]."""
-        acc = _accelerations(self.params, self.payload, state)
+    def observe(self, state: ArmState, t: Array = 0.0) -> Array:
+        """X (9,) = [theta_1, theta_1', theta_1'', theta_2, ...] at time ``t`` (s)."""
+        acc = _accelerations(self.params, self.payload, state, t)
         return jnp.stack([x for j in range(3) for x in (state.theta[j], state.dtheta[j], acc[j])])
 
-    def derivative(self, state: ArmState, U: Array) -> ArmState:
-        """Time derivative of the state under motor voltages ``U`` (3,), V."""
+    def derivative(self, state: ArmState, U: Array, t: Array = 0.0) -> ArmState:
+        """Time derivative of the state under motor voltages ``U`` (3,), V, at time ``t`` (s)."""
         p = cast_params(self.params, state.theta[0].dtype)
         di = tuple((U[j] - p.R[j] * state.current[j] - p.Kb[j] * state.dtheta[j]) / p.L[j] for j in range(3))
-        return ArmState(state.dtheta, _accelerations(self.params, self.payload, state), di)
+        return ArmState(state.dtheta, _accelerations(self.params, self.payload, state, t), di)
 
 
 def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[tuple, tuple]:
-    """Entries of M and the torques C theta' + G + F theta' (three scalars); ``p`` cast."""
+    """Entries of M and the torques C theta' + G + F theta' + Fc tanh(theta'/v_coulomb) (three
+    scalars); ``p`` cast."""
     M, M2, M3, (g2, g3) = _inertia(p, jnp.asarray(payload, theta[0].dtype), theta)
     c1, c2, c3 = _coriolis(M2, M3, dtheta)
-    return M, (c1 + p.F[0] * dtheta[0], c2 + g2 + p.F[1] * dtheta[1], c3 + g3 + p.F[2] * dtheta[2])
+    n = (c1 + p.F[0] * dtheta[0], c2 + g2 + p.F[1] * dtheta[1], c3 + g3 + p.F[2] * dtheta[2])
+    inv_v = 1 / p.v_coulomb  # one division (arm_kernel.cc's, once per block)
+    return M, tuple(n[j] + p.Fc[j] * jnp.tanh(dtheta[j] * inv_v) for j in range(3))
 
 
 # Rematerialised under reverse mode: the closed form is a few hundred cheap elementwise
@@ -409,10 +474,11 @@ def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[t
 # and grad of the tuner's loss, batch 64 x 4,000 steps: about 12x -> 7x the forward, CPU).
 # prevent_cse=False: it runs inside scan, where there is no CSE across steps to prevent.
 @functools.partial(jax.checkpoint, prevent_cse=False)
-def _accelerations(params: ArmParams, payload: Array, state: ArmState) -> tuple[Array, Array, Array]:
+def _accelerations(params: ArmParams, payload: Array, state: ArmState, t: Array) -> tuple[Array, Array, Array]:
     p = cast_params(params, state.theta[0].dtype)
     M, n = _terms(p, payload, state.theta, state.dtheta)
-    return _solve_sym(M, tuple(p.Kt[j] * state.current[j] - n[j] for j in range(3)))
+    d = _external(p, t)
+    return _solve_sym(M, tuple(p.Kt[j] * state.current[j] - n[j] + d[j] for j in range(3)))
 
 
 def arm_sweep(payloads: Array, params: ArmParams = ARM_PARAMS) -> Arm:
@@ -434,17 +500,26 @@ _GL_NODES, _GL_WEIGHTS = (_GL_NODES + 1) / 2, _GL_WEIGHTS / 2  # on [0, 1]
 def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     """Rows 3, 6, 9 of the arm's own third-order model (1) at state X: theta''' = a X + b U.
 
-    Differentiating Kt i = h := M q'' + C q' + F q' + G along L i' = u - R i - Kb q' gives
-    M q''' = diag(Kt/L) u - diag(R/L) h - diag(Kt Kb/L) q' - dh/dt, which is factored as
+    With h := M q'' + C q' + F q' + G + f_c(q'), f_c = Fc tanh(q'/v_c) the Coulomb friction,
+    the arm is Kt i = h - tau_ext(t). Differentiating it along L i' = u - R i - Kb q' gives
+    M q''' + (dh/dt - M q''') = diag(Kt/L) u - diag(R/L) h - diag(Kt Kb/L) q' + e(t), which is
+    factored as
 
       b       = M^-1 diag(Kt/L)                                                (B_bar)
-      a[:, q''] = -M^-1 (diag(R/L) M + dM/dt + d(Cq')/dq' + F)
-      a[:, q' ] = -M^-1 (diag(R/L) (C + F) + diag(Kt Kb/L) + d(Cq')/dq + dG/dq)
+      a[:, q''] = -M^-1 (diag(R/L) M + dM/dt + d(Cq')/dq' + F + diag(Fc/v_c sech^2(q'/v_c)))
+      a[:, q' ] = -M^-1 (diag(R/L) (C + F + diag(phi)) + diag(Kt Kb/L) + d(Cq')/dq + dG/dq)
       a[:, q  ] = -M^-1 diag(R/L) G_bar,   G_bar = int_0^1 dG/dq(s q) ds,
 
-    so that G_bar q = G(q) (exact because G(0) = 0; 12-point Gauss-Legendre). Every block is
-    evaluated at X (C, dM/dt and the derivatives of C q' depend on q', so the factoring is one
-    choice among many; it is exact: a X + b U is the true theta''').
+    so that G_bar q = G(q) (exact because G(0) = 0; 12-point Gauss-Legendre) and
+    diag(phi) q' = f_c(q'), phi = Fc tanh(q'/v_c)/q' (Fc/v_c at q' = 0): the Coulomb term
+    factored exactly, as G is. Every block is evaluated at X (C, dM/dt, the derivatives of C q'
+    and the friction depend on q', so the factoring is one choice among many; it is exact:
+    a X + b U is the true theta''' of the arm without external torque).
+
+    The external torque (:func:`external_torque`) is outside the rows: a matched exogenous
+    input, e(t) = diag(R/L) tau_ext(t) + tau_ext'(t) adds M^-1 e(t) = b (R tau_ext + L
+    tau_ext')/Kt to theta''' (a disturbance voltage in the input channel; the step's
+    derivative is an impulse at t_step).
 
     Args:
       arm: :class:`Arm` (unbatched).
@@ -469,12 +544,24 @@ def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     )
     r, k, kb = p.R / p.L, p.Kt / p.L, p.Kt * p.Kb / p.L
     F = jnp.diag(p.F)
+    x = dq / p.v_coulomb
+    slope = p.Fc / p.v_coulomb
+    phi = jnp.diag(slope * _tanh_over(x))  # phi q' = Fc tanh(q'/v_c)
+    dphi = jnp.diag(slope * (1 - jnp.tanh(x) ** 2))  # d/dq' of Fc tanh(q'/v_c)
     a_q = -jnp.linalg.solve(M, r[:, None] * G_bar)
-    a_dq = -jnp.linalg.solve(M, r[:, None] * (C + F) + jnp.diag(kb) + dc_dq + dG(p, m, q))
-    a_ddq = -jnp.linalg.solve(M, r[:, None] * M + Mdot + dc_ddq + F)
+    a_dq = -jnp.linalg.solve(M, r[:, None] * (C + F + phi) + jnp.diag(kb) + dc_dq + dG(p, m, q))
+    a_ddq = -jnp.linalg.solve(M, r[:, None] * M + Mdot + dc_ddq + F + dphi)
     b = jnp.linalg.solve(M, jnp.diag(k))
     a = jnp.stack([a_q, a_dq, a_ddq], axis=2).reshape(3, 9)
     return a, b
+
+
+def _tanh_over(x: Array) -> Array:
+    """tanh(x)/x, 1 at x = 0 (below |x| = 1e-4 its series 1 - x^2/3, off by under
+    2 x^4/15 < 2e-17), with finite derivatives everywhere (the double where)."""
+    small = jnp.abs(x) < 1e-4
+    safe = jnp.where(small, 1.0, x)
+    return jnp.where(small, 1 - x * x / 3, jnp.tanh(safe) / safe)
 
 
 # ---------------------------------------------------------------------------- the arm's box

@@ -3,7 +3,9 @@
 //
 // It advances L steps of fosmc_jax._simulator.rollout.simulate for N independent rollouts ("lanes") of
 // the 3-DOF arm (fosmc_jax._plants.arm: the closed form M, C q', G of ``_inertia`` / ``_coriolis``,
-// the adjugate solve, BLDC motors L i' = u - R i - Kb q') in one of two loops:
+// the adjugate solve, BLDC motors L i' = u - R i - Kb q', Coulomb friction Fc tanh(q'/v_c) and the
+// external torque tau_bias + tau_step [t >= t_step] + tau_sin sin(2 pi f_sin t) at the stage times)
+// in one of two loops:
 //   ideal    (Digital = 0): the law from the exact state at every step, its state integrated
 //                           with the plant: fosmc_jax.FOSMC ((14), (23) or the equivalent law,
 //                           switching (28), sign, sat or tanh), fosmc_jax.SMC or
@@ -25,15 +27,17 @@
 // comes in a table computed by JAX, so any reference works.
 //
 // Layouts (T = float or double; rows of N lanes, lane-minor):
-//   lanes   (139, N)  the arm (35: payload, d2, d3, l2, l3, c2, c3, m2, m3, I1, I2 (3), I3 (3),
-//                     Jm (3), F (3), g, R (3), L (3), Kt (3), Kb (3)), the law (96: see Law),
+//   lanes   (156, N)  the arm (52: payload, d2, d3, l2, l3, c2, c3, m2, m3, I1, I2 (3), I3 (3),
+//                     Jm (3), F (3), g, R (3), L (3), Kt (3), Kb (3), Fc (3), v_c, tau_bias (3),
+//                     tau_step (3), t_step, tau_sin (3), f_sin (3): fosmc_jax.ArmParams' fields
+//                     but d1, in order), the law (96: see Law),
 //                     the loop (the encoder's step 2 pi / counts (3; 0: none), u_max (3; inf:
 //                     none), the loop's period T (the estimator's)) and the law's period
 //   consts  (4,)      dt, the low-pass's decay and weight over a step (chattering_hf), the bound
 //   table   (L, R)    per step k: X_d at the integrator's stage times (ideal loop only: t_k; or
 //                     t_k, t_k + dt/2, t_k + dt for RK4; 9 each), then at t' = (k + 1) dt: X_d
 //                     (9), Omega (3), ||X_d||, ||Omega||, t', 1 where t' is a sample (else 0),
-//                     the reference's third derivatives (3)
+//                     the reference's third derivatives (3), t_k = k dt (20 in all)
 //   carry   (56 + 3d, N)  q (3), q' (3), i (3), q'' (3), the law's state (the FOSMC's w,
 //                     super-twisting's v) (3), U (3), the estimator's memory (theta (3),
 //                     theta' (3)), the accumulator's 10 fields x 3 joints (field-major, as
@@ -50,7 +54,9 @@ namespace {
 
 using fosmc::Simd;
 using namespace fosmc::acc;  // the accumulator's fields
-constexpr int kLaneRows = 139, kCarryRows = fosmc::arm::kCarryRows, kSampleCols = 19, kMaxDelay = 8;
+constexpr int kLaneRows = fosmc::arm::kLaneRows, kCarryRows = fosmc::arm::kCarryRows,
+              kSampleCols = fosmc::arm::kSampleCols, kMaxDelay = 8;
+static_assert(kSampleCols == 20, "layout.h: the table's sample columns changed; update Block's reads of them");
 enum { kQ = 0, kDq = 3, kCur = 6, kAcc = 9, kW = 12, kU = 15, kMemTh = 18, kMemDth = 21, kMet = fosmc::arm::kMet,
        kDiv = fosmc::arm::kDiv, kDivAt = fosmc::arm::kDivAt, kPending = fosmc::arm::kCarryRows };
 static_assert(kMet == kMemDth + 3, "layout.h: the accumulator follows the estimator's memory");
@@ -63,6 +69,7 @@ using V = typename Simd<T>::V;
 template <typename T>
 struct Lane {
   V<T> payload, d2, d3, l2, l3, c2, c3, m2, m3, I1, I2[3], I3[3], Jm[3], F[3], g, R[3], L[3], Kt[3], Kb[3];
+  V<T> Fc[3], v_c, tau_bias[3], tau_step[3], t_step, tau_sin[3], f_sin[3];
   V<T> C[27], S[27], CBi[9], K[27], gamma[3], delta[3], q[3], u_max[3], T_, T_law;
 };
 
@@ -117,10 +124,111 @@ inline void SinCos(V<T> x, V<T>* s, V<T>* c) {
   *c = (V<T>)((M)cn ^ (((j + 1) & 2) << shift));
 }
 
-// theta'' = M^-1 (Kt i - C q' - G - F q'): fosmc_jax._plants.arm._accelerations (_inertia, _coriolis,
-// _terms, _solve_sym), term by term in their order.
+// Whether every lane of a comparison's mask is set: lane by lane for 8 doubles, by 64-bit words for
+// 16 floats (what ran faster for each, by a micro-benchmark of Tanh).
+template <typename T, typename M>
+inline bool All(M mask) {
+  if constexpr (sizeof(T) == 8) {
+    bool all = true;
+    for (int l = 0; l < Simd<T>::W; l++) all &= mask[l] != 0;
+    return all;
+  } else {
+    uint64_t words[sizeof(M) / 8], all = ~uint64_t(0);
+    std::memcpy(words, &mask, sizeof mask);
+    for (uint64_t w : words) all &= w;
+    return all == ~uint64_t(0);
+  }
+}
+
+// tanh x (the Coulomb term), within a few ulps of std::tanh: Cephes' tanh and tanhf. Below
+// |x| = 0.625 x + x z P(z)/Q(z) (double; float: x + x z P(z)), z = x^2; above it (e - 1)/(e + 1)
+// with e = exp(2 |x|) = 2^n (q + p)/(q - p), Cephes' exp in its Pade form (double; float:
+// 1 - 2/(e + 1), expf's polynomial): one division in all, the two parts selected lane by lane.
+// |x| is clamped to 20, where tanh is 1 to the last bit (from 19.1 in double, 9.1 in float). A
+// vector whose lanes all lie in one part computes that part only (joints in motion, |q'| > 20 v_c:
+// the formula's +-1 at once; at rest: the small part), with the same results. NaN stays NaN.
 template <typename T>
-inline void Accelerations(const Lane<T>& p, const V<T> q[3], const V<T> dq[3], const V<T> cur[3], V<T> out[3]) {
+inline V<T> Tanh(V<T> x) {
+  using W = V<T>;
+  using I = std::conditional_t<sizeof(T) == 8, int64_t, int32_t>;
+  typedef I M __attribute__((vector_size(fosmc::kBytes)));
+  constexpr I top = I(1) << (sizeof(T) * 8 - 1), bias = sizeof(T) == 8 ? 1023 : 127;
+  constexpr int mant = sizeof(T) == 8 ? 52 : 23;
+  const T magic = sizeof(T) == 8 ? 0x1.8p52 : 0x1.8p23f;
+  const W zero = {}, ax = (W)((M)x & ~top), z = x * x;
+  const M far = ax >= T(20), small = ax < T(0.625);
+  const bool all_far = All<T>(far), all_small = All<T>(small);
+  if (all_far) return (W)((M)(zero + 1) | ((M)x & top));
+  W sn, sd;  // the small part: x + sn / sd (double), x + sn (float)
+  if constexpr (sizeof(T) == 8) {
+    sn = x * z * ((-9.64399179425052238628E-1 * z - 9.92877231001918586564E1) * z - 1.61468768441708447952E3);
+    sd = ((z + 1.12811678491632931402E2) * z + 2.23548839060100448583E3) * z + 4.84406305325125486048E3;
+    if (all_small) return x + sn / sd;
+  } else {
+    sn = ((((-5.70498872745E-3f * z + 2.06390887954E-2f) * z - 5.37397155531E-2f) * z + 1.33314422036E-1f) * z -
+          3.33332819422E-1f) * z * x;
+    if (all_small) return sn + x;
+  }
+  const W y = 2 * Simd<T>::Min(ax, zero + 20);  // 2 |x|, then e^y = 2^n e^r, |r| <= ln(2) / 2
+  W nf = y * T(1.4426950408889634) + magic;
+  const M n = (M)nf - (M)(zero + magic);
+  nf -= magic;
+  const W scale = (W)((n + bias) << mant);
+  if constexpr (sizeof(T) == 8) {
+    W r = y - nf * 6.93145751953125E-1;
+    r -= nf * 1.42860682030941723212E-6;
+    const W rr = r * r;
+    const W p = r * ((1.26177193074810590878E-4 * rr + 3.02994407707441961300E-2) * rr + 9.99999999999999999910E-1);
+    const W q = ((3.00198505138664455042E-6 * rr + 2.52448340349684104192E-3) * rr + 2.27265548208155028766E-1) * rr +
+                2.00000000000000000009E0;
+    const W num = (q + p) * scale - (q - p), den = (q + p) * scale + (q - p);  // e - 1, e + 1 over (q - p)
+    const W ratio = (small ? sn : num) / (small ? sd : den);
+    return small ? x + ratio : (W)((M)ratio | ((M)x & top));
+  } else {
+    W r = y - nf * 0.693359375f;
+    r -= nf * -2.12194440e-4f;
+    const W e = (((((1.9875691500E-4f * r + 1.3981999507E-3f) * r + 8.3334519073E-3f) * r + 4.1665795894E-2f) * r +
+                  1.6666665459E-1f) * r + 5.0000001201E-1f) * (r * r) + r + 1.0f;
+    const W big = 1.0f - 2.0f / (e * scale + 1.0f);
+    return small ? sn + x : (W)((M)big | ((M)x & top));
+  }
+}
+
+// Which of the optional terms a block computes: skipped where every lane of the block has them
+// zero (Fc = 0: Fc tanh(.) = 0 exactly; tau_sin = 0: tau_sin sin(.) = 0; no external torque at
+// all: d = 0), so that an arm without them pays nothing for them; the results are the same.
+template <typename T>
+struct Terms {
+  bool coulomb, external, sinus;
+  V<T> inv_v;  // 1 / v_c, once per block (_terms multiplies the rates by it)
+};
+
+// The external torque at time t: fosmc_jax._plants.arm._external, in its order.
+template <typename T>
+inline void External(const Lane<T>& p, const Terms<T>& on, T t, V<T> d[3]) {
+  using W = V<T>;
+  const W zero = {}, tt = zero + t;
+  if (!on.external) {
+    for (int j = 0; j < 3; j++) d[j] = zero;
+    return;
+  }
+  const auto stepped = tt >= p.t_step;
+  for (int j = 0; j < 3; j++) d[j] = p.tau_bias[j] + (stepped ? p.tau_step[j] : zero);
+  if (!on.sinus) return;
+  const T two_pi = static_cast<T>(2 * M_PI);
+  for (int j = 0; j < 3; j++) {
+    W s, c;
+    SinCos<T>((two_pi * p.f_sin[j]) * tt, &s, &c);  // |2 pi f t| < 2^20: f t below 1.6e5 periods
+    d[j] = d[j] + p.tau_sin[j] * s;
+  }
+}
+
+// theta'' = M^-1 (Kt i - (C q' + G + F q' + Fc tanh(q' (1/v_c))) + d), d the external torque:
+// fosmc_jax._plants.arm._accelerations (_inertia, _coriolis, _terms, _solve_sym), term by term in
+// their order.
+template <typename T>
+inline void Accelerations(const Lane<T>& p, const Terms<T>& on, const V<T> q[3], const V<T> dq[3], const V<T> cur[3],
+                          const V<T> d[3], V<T> out[3]) {
   using W = V<T>;
   W s2, c2, s3, c3;
   SinCos<T>(q[1], &s2, &c2);
@@ -165,10 +273,15 @@ inline void Accelerations(const Lane<T>& p, const V<T> q[3], const V<T> dq[3], c
   const W e22 = b22 * w3, e23 = b23 * w3;
   const W h2 = w1 * (a11 * w1 / 2 + a12 * w2 + a13 * w3);
   const W h3 = w1 * (b11 * w1 / 2 + b12 * w2 + b13 * w3) + w2 * (b22 * w2 / 2 + b23 * w3);
-  const W n1 = e11 * w1 + e12 * w2 + e13 * w3 + p.F[0] * w1;
-  const W n2 = e12 * w1 + e22 * w2 + e23 * w3 - h2 + g2 + p.F[1] * w2;
-  const W n3 = e13 * w1 + e23 * w2 - h3 + g3 + p.F[2] * w3;
-  const W r1 = p.Kt[0] * cur[0] - n1, r2 = p.Kt[1] * cur[1] - n2, r3 = p.Kt[2] * cur[2] - n3;
+  W n1 = e11 * w1 + e12 * w2 + e13 * w3 + p.F[0] * w1;
+  W n2 = e12 * w1 + e22 * w2 + e23 * w3 - h2 + g2 + p.F[1] * w2;
+  W n3 = e13 * w1 + e23 * w2 - h3 + g3 + p.F[2] * w3;
+  if (on.coulomb) {
+    n1 = n1 + p.Fc[0] * Tanh<T>(w1 * on.inv_v);
+    n2 = n2 + p.Fc[1] * Tanh<T>(w2 * on.inv_v);
+    n3 = n3 + p.Fc[2] * Tanh<T>(w3 * on.inv_v);
+  }
+  const W r1 = p.Kt[0] * cur[0] - n1 + d[0], r2 = p.Kt[1] * cur[1] - n2 + d[1], r3 = p.Kt[2] * cur[2] - n3 + d[2];
   // _solve_sym: the adjugate over the determinant
   const W A = m22 * m33 - m23 * m23, B = m13 * m23 - m12 * m33, C = m12 * m23 - m13 * m22;
   const W E = m11 * m33 - m13 * m13, Fm = m12 * m13 - m11 * m23, I = m11 * m22 - m12 * m12;
@@ -300,16 +413,26 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
       }
     }
   };
+  // the optional terms of this block's arms (Terms)
+  Terms<T> on{false, false, false, 1 / p.v_c};
+  for (int l = 0; l < S::W; l++)
+    for (int j = 0; j < 3; j++) {
+      on.coulomb |= p.Fc[j][l] != 0, on.sinus |= p.tau_sin[j][l] != 0;
+      on.external |= p.tau_bias[j][l] != 0 || p.tau_step[j][l] != 0 || p.tau_sin[j][l] != 0;
+    }
   for (int64_t k = 0; k < L; k++) {
     const T* row = table + k * R;
-    const T* smp = row + 9 * stages;  // X_d, Omega, ||X_d||, ||Omega||, t', sample?
+    const T* smp = row + 9 * stages;  // X_d, Omega, ||X_d||, ||Omega||, t', sample?, X_d''', t_k
+    const T t0 = smp[19];  // the stages at t_k, t_k + dt/2, t_k + dt (rollout._rk4's); observed at t'
+    W d[3];                // the external torque at a stage's time
     const W *q = st + kQ, *dq = st + kDq, *cur = st + kCur, *acc = st + kAcc, *w = st + kW, *U = st + kU;
     W nq[3], ndq[3], ncur[3], nw[3], nacc[3], nU[3], dc[3], dw[3];
     // the integrator step from t_k with U held (fosmc_jax._simulator.rollout._euler / _rk4); acc are the
     // accelerations of this state, computed when it was observed
 #ifdef FOSMC_NO_REUSE  // an ablation (benchmarks/arm_levers.py): the accelerations recomputed
     W acc0[3];
-    Accelerations<T>(p, q, dq, cur, acc0);
+    External<T>(p, on, t0, d);
+    Accelerations<T>(p, on, q, dq, cur, d, acc0);
     acc = acc0;
 #endif
     field(q, dq, cur, acc, U, row, dc, dw);
@@ -327,7 +450,8 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
         if constexpr (!Digital) yw[j] = w[j] + half * dw[j];
       }
       for (int stg = 1; stg < 4; stg++) {
-        Accelerations<T>(p, yq, ydq, yc, ya);
+        if (stg != 2) External<T>(p, on, stg < 3 ? t0 + half : t0 + dt, d);  // stage 2: stage 1's time
+        Accelerations<T>(p, on, yq, ydq, yc, d, ya);
         field(yq, ydq, yc, ya, U, row + 9 * (stg < 3 ? 1 : 2), dc, dw);
         const T wt = stg < 3 ? 2 : 1, hn = stg < 2 ? half : dt;
         for (int j = 0; j < 3; j++) {
@@ -344,7 +468,9 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
         if constexpr (!Digital) nw[j] = w[j] + dt * (sw[j] / 6);
       }
     }
-    Accelerations<T>(p, nq, ndq, ncur, nacc);  // observe at t'
+    // observe at t' = (k + 1) dt: RK4's last stage was at t_k + dt, the same time but for rounding
+    if (!(Rk4 && smp[14] == t0 + dt)) External<T>(p, on, smp[14], d);
+    Accelerations<T>(p, on, nq, ndq, ncur, d, nacc);
     // the check of _simulator._finite_and_bounded on what this step changes (the rest was checked)
     auto ok = S::Abs(nq[0]) <= h.bound;  // a lane mask; NaN fails every comparison
     for (int j = 0; j < 3; j++)

@@ -38,7 +38,7 @@ from .._controllers.smc import SMC
 from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
 from .._design.gains import input_matrix_product
 from .._loop.digital import DigitalLoop
-from .._plants.arm import Arm, cast_params
+from .._plants.arm import Arm, ArmParams, cast_params
 from .._plants.reference import desired_state
 from . import metrics as _metrics
 from . import native as _native
@@ -46,7 +46,7 @@ from . import native as _native
 # The layouts of arm_kernel.cc: its lane rows, and where the carry's rows hold the accumulator's
 # fields (field-major), the divergence flag and its time, the delay line after them (defined in
 # fosmc_jax._simulator.native, which writes them into the kernels' layout.h).
-LANE_ROWS = 139
+LANE_ROWS = _native.ARM_LANE_ROWS
 METRICS = slice(_native.ARM_MET, _native.ARM_DIV)
 DIVERGED, DIVERGED_AT, CARRY_ROWS = _native.ARM_DIV, _native.ARM_DIV + 1, _native.ARM_CARRY_ROWS
 MAX_DELAY = 8
@@ -98,13 +98,12 @@ def _law_rows(law, dtype) -> Array:
 
 
 def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
-    """(139, P O): the arm's parameters (each plant O times: plant-major), then the law's and the
-    loop's, as in arm_kernel.cc."""
+    """(LANE_ROWS, P O): the arm's parameters (each plant O times: plant-major), then the law's and
+    the loop's, as in arm_kernel.cc."""
     p = cast_params(plants.params, dtype)
-    arm = [plants.payload, p.d2, p.d3, p.l2, p.l3, p.c2, p.c3, p.m2, p.m3, p.I1, p.I2, p.I3, p.Jm, p.F, p.g,
-           p.R, p.L, p.Kt, p.Kb]  # fmt: skip
+    arm = [plants.payload] + [getattr(p, k) for k in ArmParams._fields if k != "d1"]  # native.ARM_PARAM_ROWS
     P = plants.payload.shape[0]
-    arm = jnp.concatenate([jnp.asarray(a, dtype).reshape(P, -1) for a in arm], axis=1)  # (P, 35)
+    arm = jnp.concatenate([jnp.asarray(a, dtype).reshape(P, -1) for a in arm], axis=1)  # (P, 52)
     if type(ctrl) is DigitalLoop:
         counts = ctrl.sensors.counts
         on = counts > 0
@@ -141,9 +140,9 @@ def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
 
 
 def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> Array:
-    """The time-only terms of steps ``k`` (a vector), (len(k), 9 stages + 19): X_d at the stage
+    """The time-only terms of steps ``k`` (a vector), (len(k), 9 stages + 20): X_d at the stage
     times, then at t' = (k + 1) dt X_d, Omega (10), ||X_d||, ||Omega||, t', the sample flag and
-    the reference's third derivatives."""
+    the reference's third derivatives, then t = k dt (the external torque's stage times)."""
     X_d_at = jax.vmap(lambda t: desired_state(reference(t)))
     t = k.astype(dt.dtype) * dt
     cols = [X_d_at(t)] if stages == 1 else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)] if stages == 3 else []
@@ -151,11 +150,12 @@ def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> A
     refs = jax.vmap(reference)(t1)
     X_d, Omega, norm_X_d, norm_Omega = jax.vmap(functools.partial(reference_terms, a_rows, b_rows))(refs)
     flag = ((k + 1) % m == 0).astype(dt.dtype)
-    return jnp.concatenate([*cols, X_d, Omega, jnp.stack([norm_X_d, norm_Omega, t1, flag], 1), refs[:, 3]], axis=1)
+    parts = [*cols, X_d, Omega, jnp.stack([norm_X_d, norm_Omega, t1, flag], 1), refs[:, 3], t[:, None]]
+    return jnp.concatenate(parts, axis=1)
 
 
 def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
-    """``n_steps`` steps of the kernel: ``carry`` (R, N) and ``lanes`` (139, N) with any N (padded
+    """``n_steps`` steps of the kernel: ``carry`` (R, N) and ``lanes`` (LANE_ROWS, N) with any N (padded
     here to whole blocks), ``shared`` = (reference, a_rows, b_rows, dt, the low-pass's (decay,
     weight), bound). Calls of a few hundred steps (see TABLE_BYTES) in a scan."""
     reference, a_rows, b_rows, dt, gain, bound = shared
@@ -173,7 +173,7 @@ def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, dig
         table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=m)
         return call(lanes, consts, table.astype(dtype), c, **attrs)
 
-    steps = max(64, TABLE_BYTES // ((9 * stages + 19) * dtype.itemsize))
+    steps = max(64, TABLE_BYTES // ((9 * stages + _native.ARM_SAMPLE_COLS) * dtype.itemsize))
     chunks, rest = divmod(n_steps, steps)
     if chunks:
         carry = jax.lax.scan(lambda c, i: (chunk(c, i * steps, steps), None), carry, jnp.arange(chunks))[0]
@@ -219,7 +219,7 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     else:
         carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
         carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
-    acc3 = jax.vmap(lambda plant, state: plant.accelerations(state), (0, 0))(
+    acc3 = jax.vmap(lambda plant, state: plant.accelerations(state, jnp.zeros((), dtype)), (0, 0))(
         jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
     )
     delay = ctrl.delay if digital else 0

@@ -136,6 +136,13 @@ RULES: dict[type, dict[str, Field]] = {
         "L": Field((3,), _positive, "3 positive inductances (H)"),
         "Kt": Field((3,), _positive, "3 positive torque constants (N m/A)"),
         "Kb": Field((3,), _non_negative, "3 non-negative back-EMF constants (V s/rad)"),
+        "Fc": Field((3,), _non_negative, "3 non-negative Coulomb friction levels (N m)"),
+        "v_coulomb": Field((), _positive, "a positive velocity scale (rad/s)"),
+        "tau_bias": Field((3,), _finite, "3 finite torques (N m)"),
+        "tau_step": Field((3,), _finite, "3 finite torques (N m)"),
+        "t_step": Field((), _finite, "a finite time (s)"),
+        "tau_sin": Field((3,), _finite, "3 finite torques (N m)"),
+        "f_sin": Field((3,), _non_negative, "3 non-negative frequencies (Hz)"),
     },
     # the range of payloads belongs to the configured arm ([arm] payload_range, checked by the
     # config): an Arm does not carry it, so only a negative payload is refused here

@@ -39,6 +39,7 @@ import numpy as np
 from jax import Array
 
 from .._controllers.fosmc import LAWS, SWITCHING
+from .._plants.arm import ARM_PARAMS
 from .cache import cache_dir
 from .metrics import Accumulator
 
@@ -65,6 +66,17 @@ ROWS = LIN_DIV + 2
 ARM_MET = 24
 ARM_DIV = ARM_MET + 3 * ACC
 ARM_CARRY_ROWS = ARM_DIV + 2
+#: The arm kernel's lane rows (its struct Lane): the arm (the payload, then every ArmParams field
+#: but d1, the kinematics-only height, entry by entry in field order), the law (96: C, S or the
+#: nominal rows, (CB)^-1, K, gamma or gains, delta or widths), the loop (7: encoder steps, u_max,
+#: the estimator's period) and the law's period. A field added to ArmParams changes this count,
+#: and the kernel's build fails on its static_assert until its struct Lane has the field too.
+ARM_PARAM_ROWS = 1 + sum(int(np.size(v)) for k, v in ARM_PARAMS._asdict().items() if k != "d1")
+ARM_LANE_ROWS = ARM_PARAM_ROWS + 96 + 7 + 1
+#: The arm kernel's time table, per step after X_d at the integrator's stage times: at t' X_d (9),
+#: Omega (3), ||X_d||, ||Omega||, t', the sample flag, the reference's third derivatives (3), then
+#: the step's start t_k (the external torque's stage times t_k + dt/2, t_k + dt).
+ARM_SAMPLE_COLS = 20
 
 
 def layout_header() -> str:
@@ -79,7 +91,7 @@ def layout_header() -> str:
         f"namespace linear {{ constexpr int kAcc = {LIN_ACC}, kDiv = {LIN_DIV}, kDivAt = {LIN_DIV + 1}, "
         f"kRows = {ROWS}; }}",
         f"namespace arm {{ constexpr int kMet = {ARM_MET}, kDiv = {ARM_DIV}, kDivAt = {ARM_DIV + 1}, "
-        f"kCarryRows = {ARM_CARRY_ROWS}; }}",
+        f"kCarryRows = {ARM_CARRY_ROWS}, kLaneRows = {ARM_LANE_ROWS}, kSampleCols = {ARM_SAMPLE_COLS}; }}",
         "}  // namespace fosmc",
         "",
     ])  # fmt: skip

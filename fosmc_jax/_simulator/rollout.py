@@ -17,7 +17,9 @@ and :class:`fosmc_jax.DigitalLoop`. The FOSMC parameters :class:`fosmc_jax.FOSMC
 run as the paper's ideal loop.
 
 A plant is any pytree with methods ``init(X0) -> state``, ``observe(state) -> X (9,)`` and
-``derivative(state, U) -> state'`` (see :class:`fosmc_jax.LinearPlant`). A reference is any
+``derivative(state, U) -> state'`` (see :class:`fosmc_jax.LinearPlant`); a time-varying plant
+(``time_varying = True``, :class:`fosmc_jax.Arm`) gets the time too: ``observe(state, t)``,
+``derivative(state, U, t)`` at the samples' and the stages' times (:mod:`fosmc_jax._plants.base`). A reference is any
 pytree callable ``ref(t) -> (4, 3)`` (see :class:`fosmc_jax.Cycloid`; wrap a plain function in
 ``jax.tree_util.Partial``).
 
@@ -38,7 +40,7 @@ from jax import Array
 
 from .._controllers.base import ContinuousLaw, HasSlidingVariable, SampledLoop, check_controller
 from .._controllers.fosmc import FOSMC, FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
-from .._plants.base import check_plant
+from .._plants.base import check_plant, derivative_at, observe_at
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import arm_native as _arm_native
@@ -183,7 +185,7 @@ def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
     metrics' first sample; flagged diverged (at 0) where any of it is not finite."""
     dtype = X0.dtype
     plant_state = plant.init(X0)
-    X = plant.observe(plant_state)
+    X = observe_at(plant, plant_state, jnp.zeros((), dtype))
     r = reference(jnp.zeros((), dtype))
     ctrl_state = ctrl.init(X, r, key)
     U, ctrl_state = ctrl.update(ctrl_state, X, r, jnp.zeros((), dtype))
@@ -277,11 +279,11 @@ def _simulate(
 
     def integrate(plant_state, ctrl_state, U, t):
         if not flows:
-            return stepper(lambda t, y: plant.derivative(y, U), t, plant_state, dt), ctrl_state
+            return stepper(lambda t, y: derivative_at(plant, y, U, t), t, plant_state, dt), ctrl_state
 
         def f(t, y):
             ps, cs = y
-            return plant.derivative(ps, U), ctrl.derivative(cs, plant.observe(ps), reference(t), t)
+            return derivative_at(plant, ps, U, t), ctrl.derivative(cs, observe_at(plant, ps, t), reference(t), t)
 
         return stepper(f, t, (plant_state, ctrl_state), dt)
 
@@ -290,7 +292,7 @@ def _simulate(
         plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt)
         k = c.k + 1
         t = k.astype(dtype) * dt
-        X = plant.observe(plant_state)
+        X = observe_at(plant, plant_state, t)
         r = reference(t)
         U = c.U
         if sample:
@@ -318,7 +320,7 @@ def _simulate(
     carry = start(plant, ctrl, reference, X0, key, divergence_bound)
 
     def snapshot(c: _Carry):
-        return c.k, plant.observe(c.plant_state), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
+        return c.k, observe_at(plant, c.plant_state, c.k.astype(dtype) * dt), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
 
     trace = None
     if save_every:
