@@ -3,7 +3,16 @@ controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class
 Dynamical System", for a 3-DOF direct-drive arm."""
 
 from ._app.certify import certify
-from ._app.commands import run_bounds, run_certify, run_front, run_reproduce, run_simulate, run_tune
+from ._app.commands import (
+    run_bounds,
+    run_certify,
+    run_export,
+    run_front,
+    run_identify,
+    run_reproduce,
+    run_simulate,
+    run_tune,
+)
 from ._app.config import ConfigError, build
 from ._certificate.hitting import Certificate
 from ._controllers.base import ContinuousLaw, ControlLaw, HasSlidingVariable, SampledLoop
@@ -61,6 +70,8 @@ __all__ = [
     "run_reproduce",
     "run_simulate",
     "run_tune",
+    "run_export",
+    "run_identify",
     "ARM_PARAMS",
     "PAYLOAD_RANGE",
     "Arm",

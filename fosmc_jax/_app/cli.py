@@ -144,9 +144,11 @@ def cmd_bounds(args) -> int:
         return 0
     gamma = d["gamma"]
     fmt = lambda v: "  ".join(f"{x:10.4f}" for x in np.ravel(v))
+    hint = "; [model] from = 'arm' designs on the arm's" if "models" in d and d["model"] == "paper" else ""
+    print(f"model: {d['model']} (K, CB and the bounds below: {d['model_detail']}{hint})")
     if "box" in d:
         a_rows, b_rows, box = d["nominal_A_rows"], d["nominal_B_rows"], [d["box"][k] for k in _config.BOX_KEYS]
-        print("The arm's box (sampled along the reference x payloads) beside the paper's Appendix box")
+        print(f"The arm's box ({d['arm_model']}) beside the paper's Appendix box")
         print("and nominal (29); rows 3, 6, 9 of A (columns 1-9) and B (columns 1-3):")
         print(f"  {'entry':<8}{'arm lower':>11}{'arm upper':>11}{'arm nominal':>12}   "
               f"{'paper lower':>11}{'paper upper':>12}{'paper (29)':>11}")  # fmt: skip
@@ -183,7 +185,24 @@ def cmd_bounds(args) -> int:
     for c in CONVENTIONS:
         ok = np.all(np.asarray(gamma) > d["gamma_min"][c])
         print(f"  gamma {'meets' if ok else 'does NOT meet'} the {c} bounds")
+    if "models" in d:
+        _print_both_models(d, fmt)
     return 0
+
+
+def _print_both_models(d: dict, fmt) -> None:
+    """An arm config's paper and arm models side by side, and the K of the one not in use."""
+    models, other = d["models"], "arm" if d["model"] == "paper" else "paper"
+    print(f"both design models (in use: {d['model']}):")
+    print(f"  {'model':<34}{'paper':>10}{'':<26}{'arm':>10}")
+    cells = {source: {"alpha": [m["alpha"]], "beta": [m["beta"]],
+                      **{f"gamma lower bounds, {c}": m["gamma_min"][c] for c in CONVENTIONS}}
+             for source, m in models.items()}  # fmt: skip
+    for label in cells["paper"]:
+        print(f"  {label:<34}{fmt(cells['paper'][label]):<36}{fmt(cells['arm'][label])}")
+    print(f"K of the {other} model (3x9; not the controller's):")
+    for row in models[other]["K"]:
+        print("  " + "  ".join(f"{x:9.4f}" for x in row))
 
 
 # ---------------------------------------------------------------------------- reproduce
@@ -288,6 +307,51 @@ def cmd_certify(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------- export
+
+
+def cmd_export(args) -> int:
+    r = C.run_export(args.config, out=args.out, params=args.params, point=args.point, precision=args.precision,
+                     name=args.name, log=_log)  # fmt: skip
+    print(f"{r['kind']} controller ({r['precision']}): {', '.join(map(str, r['paths']))}")
+    if not r["check"].startswith("compiled cleanly"):
+        _log(f"fosmc: warning: {r['check']}")
+    return 0
+
+
+# ---------------------------------------------------------------------------- identify
+
+
+def cmd_identify(args) -> int:
+    """Each entry's configured and identified value with its standard deviation and status, the
+    directions the log does not identify, the fit's residuals; the files written."""
+    r = C.run_identify(args.config, data=args.data, params=args.params, out=args.out, payload=args.payload,
+                       delay=args.delay, window=args.window, dt=args.dt, threshold=args.threshold,
+                       iterations=args.iterations, bootstrap=args.bootstrap, force=args.force, log=_log)  # fmt: skip
+    if args.json:
+        print(json.dumps(jsonable({k: v for k, v in r.items() if k != "config"}), indent=1))
+        return 0
+    print(f"{'entry':<10} {'configured':>12} {'identified':>12} {'+- std':>10} {'relative':>9}  status")
+    for e in r["entries"]:
+        std = "" if e["std"] is None else f"{e['std']:10.3g} {100 * e['relative_std']:8.2g}%"
+        print(f"{e['name']:<10} {e['initial']:12.6g} {e['estimate']:12.6g} {std:>20}  {e['status']}")
+    if r["groups"]:
+        print(f"not identified by the log (relative standard deviation above {r['fit']['threshold']:g}); each fixed "
+              "entry with the moves (of log p) that leave the log unchanged:")  # fmt: skip
+        for g in r["groups"]:
+            moves = ", ".join(f"{name} {w:+.3g}" for name, w in g["moves"].items())
+            print(f"  {g['fixed']:<10} {moves}")
+    fit = r["fit"]
+    currents = "" if fit["rms_current"] is None else f", {_fmt3(fit['rms_current'])} A"
+    print(f"fit: {fit['windows']} windows of {fit['window_s']:g} s, {fit['iterations']} iterations; residual RMS "
+          f"{_fmt3(fit['rms_theta'])} rad{currents}")  # fmt: skip
+    if r["config_check"] != "ok":
+        _log(f"fosmc: warning: the identified arm is not a valid config: {r['config_check']}")
+    if args.out:
+        print(f"wrote {args.out}/identified.toml and {args.out}/identify.json")
+    return 0
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -374,6 +438,38 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--configured-switching", action="store_true", help="use controller.switching instead of SGN")
     c.add_argument("--seed", type=int, default=0, help="seed of the sampled points")
     c.set_defaults(func=cmd_certify)
+    x = sub.add_parser("export", help="the digital loop's controller as dependency-free C99 (a header and a source)")
+    x.add_argument("--config", help="TOML config with a digital loop (controller.sample_period > 0)")
+    x.add_argument("--params", metavar="JSON",
+                   help="the tuned parameters of a `fosmc tune` result.json or a `fosmc front` front.json")  # fmt: skip
+    x.add_argument("--point", type=int, help="with a front.json: the point to export (index)")
+    x.add_argument("--out", required=True, metavar="DIR",
+                   help="folder for NAME.h and NAME.c (files of those names replaced)")  # fmt: skip
+    x.add_argument("--precision", choices=("float32", "float64"), default="float64",
+                   help="the C real type (default float64)")  # fmt: skip
+    x.add_argument("--name", default="fosmc", help="prefix of the files and of every C identifier (default fosmc)")
+    x.set_defaults(func=cmd_export)
+    i = sub.add_parser("identify", help="fit the arm's parameters to a log of an experiment (angles, voltages)")
+    i.add_argument("--config", help="TOML config: the arm to start from, its encoder, integrator and delay")
+    i.add_argument("--data", required=True, metavar="LOG",
+                   help="the log: CSV (t, theta1-3, u1-3[, i1-3]) or NPZ (t, theta, u[, current])")  # fmt: skip
+    i.add_argument("--params", required=True, metavar="NAMES",
+                   help="comma-separated [arm] fields to fit, and payload (e.g. R,Kt,Kb,Jm,m3,payload)")  # fmt: skip
+    i.add_argument("--out", metavar="DIR", help="folder for identified.toml and identify.json")
+    i.add_argument("--payload", type=float, metavar="KG",
+                   help="the experiment's payload, or the fit's start when payload is named (default: the config's, "
+                   "if plant.payloads lists one)")  # fmt: skip
+    i.add_argument("--delay", type=int, metavar="N",
+                   help="samples from a logged voltage to the motor (default: controller.delay_samples)")  # fmt: skip
+    i.add_argument("--window", type=float, default=0.2, metavar="S", help="shooting window, s (default 0.2)")
+    i.add_argument("--dt", type=float, metavar="S", help="integration step, s (default: the log's sample period)")
+    i.add_argument("--threshold", type=float, default=0.05, metavar="X",
+                   help="relative standard deviation above which the log does not identify (default 0.05)")  # fmt: skip
+    i.add_argument("--iterations", type=int, default=50, metavar="N", help="LM steps per fit pass (default 50)")
+    i.add_argument("--bootstrap", type=int, default=200, metavar="N", help="window resamples (default 200)")
+    i.add_argument("--json", action="store_true", help="print the report as JSON (without the config)")
+    i.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    i.set_defaults(func=cmd_identify)
     return p
 
 

@@ -36,7 +36,6 @@ import jax
 import numpy as np
 
 from .._design import paper as _paper
-from .._design.gains import summarize
 from .._io import jsonable, stamped, write_text
 from .._simulator.metrics import METRIC_NAMES, UNITS
 from .._simulator.rollout import simulate_batch
@@ -46,7 +45,8 @@ from .config import ConfigError
 Config = str | Path | dict | None
 Log = Callable[[str], None]
 
-__all__ = ["run_simulate", "run_bounds", "run_reproduce", "run_certify", "run_tune", "run_front"]
+__all__ = ["run_simulate", "run_bounds", "run_reproduce", "run_certify", "run_tune", "run_front", "run_export",
+           "run_identify"]  # fmt: skip
 
 
 def _quiet(_: str) -> None:
@@ -180,37 +180,44 @@ def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
 
 @_with_x64
 def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
-    """``fosmc bounds``: alpha, beta (31) by exact vertex enumeration of the config's box, K
-    placing the poles (16), eig(A + BK), CB, and the gamma lower bounds (24)-(26) in both
-    conventions beside the paper's printed numbers.
+    """``fosmc bounds``: for the config's design model (``[model] from``, ``config.design_model``:
+    the paper's rows and ``[plant.box]``, or the rows derived from ``[arm]``), alpha, beta (31)
+    by exact vertex enumeration of its box, K placing the poles (16) (the K the simulated
+    controller uses), eig(A + BK), CB, and the gamma lower bounds (24)-(26) in both
+    conventions, beside the paper's printed numbers.
 
-    Returns ``{"alpha", "beta", "vertices_checked": {"A", "B"}, "K": (3, 9),
-    "closed_loop_poles": [[re, im]] x 9, "CB": (3, 3), "gamma_min": {convention: (3,)},
-    "gamma", "paper_printed": {"alpha", "beta", "gamma_min"}}``; for ``kind = "arm"`` also
-    ``"box"`` (the arm's box, sampled along the reference x payloads) and ``"nominal_A_rows"``,
-    ``"nominal_B_rows"`` (from which K and the bounds are then computed).
+    Returns ``{"model": "paper" | "arm", "model_detail": where its rows come from, "alpha",
+    "beta", "vertices_checked": {"A", "B"}, "K": (3, 9), "closed_loop_poles": [[re, im]] x 9,
+    "CB": (3, 3), "gamma_min": {convention: (3,)}, "gamma", "paper_printed": {"alpha", "beta",
+    "gamma_min"}}``; for ``kind = "arm"`` also ``"models"``: ``{"paper": ..., "arm": ...}``, the
+    same quantities (alpha to gamma_min) for both models whichever is in use, ``"box"`` and
+    ``"nominal_A_rows"``, ``"nominal_B_rows"``: the arm's box and nominal rows, and
+    ``"arm_model"``: where they come from.
     """
     cfg = config_of(config)
-    arm = cfg["plant"]["kind"] == "arm"
-    if arm:
-        from .._plants.arm import arm_box, envelope_samples
+    used = cfg["model"]["from"]
+    sources = ("paper", "arm") if cfg["plant"]["kind"] == "arm" else (used,)
+    designs, summaries = {}, {}
+    for source in sources:
+        designs[source] = _config.design_model(cfg, source)
+        log(f"fosmc bounds: the {source} model ({designs[source].sampled}): alpha, beta by vertex enumeration ...")
+        summaries[source] = _config.design_summary(cfg, source)
 
-        lo, hi = min(cfg["plant"]["payloads"]), max(cfg["plant"]["payloads"])
-        log(f"fosmc bounds: sampling the [arm]'s rows along the reference, payloads {lo:g}..{hi:g} kg ...")
-        abox = arm_box(_config.arm_params_of(cfg, np.float64), np.linspace(lo, hi, 11), envelope_samples())
-        a_rows, b_rows, box = abox.A_nominal, abox.B_nominal, abox[:4]
-    else:
-        box = _config.box_of(cfg)
-        a_rows, b_rows = cfg["model"]["A_rows"], cfg["model"]["B_rows"]
-    d = summarize(a_rows, b_rows, box, cfg["controller"]["C"], cfg["controller"]["poles"])
+    def quantities(d) -> dict[str, Any]:
+        return {
+            "alpha": d.alpha.value,
+            "beta": d.beta.value,
+            "vertices_checked": {"A": d.alpha.vertices_checked, "B": d.beta.vertices_checked},
+            "K": d.K,
+            "closed_loop_poles": [[z.real, z.imag] for z in d.closed_loop_poles],
+            "CB": d.CB,
+            "gamma_min": d.gamma_min,
+        }
+
     out = {
-        "alpha": d.alpha.value,
-        "beta": d.beta.value,
-        "vertices_checked": {"A": d.alpha.vertices_checked, "B": d.beta.vertices_checked},
-        "K": d.K,
-        "closed_loop_poles": [[z.real, z.imag] for z in d.closed_loop_poles],
-        "CB": d.CB,
-        "gamma_min": d.gamma_min,
+        "model": used,
+        "model_detail": designs[used].sampled,
+        **quantities(summaries[used]),
         "gamma": cfg["controller"]["gamma"],
         "paper_printed": {
             "alpha": _paper.ALPHA_PRINTED,
@@ -218,9 +225,12 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
             "gamma_min": _paper.GAMMA_MIN_PRINTED,
         },
     }
-    if arm:
-        out["box"] = dict(zip(_config.BOX_KEYS, box))
-        out["nominal_A_rows"], out["nominal_B_rows"] = a_rows, b_rows
+    if "arm" in designs:
+        arm = designs["arm"]
+        out["models"] = {source: quantities(d) for source, d in summaries.items()}
+        out["box"] = dict(zip(_config.BOX_KEYS, arm.box))
+        out["nominal_A_rows"], out["nominal_B_rows"] = arm.A_rows, arm.B_rows
+        out["arm_model"] = arm.sampled
     return out
 
 
@@ -448,10 +458,8 @@ def run_tune(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     floor = None
-    if tcfg["keep_gamma_bound"]:
-        box = _config.box_of(cfg)
-        d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], box, cfg["controller"]["C"],
-                      cfg["controller"]["poles"])  # fmt: skip
+    if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
+        d = _config.design_summary(cfg)
         floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
@@ -576,3 +584,190 @@ def run_front(
         out.mkdir(parents=True, exist_ok=True)
     settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
+
+
+# ---------------------------------------------------------------------------- export
+
+
+@_with_x64
+def run_export(
+    config: Config = None,
+    *,
+    out: str | Path | None = None,
+    params: str | Path | None = None,
+    point: int | None = None,
+    precision: str = "float64",
+    name: str = "fosmc",
+    check: bool = True,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc export``: the config's digital-loop controller as C99 (``fosmc_jax._firmware.export``):
+    ``<name>.h`` and ``<name>.c`` with the constants of the config's point, or of the tuned
+    parameters ``params`` (a ``fosmc tune`` result.json, or point ``point`` of a ``fosmc front``
+    front.json, as ``run_simulate`` takes them), in ``precision`` (``float32`` or ``float64``).
+
+    The constants are computed in float64 whatever ``[sim] precision`` says and rounded to
+    ``precision`` when written. A config without a digital loop (``controller.sample_period`` =
+    0) is refused: its ideal loop reads the exact state at every integration step and integrates
+    the law's state with the plant, which no drive does, and the package has no simulation of
+    that law at another rate to check the code against. With ``out``, the files are written
+    there (existing files of those names replaced) and, with ``check``, compiled with the host's
+    C compiler under ``-std=c99 -Wall -Wextra -Werror -pedantic`` (skipped, and said so, without
+    one). Returns ``{"files": {filename: text}, "paths": [written paths], "kind",
+    "precision", "check": the compile command that passed, or why none ran}``.
+    """
+    from .._firmware.export import EXPORTED_KINDS, PRECISIONS, c_compiler, check_compiles, export_c, write
+
+    if precision not in PRECISIONS:
+        raise ConfigError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if not (name.isidentifier() and name.isascii()):
+        raise ConfigError(f"--name: expected a C identifier (letters, digits, _; not first a digit), got {name!r}")
+    cfg = config_of(config)
+    if params:
+        cfg = _config.with_params(cfg, params, point)
+    elif point is not None:
+        raise ConfigError("--point: needs --params FRONT.json")
+    if cfg["controller"]["kind"] not in EXPORTED_KINDS:
+        raise ConfigError(f"controller.kind: fosmc export writes {', '.join(EXPORTED_KINDS)}, got "
+                          f"{cfg['controller']['kind']!r}")  # fmt: skip
+    if not cfg["controller"]["sample_period"]:
+        raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
+                          "drive's period, e.g. 1e-3): the ideal loop reads the exact state at every step and "
+                          "integrates the law with the plant, which no drive does")  # fmt: skip
+    cfg["sim"]["precision"] = "float64"  # the constants in full precision; rounded to `precision` when written
+    problem = _config.build(cfg)
+    origin = ["config: " + (str(config) if isinstance(config, (str, Path)) else "the paper's defaults"
+                            if config is None else "a config dict")]  # fmt: skip
+    if params:
+        origin.append(f"params: {params}" + (f", point {point}" if point is not None else " (final)"))
+    try:
+        files = export_c(problem.controller(), problem.reference, precision=precision, name=name,
+                         source="\n".join(origin))  # fmt: skip
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    paths, checked = [], "not written"
+    if out is not None:
+        paths = write(files, out)
+        log(f"fosmc export: wrote {', '.join(map(str, paths))}")
+        checked = "not checked"
+        if check:
+            if c_compiler() is None:
+                checked = "not compiled: no C compiler found ($CC, cc, gcc, clang)"
+            else:
+                try:
+                    checked = "compiled cleanly: " + check_compiles(paths[1])
+                except RuntimeError as e:
+                    checked = f"did NOT compile: {e}"
+            log(f"fosmc export: {checked}")
+    return {"files": files, "paths": paths, "kind": cfg["controller"]["kind"], "precision": precision,
+            "check": checked}  # fmt: skip
+
+
+# ---------------------------------------------------------------------------- identify
+
+
+@_with_x64
+def run_identify(
+    config: Config = None,
+    *,
+    data: str | Path,
+    params: str | list[str] | tuple[str, ...],
+    out: str | Path | None = None,
+    payload: float | None = None,
+    delay: int | None = None,
+    window: float = 0.2,
+    dt: float | None = None,
+    threshold: float = 0.05,
+    iterations: int = 50,
+    bootstrap: int = 200,
+    seed: int = 0,
+    force: bool = False,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc identify``: the config's ``[arm]`` fields ``params`` (names, a list or
+    comma-separated: ``"F,R,Kt,payload"``; ``payload`` is the experiment's payload) fitted to
+    the log ``data`` (CSV or NPZ, docs/identify.md) by multiple shooting over windows of
+    ``window`` seconds (``fosmc_jax._firmware.identify``), starting from the config's arm.
+
+    ``payload``: the experiment's payload (kg; default: the config's ``plant.payloads`` if it
+    lists one). ``delay``: samples between a logged voltage and the motor (default: the config's
+    ``controller.delay_samples``). ``dt``: the integration step (default: the log's sample period,
+    one step of the config's ``sim.integrator`` per sample). ``threshold``: the relative standard
+    deviation above which the log does not identify a direction. The encoder's quantum comes from
+    ``sensors.encoder_counts``. ``out``: folder for ``identified.toml`` (the ``[arm]`` table to
+    paste into a config) and ``identify.json`` (this function's result), refused when not empty
+    without ``force``.
+
+    Returns the report: :func:`fosmc_jax._firmware.identify.identify`'s dict (``entries``,
+    ``groups``, ``fixed``, ``poorly_identified``, ``params``, ``payload``, ``fit``, ``log``) with
+    the versions, ``names``, ``data``, ``toml`` (``identified.toml``'s text), ``config_check``
+    (``"ok"``, or the config error the identified arm raises, e.g. inertias that break the
+    triangle inequality) and ``config``.
+    """
+    from .._firmware import identify as I
+
+    cfg = config_of(config)
+    names = [n.strip() for n in params.split(",") if n.strip()] if isinstance(params, str) else list(params)
+    checks = (("--window", window, window > 0, "a positive number (s)"),
+              ("--threshold", threshold, threshold > 0, "a positive number"),
+              ("--iterations", iterations, iterations >= 1, "a positive integer"),
+              ("--bootstrap", bootstrap, bootstrap >= 0, "a non-negative integer"),
+              ("--dt", dt, dt is None or dt > 0, "a positive number (s)"),
+              ("--delay", delay, delay is None or delay >= 0, "a non-negative integer (samples)"))  # fmt: skip
+    for option, value, ok, what in checks:
+        if not ok:
+            raise ConfigError(f"{option}: expected {what}, got {value}")
+    if payload is None:
+        if len(cfg["plant"]["payloads"]) != 1:
+            raise ConfigError(f"--payload: the config lists {len(cfg['plant']['payloads'])} payloads "
+                              f"({cfg['plant']['payloads']}); give the experiment's (kg)")  # fmt: skip
+        payload = cfg["plant"]["payloads"][0]
+    elif not payload >= 0:
+        raise ConfigError(f"--payload: expected a non-negative mass (kg), got {payload}")
+    if out is not None:
+        out = _fresh_out(out, force, "use --force to overwrite")
+    counts = np.asarray(cfg["sensors"]["encoder_counts"], float)
+    try:
+        record = I.read_log(data)
+        period = float(np.median(np.diff(record.t)))
+        settings = I.Settings(
+            window=max(2, round(window / period)),
+            delay=cfg["controller"]["delay_samples"] if delay is None else int(delay),
+            integrator=cfg["sim"]["integrator"],
+            dt=dt,
+            threshold=threshold,
+            iterations=iterations,
+            bootstrap=bootstrap,
+            seed=seed,
+            resolution=tuple(np.where(counts > 0, 2 * np.pi / np.maximum(counts, 1), 0.0)),
+        )
+        result = I.identify(_config.arm_params_of(cfg, np.float64), payload, record, names, settings, progress=log)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
+    check = {**cfg, "arm": {**cfg["arm"], **fitted}, "plant": {**cfg["plant"], "kind": "arm",
+                                                              "payloads": [result["payload"]]}}  # fmt: skip
+    try:
+        _config.resolve(check)
+        config_check = "ok"
+    except ConfigError as e:
+        config_check = str(e)
+        log(f"identify: warning: the identified arm is not a valid config: {e}")
+    origin = str(config) if isinstance(config, (str, Path)) else "the paper's defaults" if config is None else "a dict"
+    fit = result["fit"]
+    rms = np.array2string(np.asarray(fit["rms_theta"]), precision=2)
+    header = (f"fosmc identify: {', '.join(names)} fitted to {data} ({result['log']['samples']} samples, "
+              f"{result['log']['duration']:g} s{', with currents' if result['log']['currents'] else ''}), starting "
+              f"from the [arm] of {origin}.\nResidual RMS {rms} rad; +- is one standard deviation (the larger of "
+              "Gauss-Newton's and the bootstrap's over windows).")  # fmt: skip
+    if config_check != "ok":
+        header += f"\nWARNING: not a valid config as it stands: {config_check}"
+    toml = I.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
+    report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
+                      "config": cfg})  # fmt: skip
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        write_text(out / "identified.toml", toml)
+        write_text(out / "identify.json", json.dumps(jsonable(report), indent=1))
+        log(f"identify: wrote {out}/identified.toml and {out}/identify.json")
+    return report

@@ -1,0 +1,469 @@
+"""`fosmc export`: the digital loop's controller as C99, tested as firmware is tested.
+
+The generated files are compiled here with the host's C compiler (into tmp_path, as a shared
+library with a two-line shim that reports sizeof(state)) and driven through ctypes:
+
+- closed loop: the package's arm, advanced one controller sample at a time by the package's own
+  rollout (`simulate`, its integrator and metrics), with the C controller called at each sample
+  through `jax.pure_callback` (:class:`CLoop`): the encoder is the test's (counts = round(theta /
+  q), what `fosmc_jax.quantize` does), the reference sample the C's own `fosmc_reference_at`.
+  Compared with the package's rollout of the same point (`problem.simulate(save_every=m)`):
+  every applied voltage and the metrics.
+- recorded sequences: one measurement sequence fed to the C and to the package's
+  `DigitalLoop.update`, with quantization, delay, each estimator and each kind.
+
+"Equal to rounding" in float64 means |dU| <= U_TOL here, not 1 ulp: the package measures the
+angle as q round(theta / q), one rounding (<= 1.1e-16 rad at |theta| < 1 rad), and differences it
+twice, dividing by T^2 = 1e-6 s^2: ~2e-10 rad/s^2 on theta'', ~4e-10 V through the law (the C
+differences the integer counts, exactly). Over the preset's 4 s the largest |dU| seen were 7e-10 V
+(FOSMC) and 1.8e-9 V (SMC), and 2.2e-8 V for super-twisting, whose |s|^(1/2) has an unbounded
+slope at s = 0.
+
+float32 in closed loop: the loops are sensitive far below an encoder count. Moving the initial
+angles by 1e-9 rad (1/2400 of a count) moves the package's own float64 metrics over 4 s by up to
+1.2% (FOSMC rms_error), 3% (SMC chattering_hf) and 17% (super-twisting rms_error): one count
+flipped by a tiny difference sends the quantized sliding motion along another, equally valid
+path, and float32's rounding flips counts. So "the float32 metrics within 1%" is asserted as:
+each metric within 1%, or within twice the largest relative change (over the joints) that 12
+starts moved by up to half an encoder count make in the float64 loop, whichever is larger (the
+float32 changes stayed within 0.1-1.3 times that spread); and the float32 voltages on the float64
+loop's states within F32_TOL of the largest voltage.
+
+Without a C compiler the tests that run C code skip (the export itself needs none:
+test_export_without_a_compiler_writes_the_files).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import dataclasses
+import functools
+import json
+import subprocess
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fosmc_jax as fj
+from fosmc_jax._app import commands
+from fosmc_jax._app.cli import main
+from fosmc_jax._firmware import export as E
+from fosmc_jax._simulator.rollout import simulate
+
+CC = E.c_compiler()
+needs_cc = pytest.mark.skipif(
+    CC is None, reason="no C compiler ($CC, cc, gcc, clang): fosmc export still writes the files, nothing runs them"
+)
+#: |dU| (V) allowed between the float64 C and the package, per kind (module docstring).
+U_TOL = {"fosmc": 1e-8, "smc": 1e-8, "super_twisting": 1e-7}
+#: |dU| allowed between the float32 C and the package on the same states, relative to the largest
+#: |U|: float32's rounding of s (~1e-7 of its terms) is k1 |s|^(1/2) through super-twisting's root.
+F32_TOL = {"fosmc": 1e-4, "smc": 1e-4, "super_twisting": 1e-3}
+#: Runs of the float64 loop from initial angles moved by up to half an encoder count: the spread
+#: the float32 metrics are held to.
+SPREAD_RUNS = 12
+KINDS = ("fosmc", "smc", "super_twisting")
+
+
+def config(kind: str = "fosmc", **tables) -> dict:
+    """The realistic preset's loop (1 kHz, a 2.6M-count encoder, backward differences, one sample
+    of delay, 24 V) on the arm at 10 kg, 50 samples at dt = T (euler); ``tables``: keys to
+    change per table (None: drop the table)."""
+    cfg = {
+        "plant": {"kind": "arm", "payloads": [10.0]},
+        "controller": {"kind": kind, "sample_period": 1e-3, "delay_samples": 1},
+        "sensors": {"encoder_counts": 2621440, "derivatives": "difference"},
+        "actuator": {"u_max": [24.0, 24.0, 24.0]},
+        "sim": {"dt": 1e-3, "t_final": 0.05, "integrator": "euler"},
+    }
+    for table, keys in tables.items():
+        if keys is None:
+            cfg.pop(table)
+        else:
+            cfg[table] = {**cfg.get(table, {}), **keys}
+    return cfg
+
+
+# ---------------------------------------------------------------------------- the C, through ctypes
+
+SHIM = '#include <stddef.h>\n#include "{name}.h"\nsize_t shim_size(void) {{ return sizeof({name}_state); }}\n'
+
+
+class Compiled:
+    """A generated controller compiled as a shared library, called as a drive calls it."""
+
+    def __init__(self, loop, reference, precision: str, where: Path, name: str = "fosmc"):
+        files = E.export_c(loop, reference, precision=precision, name=name)
+        E.write(files, where)
+        (where / "shim.c").write_text(SHIM.format(name=name))
+        so = where / f"lib{name}.so"
+        cmd = [*CC.split(), "-std=c99", "-O2", "-shared", "-fPIC", str(where / f"{name}.c"), str(where / "shim.c"),
+               "-o", str(so), "-lm"]  # fmt: skip
+        subprocess.run(cmd, check=True, capture_output=True)
+        self.lib, self.name = ctypes.CDLL(str(so)), name
+        self.lib.shim_size.restype = ctypes.c_size_t
+        self.size = self.lib.shim_size()
+        self.real = np.float32 if precision == "float32" else np.float64
+        sensors = loop.sensors
+        self.counts = np.asarray(sensors.counts, np.float64)
+        self.q = 2 * np.pi / np.where(self.counts > 0, self.counts, 1)  # fosmc_jax.quantize's q
+        self.mode = ("measured" if sensors.derivatives == "measured" else "counts" if np.all(self.counts > 0)
+                     else "angles")  # fmt: skip
+        self.files = files
+
+    def fn(self, what: str):
+        return getattr(self.lib, f"{self.name}_{what}")
+
+    def init(self, x0) -> ctypes.Array:
+        state = (ctypes.c_uint8 * self.size)()
+        self.fn("init")(state, _ptr(np.asarray(x0, self.real)))
+        return state
+
+    def sensor(self, X) -> np.ndarray:
+        """What the drive reads from the true state X (9,): the encoders' counts, the angles, or
+        the measurement [theta quantized, theta', theta''] per joint."""
+        theta = np.asarray(X, np.float64)[0::3]
+        if self.mode == "counts":
+            return np.round(theta / self.q).astype(np.int32)
+        quantized = np.where(self.counts > 0, self.q * np.round(theta / self.q), theta)
+        if self.mode == "angles":
+            return quantized.astype(self.real)
+        y = np.asarray(X, np.float64).reshape(3, 3).copy()
+        y[:, 0] = quantized
+        return y.reshape(9).astype(self.real)
+
+    def update(self, state, X, r) -> np.ndarray:
+        u = np.zeros(3, self.real)
+        self.fn("update")(state, _ptr(self.sensor(X)), _ptr(np.asarray(r, self.real)), _ptr(u))
+        return u.astype(np.float64)
+
+    def reference_at(self, j: int) -> np.ndarray:
+        r = np.zeros((4, 3), self.real)  # the struct: theta[3], dtheta[3], ddtheta[3], dddtheta[3]
+        self.fn("reference_at")(ctypes.c_uint32(j), _ptr(r))
+        return r
+
+    def run(self, X0, Xs) -> np.ndarray:
+        """The voltages (n, 3) for the true states Xs (n, 9), from init(X0), the reference the C's."""
+        state = self.init(X0)
+        return np.stack([self.update(state, X, self.reference_at(j)) for j, X in enumerate(Xs)])
+
+
+def _ptr(a: np.ndarray):
+    return np.ascontiguousarray(a).ctypes.data_as(ctypes.c_void_p)
+
+
+# ---------------------------------------------------------------------------- the C in the package's loop
+
+#: Bytes of the C state carried through the rollout (every export's state fits: asserted).
+STATE_BYTES = 512
+#: The C controller the callbacks call: one rollout compiles for every export (same shapes).
+_ACTIVE: dict = {}
+
+
+def _c_init(X0):
+    c = _ACTIVE["c"]
+    state = np.zeros(STATE_BYTES, np.uint8)
+    state[: c.size] = np.frombuffer(c.init(X0), np.uint8)
+    return state
+
+
+def _c_update(state, X):
+    c = _ACTIVE["c"]
+    buffer = (ctypes.c_uint8 * c.size).from_buffer_copy(np.asarray(state)[: c.size].tobytes())
+    j = ctypes.c_uint32.from_buffer(buffer).value  # the struct's first field: the sample counter
+    u = c.update(buffer, X, c.reference_at(j))
+    out = np.array(state)
+    out[: c.size] = np.frombuffer(buffer, np.uint8)
+    return u.astype(np.asarray(X).dtype), out
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["u_max"], meta_fields=["sample_steps"])
+@dataclasses.dataclass(frozen=True)
+class CLoop:
+    """The compiled controller as a controller of :func:`fosmc_jax.simulate` (a
+    ``fosmc_jax.SampledLoop``): its state the C struct's bytes, each sample a callback."""
+
+    u_max: jax.Array
+    sample_steps: int
+
+    def init(self, X0, r0, key=None):
+        return jax.pure_callback(_c_init, jax.ShapeDtypeStruct((STATE_BYTES,), jnp.uint8), X0)
+
+    def update(self, state, X, r, t):
+        shapes = (jax.ShapeDtypeStruct((3,), X.dtype), jax.ShapeDtypeStruct((STATE_BYTES,), jnp.uint8))
+        return jax.pure_callback(_c_update, shapes, state, X)
+
+
+def closed_loop(c: Compiled, problem, plant: int = 0):
+    """The package's rollout of ``problem``'s plant with the C controller ``c``, traced at every sample."""
+    assert c.size <= STATE_BYTES
+    _ACTIVE["c"] = c
+    loop = problem.controller()
+    options = {k: v for k, v in problem.options.items() if k not in ("pairing", "switching", "law")}
+    plant_i = jax.tree.map(lambda x: x[plant], problem.plants)
+    X0 = problem.X0s[0]
+    return simulate(plant_i, CLoop(loop.u_max, loop.sample_steps), problem.reference, X0, problem.dt,
+                    **dict(options, save_every=loop.sample_steps))  # fmt: skip
+
+
+@jax.jit
+def replay(loop, X0, Xs, rs):
+    """The package's DigitalLoop on the true states Xs (n, 9) with reference samples rs (n, 4, 3):
+    its voltages (n, 3)."""
+    state = loop.init(X0, rs[0])
+
+    def sample(state, x):
+        U, state = loop.update(state, x[0], x[1], jnp.zeros((), X0.dtype))
+        return state, U
+
+    return jax.lax.scan(sample, state, (Xs, rs))[1]
+
+
+def recorded(problem, n: int = 300, seed: int = 0) -> np.ndarray:
+    """A recorded run's true states (n, 9) around the reference: each angle off by up to 3e-3 rad
+    (two sines and a random walk), its rates and accelerations those of the offset, sampled at T."""
+    T = float(problem.controller().period)
+    t = np.arange(n) * T
+    X_d = np.asarray(jax.vmap(lambda t: fj.desired_state(problem.reference(t)))(jnp.asarray(t)))
+    rng = np.random.default_rng(seed)
+    walk = np.cumsum(rng.normal(0.0, 2e-5, (n, 3)), axis=0)
+    w = np.array([7.0, 11.0, 13.0])
+    offset = 1e-3 * np.sin(w * t[:, None]) + 1e-3 * np.sin(3 * w * t[:, None] + 1.0) + walk
+    rate = 1e-3 * w * np.cos(w * t[:, None]) + 3e-3 * w * np.cos(3 * w * t[:, None] + 1.0)
+    acc = -1e-3 * w**2 * np.sin(w * t[:, None]) - 9e-3 * w**2 * np.sin(3 * w * t[:, None] + 1.0)
+    X = X_d.reshape(n, 3, 3) + np.stack([offset, rate, acc], axis=2)
+    return X.reshape(n, 9)
+
+
+# ---------------------------------------------------------------------------- tests
+
+VARIANTS = {
+    "fosmc": config(),
+    "fosmc-sign-equivalent-measured-no-limit": config(
+        controller={"switching": "sign", "law": "equivalent", "delay_samples": 0},
+        sensors={"derivatives": "measured"},
+        actuator=None,
+    ),  # fmt: skip
+    "fosmc-sat-3-delays-no-encoder": config(
+        controller={"switching": "sat", "delay_samples": 3}, sensors={"encoder_counts": 0}
+    ),  # fmt: skip
+    "fosmc-tanh-coarse-encoder": config(controller={"switching": "tanh"}, sensors={"encoder_counts": 4096}),
+    "smc": config("smc"),
+    "smc-measured-no-delay-no-limit": config(
+        "smc", controller={"delay_samples": 0}, sensors={"derivatives": "measured"}, actuator=None
+    ),
+    "super_twisting": config("super_twisting"),
+}
+
+
+@needs_cc
+@pytest.mark.parametrize("precision", E.PRECISIONS)
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_the_generated_code_compiles_cleanly_under_strict_flags(variant, precision, tmp_path):
+    problem = fj.build(VARIANTS[variant])
+    paths = E.write(E.export_c(problem.controller(), problem.reference, precision=precision), tmp_path)
+    # -O2: with the warnings that need the optimizer's analyses (-Wmaybe-uninitialized)
+    assert E.check_compiles(paths[1], CC, (*E.STRICT_FLAGS, "-O2")).endswith("-c fosmc.c")
+    text = paths[1].read_text()
+    assert "malloc" not in text
+    # no mutable globals: every file-scope object is a static const
+    globals_ = [line for line in text.splitlines() if line.startswith("static ") and "(" not in line]
+    assert globals_ and all(line.startswith("static const ") for line in globals_)
+
+
+@needs_cc
+@pytest.mark.parametrize("precision", E.PRECISIONS)
+def test_the_reference_generators_match_the_package(precision, tmp_path):
+    problem = fj.build(config())
+    c = Compiled(problem.controller(), problem.reference, precision, tmp_path)
+    j = np.arange(0, 2600, 7)  # through the cycloid's end at tau = 2 s
+    t = jnp.asarray(j * 1e-3)
+    want = np.asarray(jax.vmap(problem.reference)(t))
+    got = np.stack([c.reference_at(int(k)) for k in j]).astype(np.float64)
+    rtol = 1e-12 if precision == "float64" else 2e-6
+    scale = np.abs(want).max(axis=0, keepdims=True)  # per derivative order and joint
+    assert np.all(np.abs(got - want) <= rtol * scale + 1e-300), np.abs(got - want).max()
+    # a sinusoid as the exported trajectory, and with parameters given at run time
+    sinusoid = fj.Sinusoid(*(jnp.asarray(v) for v in ([0.1, -0.2, 0.3], [0.5, 0.2, 0.1], [3.0, 5.0, 7.0],
+                                                       [0.0, 1.0, 2.0])))  # fmt: skip
+    exported = Compiled(problem.controller(), sinusoid, precision, tmp_path / "sinusoid")
+    got = np.stack([exported.reference_at(int(k)) for k in j]).astype(np.float64)
+    wants = np.asarray(jax.vmap(sinusoid)(t))
+    # x 4: the phase w t + phase reaches 18 rad, whose rounding every derivative carries
+    assert np.all(np.abs(got - wants) <= 4 * rtol * np.abs(wants).max(axis=0, keepdims=True))
+    params = np.concatenate([np.asarray(v, c.real) for v in sinusoid])
+    r = np.zeros((4, 3), c.real)
+    for k, want in zip(j, wants):
+        c.fn("sinusoid")(_ptr(params), ctypes.c_uint32(int(k)), _ptr(r))
+        assert np.all(np.abs(r - want) <= 4 * rtol * np.abs(wants).max(axis=0))
+
+
+#: The recorded-sequence cases of the default tier (each a compilation of the package's loop).
+REPLAYED = ("fosmc-tanh-coarse-encoder", "fosmc-sign-equivalent-measured-no-limit", "super_twisting")
+
+
+def _replay_case(variant: str, precision: str, tmp_path: Path, n: int = 300):
+    """(the package loop's voltages, the C's, the problem, the states) on a recorded sequence."""
+    problem = fj.build(VARIANTS[variant])
+    loop = problem.controller()
+    c = Compiled(loop, problem.reference, precision, tmp_path)
+    Xs = recorded(problem, n)
+    rs = jax.vmap(problem.reference)(jnp.arange(n) * loop.period)
+    want = np.asarray(replay(loop, jnp.asarray(Xs[0]), jnp.asarray(Xs), rs))
+    return want, c.run(Xs[0], Xs), problem, Xs
+
+
+@needs_cc
+@pytest.mark.parametrize("variant", REPLAYED)
+def test_a_recorded_sequence_gives_the_package_loops_voltages(variant, tmp_path):
+    """Quantization (a 4,096-count encoder: steps of 1.5e-3 rad), the delay line, measured and
+    differenced rates: the C's voltages on a recorded sequence are the package's, to rounding in
+    float64 and to F32_TOL of the largest voltage in float32."""
+    want, got, problem, Xs = _replay_case(variant, "float64", tmp_path / "64")
+    loop = problem.controller()
+    assert np.abs(want).max() > 1.0 and np.all(want[: loop.delay] == 0)  # it did something; the delay's zeros
+    assert np.abs(got - want).max() <= U_TOL[problem.kind], np.abs(got - want).max()
+    got32 = Compiled(loop, problem.reference, "float32", tmp_path / "32").run(Xs[0], Xs)
+    assert np.abs(got32 - want).max() <= F32_TOL[problem.kind] * np.abs(want).max(), np.abs(got32 - want).max()
+
+
+@needs_cc
+def test_the_c_controller_drives_the_arm_as_the_package_loop_does(tmp_path):
+    """The quick closed loop: 50 samples of the C controller on the arm inside the package's
+    rollout; the package's DigitalLoop, fed the states that loop visited, gives the same voltage
+    at every sample (float64), and the float32 build stays within 1e-4 of the largest voltage."""
+    problem = fj.build(config())
+    loop = problem.controller()
+    X0 = problem.X0s[0]
+    for precision, tol in (("float64", U_TOL["fosmc"]), ("float32", None)):
+        c = Compiled(loop, problem.reference, precision, tmp_path / precision)
+        res = closed_loop(c, problem)
+        assert not bool(res.diverged)
+        X, U = np.asarray(res.trace.X), np.asarray(res.trace.U)
+        rs = jax.vmap(problem.reference)(res.trace.t)
+        want = np.asarray(replay(loop, X0, jnp.asarray(X), rs))
+        assert np.abs(U).max() > 1.0
+        assert np.abs(U - want).max() <= (tol or 1e-4 * np.abs(want).max()), np.abs(U - want).max()
+
+
+@needs_cc
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", KINDS)
+def test_the_whole_horizon_in_closed_loop_equals_the_package_rollout(kind, tmp_path):
+    """The realistic preset's 4 s (rk4, dt = 1e-4 s, the arm at 0 and 10 kg): float64, every
+    applied voltage within U_TOL of the package's rollout and every metric within 1e-6
+    relative; float32, the voltages on the float64 run's states within F32_TOL of the largest,
+    and every metric within 1% or within twice what half an encoder count at the start does
+    (module docstring)."""
+    q = 2 * np.pi / 2621440
+    draws = np.random.default_rng(0).uniform(-q / 2, q / 2, (SPREAD_RUNS, 3))
+    offsets = np.zeros((SPREAD_RUNS + 1, 9))
+    offsets[1:, 0::3] = draws  # the angles only: the loop reads its first rates exactly
+    sim = {"dt": 1e-4, "t_final": 4.0, "integrator": "rk4", "initial_offset": offsets.tolist()}
+    problem = fj.build(config(kind, plant={"payloads": [0.0, 10.0]}, sim=sim))
+    want = problem.simulate(save_every=problem.controller().sample_steps)  # plant-major: 2 x 13 rollouts
+    assert not np.any(np.asarray(want.diverged))
+    metrics = lambda res, i=...: np.stack([np.asarray(m)[i] for m in res.metrics])  # (8 metrics, 3 joints)
+    for precision in E.PRECISIONS:
+        c = Compiled(problem.controller(), problem.reference, precision, tmp_path / precision)
+        for plant in range(2):
+            row = plant * len(offsets)
+            got = closed_loop(c, problem, plant=plant)
+            assert not bool(got.diverged)
+            U, m, m64 = np.asarray(want.trace.U[row]), metrics(got), metrics(want, row)
+            if precision == "float64":
+                assert np.abs(np.asarray(got.trace.U) - U).max() <= U_TOL[kind]
+                assert np.all(np.abs(m - m64) <= 1e-6 * np.abs(m64) + 1e-12), (plant, m, m64)
+                continue
+            X = np.asarray(want.trace.X[row])
+            assert np.abs(c.run(X[0], X) - U).max() <= F32_TOL[kind] * np.abs(U).max()
+            spread = np.max([np.abs(metrics(want, row + k) - m64) for k in range(1, len(offsets))], axis=0)
+            # the metric's relative spread, the largest over the joints (0 where the metric is 0: no saturation)
+            nonzero = m64 != 0
+            relative = np.where(nonzero, spread / np.where(nonzero, np.abs(m64), 1.0), 0.0).max(axis=1, keepdims=True)
+            tol = np.maximum(np.maximum(1e-2, 2 * relative) * np.abs(m64), 2 * spread) + 1e-12
+            assert np.all(np.abs(m - m64) <= tol), (plant, (np.abs(m - m64) / tol).max(axis=1))
+
+
+@needs_cc
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", sorted(set(VARIANTS) - set(REPLAYED)))
+def test_every_variant_replays_a_recorded_sequence(variant, tmp_path):
+    want, got, problem, _ = _replay_case(variant, "float64", tmp_path, n=1000)
+    assert np.abs(got - want).max() <= U_TOL[problem.kind], np.abs(got - want).max()
+
+
+# ---------------------------------------------------------------------------- the command
+
+
+def test_fosmc_export_writes_the_point_of_a_front(tmp_path, capsys):
+    front = tmp_path / "front.json"
+    point = {"delta": [11.0, 22.0, 33.0], "gamma": [300.0, 250.0, 25.0],
+             "poles": [[-1.0, -2.0, -3.0], [-1.5, -2.5, -3.5], [-0.5, -0.6, -0.7]]}  # fmt: skip
+    front.write_text(json.dumps({"points": [{"params": {}}, {"params": point}]}))
+    toml = tmp_path / "loop.toml"
+    toml.write_text('[plant]\nkind = "arm"\n[controller]\nsample_period = 1e-3\n[sensors]\nencoder_counts = 4096\n'
+                    'derivatives = "difference"\n')  # fmt: skip
+    out = tmp_path / "fw"
+    assert main(["export", "--config", str(toml), "--params", str(front), "--point", "1", "--out", str(out),
+                 "--precision", "float32", "--name", "arm_ctl"]) == 0  # fmt: skip
+    assert sorted(p.name for p in out.iterdir()) == ["arm_ctl.c", "arm_ctl.h"]
+    source, header = (out / "arm_ctl.c").read_text(), (out / "arm_ctl.h").read_text()
+    assert "static const arm_ctl_real DELTA[3] = {\n    11.0f, 22.0f, 33.0f\n};" in source
+    assert (
+        "typedef float arm_ctl_real;" in header
+        and "void arm_ctl_update(arm_ctl_state *st, const int32_t counts[3]" in header
+    )
+    assert f"params: {front}, point 1" in header
+    # the integrand CA + CBK is the package's, from these poles: derive(params) in float64
+    problem = fj.build(fj.config.with_params(fj.config.load(str(toml)), front, 1))
+    from fosmc_jax._controllers.fosmc import derive
+
+    S = np.asarray(derive(problem.base).S)
+    block = source.split("CA_PLUS_CBK[3][9] = {")[1].split("};")[0]
+    values = np.array(
+        [float(x.rstrip("f")) for x in block.replace("{", " ").replace("}", " ").replace(",", " ").split()]
+    )
+    assert np.allclose(values.reshape(3, 9), S, rtol=1e-7, atol=1e-7 * np.abs(S).max())
+
+
+def test_fosmc_export_refuses_what_has_no_c_form(tmp_path, capsys):
+    toml = tmp_path / "ideal.toml"
+    toml.write_text('[plant]\nkind = "arm"\n')
+    assert main(["export", "--config", str(toml), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        err.startswith("fosmc: error: controller.sample_period: fosmc export needs a digital loop") and "\n" not in err
+    )
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(fj.ConfigError, match="^--point: needs --params"):
+        commands.run_export(config(), point=3)
+    with pytest.raises(fj.ConfigError, match="^--name: expected a C identifier"):
+        commands.run_export(config(), name="2fast")
+    with pytest.raises(fj.ConfigError, match="^--precision: expected one of float32, float64"):
+        commands.run_export(config(), precision="float16")
+
+
+def test_export_without_a_compiler_writes_the_files(tmp_path, monkeypatch):
+    monkeypatch.setattr(E, "c_compiler", lambda: None)
+    r = commands.run_export(config("smc"), out=tmp_path)
+    assert r["check"] == "not compiled: no C compiler found ($CC, cc, gcc, clang)"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fosmc.c", "fosmc.h"]
+    assert (tmp_path / "fosmc.c").read_text() == r["files"]["fosmc.c"] and "K_SWITCH" in r["files"]["fosmc.c"]
+
+
+@needs_cc
+def test_the_interrupt_example_of_the_docs_compiles(tmp_path):
+    """docs/firmware.md's example, with stub drivers, against the realistic preset's export."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "firmware.md").read_text()
+    example = next(block for block in text.split("```c\n")[1:] if "sample_isr" in block).split("```")[0]
+    stubs = ("static void read_encoders(int32_t counts[3]) { counts[0] = counts[1] = counts[2] = 0; }\n"
+             "static void write_voltages(const fosmc_real u[3]) { (void)u; }\n")  # fmt: skip
+    problem = fj.build(config())
+    E.write(E.export_c(problem.controller(), problem.reference), tmp_path)
+    head, body = example.split("static fosmc_state st;")
+    (tmp_path / "isr.c").write_text(head + stubs + "static fosmc_state st;" + body)
+    E.check_compiles(tmp_path / "isr.c", CC, (*E.STRICT_FLAGS, "-O2"))
