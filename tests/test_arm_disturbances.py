@@ -94,8 +94,9 @@ def _hold(arm, U, n, dt=1e-3):
 @pytest.mark.parametrize("u1, bias1", [(4.0, 0.0), (-4.0, 1.0), (0.0, 3.2)])
 def test_zero_gravity_steady_speed_of_the_base(u1, bias1):
     """No gravity, no offsets (d2 = d3 = 0: M12 = M13 = 0), links hanging (q2 = q3 = 0), a
-    constant voltage u1 on the base (and none on the others): the base spins up to the speed w where Kt i = F w + Fc tanh(w/v_c) - tau_bias
-    and u1 = R i + Kb w, the only root of R (F w + Fc tanh(w/v_c) - tau_bias)/Kt + Kb w = u1
+    constant voltage u1 on the base (and none on the others): the base spins up to the speed w
+    where Kt i = F w + Fc tanh(w/v_c) - tau_bias and u1 = R i + Kb w,
+    the only root of R (F w + Fc tanh(w/v_c) - tau_bias)/Kt + Kb w = u1
     (bisection in NumPy), to 1e-9; joints 2 and 3 stay at rest (no centrifugal torque hanging
     straight). Driven by the voltage, w lies on the friction's flat part; driven by a bias just
     above Fc with the windings shorted (u1 = 0), within the smoothing scale. 4 s of RK4 at

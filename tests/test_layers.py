@@ -10,7 +10,18 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 PKG = ROOT / "fosmc_jax"
 
 #: Bottom to top: a module may import from its own layer and the layers below it.
-LAYERS = ("_io", "_design", "_plants", "_controllers", "_loop", "_simulator", "_certificate", "_search", "_firmware", "_app")
+LAYERS = (
+    "_io",
+    "_design",
+    "_plants",
+    "_controllers",
+    "_loop",
+    "_simulator",
+    "_certificate",
+    "_search",
+    "_firmware",
+    "_app",
+)
 
 
 def _layer(parts: tuple[str, ...]) -> int:

@@ -320,7 +320,12 @@ def _simulate(
     carry = start(plant, ctrl, reference, X0, key, divergence_bound)
 
     def snapshot(c: _Carry):
-        return c.k, observe_at(plant, c.plant_state, c.k.astype(dtype) * dt), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
+        return (
+            c.k,
+            observe_at(plant, c.plant_state, c.k.astype(dtype) * dt),
+            c.U,
+            _sliding_variable(ctrl, c.ctrl_state, dtype),
+        )
 
     trace = None
     if save_every:
