@@ -98,6 +98,7 @@ class ArmParams(NamedTuple):
     Kb: Array  # (3,) V s/rad, back-EMF constant (= Kt in SI for an ideal motor)
     # Friction beyond F and external disturbances (docs/arm.md); defaults: none, so that the
     # calibrated arm and every construction from the 19 fields above stay as they were.
+    # The amplitudes Fc, tau_bias, tau_step and tau_sin may be None: the term left out (at no cost).
     Fc: Array = _ZEROS  # (3,) N m, Coulomb friction level: Fc tanh(q'/v_coulomb)
     v_coulomb: Array = V_COULOMB  # rad/s, the Coulomb term's smoothing velocity scale (> 0)
     tau_bias: Array = _ZEROS  # (3,) N m, constant external torque
@@ -239,24 +240,55 @@ def kinetic_energy(params: ArmParams, payload: Array, theta: Array, dtheta: Arra
 def coulomb_friction(params: ArmParams, dtheta: Array) -> Array:
     """Coulomb friction torques Fc tanh(theta'/v_coulomb) (3,), N m, for rates ``dtheta`` (3,)."""
     p = cast_params(params, dtheta.dtype)
-    return p.Fc * jnp.tanh(dtheta / p.v_coulomb)
+    return jnp.zeros_like(dtheta) if p.Fc is None else p.Fc * jnp.tanh(dtheta * (1 / p.v_coulomb))
 
 
 def external_torque(params: ArmParams, t: Array) -> Array:
     """The external torque on each joint at time ``t`` (s), (3,) N m:
     tau_bias + tau_step [t >= t_step] + tau_sin sin(2 pi f_sin t)."""
     t = jnp.asarray(t)
-    p = cast_params(params, t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else jnp.result_type(float))
-    return jnp.stack(_external(p, t))
+    dtype = t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else jnp.result_type(float)
+    d = _external(cast_params(params, dtype), t)
+    return jnp.zeros(3, dtype) if d is None else jnp.stack(d)
 
 
-def _external(p: ArmParams, t: Array) -> tuple[Array, Array, Array]:
-    """:func:`external_torque` as three scalars; ``p`` cast (the operations of arm_kernel.cc's
-    External, in their order)."""
+def _external(p: ArmParams, t: Array) -> tuple[Array, Array, Array] | None:
+    """:func:`external_torque` as three scalars, None where every part is absent (None); ``p``
+    cast (the operations of arm_kernel.cc's External, in their order)."""
+    if p.tau_bias is None and p.tau_step is None and p.tau_sin is None:
+        return None
     t = jnp.asarray(t, p.t_step.dtype)
-    on = t >= p.t_step
-    w = (2 * np.pi) * p.f_sin
-    return tuple(p.tau_bias[j] + jnp.where(on, p.tau_step[j], 0) + p.tau_sin[j] * jnp.sin(w[j] * t) for j in range(3))
+    d = [jnp.zeros((), t.dtype)] * 3 if p.tau_bias is None else [p.tau_bias[j] for j in range(3)]
+    if p.tau_step is not None:
+        on = t >= p.t_step
+        d = [d[j] + jnp.where(on, p.tau_step[j], 0) for j in range(3)]
+    if p.tau_sin is not None:
+        w = (2 * np.pi) * p.f_sin
+        d = [d[j] + p.tau_sin[j] * jnp.sin(w[j] * t) for j in range(3)]
+    return tuple(d)
+
+
+#: The optional terms, by the field of their amplitude: None there (:func:`without_idle_terms`)
+#: leaves the term out of the dynamics, at no cost.
+OPTIONAL_TERMS = ("Fc", "tau_bias", "tau_step", "tau_sin")
+
+
+def without_idle_terms(plant):
+    """``plant`` with each optional term (:data:`OPTIONAL_TERMS`) whose amplitude is concretely
+    zero (in every arm of a batch) set to None: the same dynamics, without evaluating the zero
+    term (3 tanh or sin per evaluation of the accelerations, which the ``vmap`` path would pay
+    at every stage of every step: about 2.3x its time with all of them). The simulator does
+    this before it compiles (:func:`fosmc_jax.simulate`, :func:`fosmc_jax.simulate_batch`);
+    traced amplitudes (a derivative in them) stay. Anything but an :class:`Arm` is returned as
+    it is."""
+    if not isinstance(plant, Arm):
+        return plant
+    idle = {}
+    for name in OPTIONAL_TERMS:
+        x = getattr(plant.params, name)
+        if x is not None and not isinstance(x, jax.core.Tracer) and not np.any(np.asarray(x)):
+            idle[name] = None
+    return plant._replace(params=plant.params._replace(**idle)) if idle else plant
 
 
 def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Array, tau: Array) -> Array:
@@ -433,12 +465,13 @@ class Arm(NamedTuple):
         theta, dtheta, (a1, a2, a3) = tuple(X0[0::3]), tuple(X0[1::3]), tuple(X0[2::3])
         p = cast_params(self.params, X0.dtype)
         (m11, m12, m13, m22, m23, m33), n = _terms(p, self.payload, theta, dtheta)
-        d = _external(p, jnp.zeros((), X0.dtype))
         torque = (
-            m11 * a1 + m12 * a2 + m13 * a3 + n[0] - d[0],
-            m12 * a1 + m22 * a2 + m23 * a3 + n[1] - d[1],
-            m13 * a1 + m23 * a2 + m33 * a3 + n[2] - d[2],
+            m11 * a1 + m12 * a2 + m13 * a3 + n[0],
+            m12 * a1 + m22 * a2 + m23 * a3 + n[1],
+            m13 * a1 + m23 * a2 + m33 * a3 + n[2],
         )
+        d = _external(p, jnp.zeros((), X0.dtype))
+        torque = torque if d is None else tuple(torque[j] - d[j] for j in range(3))
         return ArmState(theta, dtheta, tuple(t / p.Kt[j] for j, t in enumerate(torque)))
 
     def accelerations(self, state: ArmState, t: Array = 0.0) -> Array:
@@ -464,6 +497,8 @@ def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[t
     M, M2, M3, (g2, g3) = _inertia(p, jnp.asarray(payload, theta[0].dtype), theta)
     c1, c2, c3 = _coriolis(M2, M3, dtheta)
     n = (c1 + p.F[0] * dtheta[0], c2 + g2 + p.F[1] * dtheta[1], c3 + g3 + p.F[2] * dtheta[2])
+    if p.Fc is None:
+        return M, n
     inv_v = 1 / p.v_coulomb  # one division (arm_kernel.cc's, once per block)
     return M, tuple(n[j] + p.Fc[j] * jnp.tanh(dtheta[j] * inv_v) for j in range(3))
 
@@ -477,8 +512,9 @@ def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[t
 def _accelerations(params: ArmParams, payload: Array, state: ArmState, t: Array) -> tuple[Array, Array, Array]:
     p = cast_params(params, state.theta[0].dtype)
     M, n = _terms(p, payload, state.theta, state.dtheta)
+    r = tuple(p.Kt[j] * state.current[j] - n[j] for j in range(3))
     d = _external(p, t)
-    return _solve_sym(M, tuple(p.Kt[j] * state.current[j] - n[j] + d[j] for j in range(3)))
+    return _solve_sym(M, r if d is None else tuple(r[j] + d[j] for j in range(3)))
 
 
 def arm_sweep(payloads: Array, params: ArmParams = ARM_PARAMS) -> Arm:
@@ -545,7 +581,7 @@ def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     r, k, kb = p.R / p.L, p.Kt / p.L, p.Kt * p.Kb / p.L
     F = jnp.diag(p.F)
     x = dq / p.v_coulomb
-    slope = p.Fc / p.v_coulomb
+    slope = jnp.zeros(3, X.dtype) if p.Fc is None else p.Fc / p.v_coulomb
     phi = jnp.diag(slope * _tanh_over(x))  # phi q' = Fc tanh(q'/v_c)
     dphi = jnp.diag(slope * (1 - jnp.tanh(x) ** 2))  # d/dq' of Fc tanh(q'/v_c)
     a_q = -jnp.linalg.solve(M, r[:, None] * G_bar)

@@ -101,8 +101,9 @@ def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
     """(LANE_ROWS, P O): the arm's parameters (each plant O times: plant-major), then the law's and
     the loop's, as in arm_kernel.cc."""
     p = cast_params(plants.params, dtype)
-    arm = [plants.payload] + [getattr(p, k) for k in ArmParams._fields if k != "d1"]  # native.ARM_PARAM_ROWS
     P = plants.payload.shape[0]
+    field = lambda k: jnp.zeros((P, 3), dtype) if getattr(p, k) is None else getattr(p, k)  # None: a term left out
+    arm = [plants.payload] + [field(k) for k in ArmParams._fields if k != "d1"]  # native.ARM_PARAM_ROWS
     arm = jnp.concatenate([jnp.asarray(a, dtype).reshape(P, -1) for a in arm], axis=1)  # (P, 52)
     if type(ctrl) is DigitalLoop:
         counts = ctrl.sensors.counts

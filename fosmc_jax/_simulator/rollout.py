@@ -40,6 +40,7 @@ from jax import Array
 
 from .._controllers.base import ContinuousLaw, HasSlidingVariable, SampledLoop, check_controller
 from .._controllers.fosmc import FOSMC, FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
+from .._plants.arm import without_idle_terms
 from .._plants.base import check_plant, derivative_at, observe_at
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
@@ -673,6 +674,7 @@ def _checked(jitted, batch: bool):
     @functools.wraps(jitted)
     def run(plant, controller, reference, X0, dt, **options):
         plant, controller, reference, X0, dt = check_inputs(plant, controller, reference, X0, dt, batch, options)
+        plant = without_idle_terms(plant)  # the arm's zero friction and disturbance terms left out of the program
         return jitted(plant, controller, reference, X0, dt, **options)
 
     run.__name__ = run.__qualname__ = jitted.__name__.lstrip("_")

@@ -45,6 +45,7 @@ from jax import Array
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as Spec
 
+from .._plants.arm import without_idle_terms
 from .rollout import Result, simulate_batch
 
 AXIS = "batch"
@@ -218,6 +219,7 @@ def simulate_split(plants, controller, reference, X0s, dt, *, keys: Array | None
     if n == 1 or (P % n and (paired or O % n)):
         return simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
     mesh = Mesh(np.asarray(jax.local_devices()), (AXIS,))
+    plants = without_idle_terms(plants)  # before shard_map makes its amplitudes tracers
     if paired:
         plant_spec = x0_spec = Spec(AXIS)
     else:
