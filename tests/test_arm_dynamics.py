@@ -46,6 +46,7 @@ def _energy(arm: Arm, s: ArmState):
     return kinetic_energy(p, arm.payload, theta, dtheta) + potential_energy(p, arm.payload, theta) + magnetic
 
 
+@pytest.mark.slow  # RK4 and Euler over several steps, compiled per step size: ~11 s
 def test_energy_is_conserved_to_the_integrators_order():
     """No voltage, no friction, no winding resistance and Kb = Kt: the motor converts magnetic
     energy 1/2 L i^2 into work exactly, so T + V + sum 1/2 L i^2 is conserved. RK4's drift over

@@ -207,7 +207,7 @@ IDEAL = {
 
 @pytest.mark.parametrize(
     "changes, rtol",
-    [({"controller.kind": "super_twisting"}, 1e-10),
+    [pytest.param({"controller.kind": "super_twisting"}, 1e-10, marks=pytest.mark.slow),  # ~13 s
      pytest.param({"controller.kind": "smc", "sim.integrator": "euler"}, 1e-10, marks=pytest.mark.slow),
      pytest.param(dict(IDEAL, **{"controller.kind": "smc"}), 1e-10, marks=pytest.mark.slow),
      # v' = -k2 sign(s(t)) at every stage: where s crosses 0 a last-bit difference in s flips
@@ -225,6 +225,7 @@ def test_smc_and_super_twisting_equal_vmap_of_simulate(changes, rtol):
 # ---------------------------------------------------------------------------- batching and derivatives
 
 
+@pytest.mark.slow  # the vmapped kernel and the vmap path: ~18 s
 def test_vmapped_candidates_fold_into_the_lanes():
     """A vmap over candidate controllers (the front's chunks) runs as one kernel batch and
     equals each candidate's own vmap(simulate); a vmap over references runs one after another."""

@@ -194,6 +194,7 @@ def test_noise_realizations_are_reproducible_and_distinct():
     np.testing.assert_allclose(a.metrics.rms_error[1 * 4 + 1 * 2 + 1], one.metrics.rms_error, rtol=1e-12)
 
 
+@pytest.mark.slow  # two digital-loop programs: ~9 s
 def test_zero_noise_std_equals_no_noise():
     zeros = loop(period_steps=5, counts=(4096.0,) * 3)
     none = dataclasses.replace(zeros, sensors=dataclasses.replace(zeros.sensors, noise_std=None))

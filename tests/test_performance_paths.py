@@ -49,8 +49,9 @@ def assert_close(a, b, rtol=1e-10):
 @pytest.mark.parametrize(
     "integrator, switching, law",
     # every integrator, switching function and law at least once (each case compiles twice,
-    # ~8 s with RK4: the last case runs in the slow tier)
-    [("euler", "sign", "paper"), ("rk4", "ratio", "paper"), ("euler", "sat", "equivalent"),
+    # 6-9 s: one case in the default tier, the others in the slow tier)
+    [("euler", "sign", "paper"), pytest.param("rk4", "ratio", "paper", marks=pytest.mark.slow),
+     pytest.param("euler", "sat", "equivalent", marks=pytest.mark.slow),
      pytest.param("rk4", "tanh", "equivalent", marks=pytest.mark.slow)],
 )  # fmt: skip
 def test_fast_batch_equals_vmap_of_simulate(integrator, switching, law):
@@ -81,6 +82,7 @@ def test_fast_batch_freezes_diverged_rollouts_like_simulate():
     assert_close(fast, slow)
 
 
+@pytest.mark.slow  # a float32 compilation of both paths: ~7 s
 def test_fast_batch_float32():
     """The benchmark's precision and integrator (float32, Euler); RK4 in float64 above."""
     plants, ctrl, ref, X0s = setup(dtype=np.float32)
