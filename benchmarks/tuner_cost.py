@@ -112,11 +112,8 @@ def tune_cost(cfg: dict, grads: int) -> dict:
     tcfg = cfg["tune"]
     plain, problem, p0 = _config.tuning_problems(cfg)
     floor = None
-    if tcfg["keep_gamma_bound"]:  # as run_tune
-        from fosmc_jax import summarize
-
-        d = summarize(cfg["model"]["A_rows"], cfg["model"]["B_rows"], _config.box_of(cfg), cfg["controller"]["C"],
-                      cfg["controller"]["poles"])  # fmt: skip
+    if tcfg["keep_gamma_bound"]:  # as run_tune: alpha, beta of the design model the controller is built on
+        d = _config.design_summary(cfg)
         floor = fs.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     t0 = time.perf_counter()
     obj = fs.objective_of(tcfg, fs.evaluate(problem, p0)["metrics"])  # the objective's scales, as run_tune
