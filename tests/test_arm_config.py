@@ -76,6 +76,54 @@ def test_with_arm_refuses_unknown_names_wrong_shapes_and_linear_plants():
         problem.with_arm({"F": [1.0, 2.0]})
     with pytest.raises(ValueError, match="^with_arm: the problem's plants are LinearPlant"):
         fj.build({"sim": {"t_final": 0.1}}).with_arm({"F": [1.0, 1.0, 1.0]})
+    with pytest.raises(ValueError, match="^arm_params: the problem's plants are LinearPlant"):
+        fj.build({"sim": {"t_final": 0.1}}).arm_params()
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [({"m2": 0.0}, "arm.m2: expected a positive mass"),
+     ({"I2": [10.0, 1.0, 1.0]}, "arm.I2: expected 3 positive principal inertias"),
+     ({"c2": 5.0}, "arm.c2: expected the centre of mass of link 2 within the link"),
+     ({"Kb": [0.0, 1.0, 1.0]}, "arm.Kb: expected 3 positive back-EMF constants"),
+     ({"Kt": "big"}, r"arm.Kt: expected numbers of shape \(3,\)"),
+     ({"F": [0.1, np.nan, 0.1]}, "arm.F: expected 3 non-negative")],
+)  # fmt: skip
+def test_with_arm_refuses_what_the_config_refuses(change, message):
+    """A real arm's ranges (fosmc_jax._plants.arm.PARAM_RULES) hold for with_arm as for [arm]."""
+    with pytest.raises(ValueError, match="^with_arm: " + message) as e:
+        fj.build(ARM).with_arm(change)
+    assert "\n" not in str(e.value)
+    with pytest.raises(fj.ConfigError, match="^" + message.split(":")[0]):
+        fj.config.resolve({**ARM, "arm": change})
+
+
+def test_with_arm_moves_the_nominal_and_keeps_the_sampled_spread():
+    """On sampled arms (F, Kt +-20%, 3 samples x 2 payloads): arm_params() is the configured
+    [arm], with_arm(arm_params()) leaves every plant exactly as it was, and doubling F doubles
+    every plant's F (the relative draws kept); an ArmParams is taken as a dict of its fields; a
+    field whose nominal is 0 (never drawn) becomes the value in every plant."""
+    cfg = {**ARM, "arm": {"F": [0.5, 0.4, 0.3], "uncertainty": {"F": 0.2, "Kt": 0.2, "samples": 3, "seed": 1}}}
+    problem = fj.build(cfg)
+    F = np.asarray(problem.plants.params.F)
+    assert len(np.unique(F[:, 0])) == 3  # three sampled arms, each twice (two payloads)
+    np.testing.assert_array_equal(problem.arm_params()["F"], [0.5, 0.4, 0.3])
+    np.testing.assert_array_equal(problem.arm_params()["Kt"], fj.ARM_PARAMS.Kt)
+    same = problem.with_arm(problem.arm_params())
+    for a, b in zip(jax.tree.leaves(same.plants), jax.tree.leaves(problem.plants)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    doubled = problem.with_arm({"F": [1.0, 0.8, 0.6]})
+    np.testing.assert_allclose(np.asarray(doubled.plants.params.F), 2 * F, rtol=1e-15)
+    np.testing.assert_array_equal(doubled.arm_params()["F"], [1.0, 0.8, 0.6])
+    np.testing.assert_array_equal(np.asarray(doubled.plants.params.Kt), np.asarray(problem.plants.params.Kt))
+    coulomb = problem.with_arm({"Fc": [0.1, 0.2, 0.3]})
+    np.testing.assert_array_equal(np.asarray(coulomb.plants.params.Fc), [[0.1, 0.2, 0.3]] * 6)
+
+
+def test_an_arm_key_on_the_linear_plant_is_refused():
+    with pytest.raises(fj.ConfigError, match=r"^arm.F: applies to plant.kind = 'arm' only$"):
+        fj.config.resolve({"arm": {"F": [0.1, 0.1, 0.1]}})
+    fj.config.resolve({"arm": {"F": list(fj.ARM_PARAMS.F)}})  # the default, said again: nothing to refuse
 
 
 UNCERTAIN = {**ARM, "arm": {"uncertainty": {"F": 0.3, "Kt": [0.1, 0.1, 0.2], "samples": 3, "seed": 7}}}

@@ -28,7 +28,7 @@ from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, DesignSummary, check_design, stable_step, summarize
 from .._io import read_json
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
-from .._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, rows_over
+from .._plants.arm import ARM_PARAMS, PARAM_RULES, PAYLOAD_RANGE, Arm, ArmParams, centre_error, rows_over
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
@@ -260,12 +260,6 @@ def _half_width(key: str, value: Any) -> Any:
     return _number(what, lambda x: 0 <= x < 1)(key, value)
 
 
-def _principal_inertias(key: str, value: Any) -> Any:
-    """A link's principal moments: positive, each at most the sum of the other two."""
-    what = "3 positive principal inertias (kg m^2), each at most the sum of the other two"
-    return _array((3,), what, lambda a: np.all(a > 0) and np.all(2 * a <= a.sum() * (1 + 1e-12)))(key, value)
-
-
 def _offset_scales(key: str, value: Any) -> Any:
     what = "a non-negative number or 9 of them (standard deviations of the initial offsets; 0: none drawn)"
     if isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -354,33 +348,13 @@ SCHEMA: dict[str, Any] = {
         "divergence_bound": _number("a positive number", lambda x: x > 0),
         "pairing": _choice(PAIRINGS),
     },
-    "arm": {
-        "d1": _number("a number (m)"),
-        "d2": _number("a number (m)"),
-        "d3": _number("a number (m)"),
-        "l2": _number("a positive length (m)", lambda x: x > 0),
-        "l3": _number("a positive length (m)", lambda x: x > 0),
-        "c2": _number("a non-negative distance (m; at most arm.l2)", lambda x: x >= 0),
-        "c3": _number("a non-negative distance (m; at most arm.l3)", lambda x: x >= 0),
-        "m2": _number("a positive mass (kg)", lambda x: x > 0),
-        "m3": _number("a positive mass (kg)", lambda x: x > 0),
-        "I1": _number("a positive inertia (kg m^2)", lambda x: x > 0),
-        "I2": _principal_inertias,
-        "I3": _principal_inertias,
-        "Jm": _array((3,), "3 positive rotor inertias (kg m^2)", lambda a: np.all(a > 0)),
-        "F": _array((3,), "3 non-negative viscous friction coefficients (N m s/rad)", lambda a: np.all(a >= 0)),
-        "g": _number("a non-negative number (m/s^2)", lambda x: x >= 0),
-        "R": _array((3,), "3 positive resistances (ohm)", lambda a: np.all(a > 0)),
-        "L": _array((3,), "3 positive inductances (H)", lambda a: np.all(a > 0)),
-        "Kt": _array((3,), "3 positive torque constants (N m/A)", lambda a: np.all(a > 0)),
-        "Kb": _array((3,), "3 positive back-EMF constants (V s/rad)", lambda a: np.all(a > 0)),
-        "Fc": _array((3,), "3 non-negative Coulomb friction levels (N m)", lambda a: np.all(a >= 0)),
-        "v_coulomb": _number("a positive velocity scale (rad/s)", lambda x: x > 0),
-        "tau_bias": _array((3,), "3 numbers (N m)"),
-        "tau_step": _array((3,), "3 numbers (N m)"),
-        "t_step": _number("a non-negative time (s)", lambda x: x >= 0),
-        "tau_sin": _array((3,), "3 numbers (N m)"),
-        "f_sin": _array((3,), "3 non-negative frequencies (Hz)", lambda a: np.all(a >= 0)),
+    "arm": {  # a real arm's ranges (fosmc_jax._plants.arm.PARAM_RULES, which Problem.with_arm checks too)
+        **{
+            k: _number(what, lambda x, r=rule: bool(r(np.asarray(x))))
+            if shape == ()
+            else _array(shape, what, lambda a, r=rule: bool(np.all(r(a))))
+            for k, (shape, rule, what) in PARAM_RULES.items()
+        },  # fmt: skip
         "payload_range": _payload_range,
         "uncertainty": {
             **{k: _half_width for k in ArmParams._fields},
@@ -557,6 +531,11 @@ def _check_arm(cfg: dict) -> None:
     varies = bool(varying)
     if varies and cfg["plant"]["kind"] != "arm":
         raise ConfigError(f"arm.uncertainty.{varying[0]}: applies to plant.kind = 'arm' only")
+    if cfg["plant"]["kind"] != "arm":  # an [arm] table the linear model would ignore
+        base = defaults()["arm"]
+        for k in (*ArmParams._fields, "payload_range"):
+            if not np.array_equal(np.asarray(arm[k], float), np.asarray(base[k], float)):
+                raise ConfigError(f"arm.{k}: applies to plant.kind = 'arm' only")
     if varies and not unc["samples"] and unc["sampling"] == "uniform":
         raise ConfigError("arm.uncertainty.samples: expected a positive number of sampled arms with half-widths set")
     if unc["samples"] and not varies:
@@ -566,9 +545,8 @@ def _check_arm(cfg: dict) -> None:
             raise ConfigError(f"arm.uncertainty.{k}: a relative half-width of arm.{k} = {_short(arm[k])} varies "
                               f"nothing (a zero stays zero); set arm.{k}, the nominal")  # fmt: skip
     for j in (2, 3):
-        if arm[f"c{j}"] > arm[f"l{j}"]:
-            raise ConfigError(f"arm.c{j}: expected the centre of mass of link {j} within the link, at most arm.l{j} = "
-                              f"{arm[f'l{j}']:g} m, got {arm[f'c{j}']:g}")  # fmt: skip
+        if error := centre_error(arm[f"c{j}"], arm[f"l{j}"], j):
+            raise ConfigError(error)
     lo, hi = arm["payload_range"]
     for key, values in (("plant.payloads", cfg["plant"]["payloads"]), ("sample.payloads", cfg["sample"]["payloads"])):
         if values and not lo <= min(values) <= max(values) <= hi:
@@ -986,7 +964,8 @@ def build(config: str | Path | dict | None = None) -> Problem:
         base, make = params, lambda params: loop(law(params))
     else:  # the kind's parameters are fields of its law
         base, make = law(params), loop
-    return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), make, ctl["kind"])
+    arm = arm_params_of(cfg, dtype) if plant["kind"] == "arm" else None  # the nominal, sampled arms around it
+    return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), make, ctl["kind"], arm)
 
 
 #: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:

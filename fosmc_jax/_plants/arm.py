@@ -291,6 +291,54 @@ def without_idle_terms(plant):
     return plant._replace(params=plant.params._replace(**idle)) if idle else plant
 
 
+_finite = np.isfinite
+_positive = lambda a: np.isfinite(a) & (a > 0)
+_non_negative = lambda a: np.isfinite(a) & (a >= 0)
+# a link's principal moments: positive, each at most the sum of the other two (last axis)
+_principal = lambda a: _positive(a) & (2 * a <= np.sum(a, axis=-1, keepdims=True) * (1 + 1e-12))
+
+#: What a real arm's parameters may be, by :class:`ArmParams` field: (shape, a test of the
+#: concrete values, NumPy in, booleans out, NaN failing; what is expected). One source for the
+#: config's ``[arm]`` keys and ``Problem.with_arm`` (with :func:`centre_error`). The simulator's
+#: input checks accept the wider domain of the equations (e.g. R = 0, Kb = 0: ideal motors).
+PARAM_RULES: dict = {
+    "d1": ((), _finite, "a number (m)"),
+    "d2": ((), _finite, "a number (m)"),
+    "d3": ((), _finite, "a number (m)"),
+    "l2": ((), _positive, "a positive length (m)"),
+    "l3": ((), _positive, "a positive length (m)"),
+    "c2": ((), _non_negative, "a non-negative distance (m; at most arm.l2)"),
+    "c3": ((), _non_negative, "a non-negative distance (m; at most arm.l3)"),
+    "m2": ((), _positive, "a positive mass (kg)"),
+    "m3": ((), _positive, "a positive mass (kg)"),
+    "I1": ((), _positive, "a positive inertia (kg m^2)"),
+    "I2": ((3,), _principal, "3 positive principal inertias (kg m^2), each at most the sum of the other two"),
+    "I3": ((3,), _principal, "3 positive principal inertias (kg m^2), each at most the sum of the other two"),
+    "Jm": ((3,), _positive, "3 positive rotor inertias (kg m^2)"),
+    "F": ((3,), _non_negative, "3 non-negative viscous friction coefficients (N m s/rad)"),
+    "g": ((), _non_negative, "a non-negative number (m/s^2)"),
+    "R": ((3,), _positive, "3 positive resistances (ohm)"),
+    "L": ((3,), _positive, "3 positive inductances (H)"),
+    "Kt": ((3,), _positive, "3 positive torque constants (N m/A)"),
+    "Kb": ((3,), _positive, "3 positive back-EMF constants (V s/rad)"),
+    "Fc": ((3,), _non_negative, "3 non-negative Coulomb friction levels (N m)"),
+    "v_coulomb": ((), _positive, "a positive velocity scale (rad/s)"),
+    "tau_bias": ((3,), _finite, "3 numbers (N m)"),
+    "tau_step": ((3,), _finite, "3 numbers (N m)"),
+    "t_step": ((), _non_negative, "a non-negative time (s)"),
+    "tau_sin": ((3,), _finite, "3 numbers (N m)"),
+    "f_sin": ((3,), _non_negative, "3 non-negative frequencies (Hz)"),
+}
+
+
+def centre_error(c: float, length: float, j: int) -> str | None:
+    """The error when link ``j``'s centre of mass ``c`` lies beyond its length (None: within)."""
+    if c <= length:
+        return None
+    within = f"within the link, at most arm.l{j} = {length:g} m"
+    return f"arm.c{j}: expected the centre of mass of link {j} {within}, got {c:g}"
+
+
 def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Array, tau: Array) -> Array:
     """theta'' = M^-1 (tau - C theta' - G - F theta' - Fc tanh(theta'/v_coulomb)), rad/s^2, for
     joint torques ``tau`` (N m; the motors' and the external ones)."""

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._controllers.kind import SPACES
-from .._plants.arm import Arm
+from .._plants.arm import ARM_PARAMS, PARAM_RULES, Arm, ArmParams, centre_error
 from .rollout import simulate_batch
 from .sharding import simulate_split
 
@@ -23,7 +23,9 @@ class Problem(NamedTuple):
     ``dt``, :func:`fosmc_jax.simulate_batch`'s ``options``, and the controller's fixed parts:
     ``base``, the object whose fields the ``kind``'s tunable parameters are (the FOSMC's
     :class:`fosmc_jax.FOSMCParams`; another kind's law), and ``make``, base -> the controller
-    of the loop (None: ``base`` itself).
+    of the loop (None: ``base`` itself). For an arm's batch, ``arm`` is the nominal
+    :class:`fosmc_jax.ArmParams` (the config's ``[arm]``; sampled arms are drawn around it),
+    which :meth:`with_arm` and :meth:`arm_params` work from (None: plants made by hand).
 
     ``problem.simulate(params)`` runs the batch with the kind's parameters replaced; it is a
     pure function of ``params``, so ``jax.jit``, ``jax.grad`` and ``jax.vmap`` of a function
@@ -43,6 +45,7 @@ class Problem(NamedTuple):
     keys: Any = None
     make: Callable[[Any], Any] | None = None
     kind: str = "fosmc"
+    arm: Any = None
 
     def params(self) -> dict:
         """The kind's tunable parameters as the problem holds them, by the names ``result.json``
@@ -61,35 +64,78 @@ class Problem(NamedTuple):
         return params if self.make is None else self.make(params)
 
     def with_arm(self, changes: Mapping) -> Problem:
-        """The problem with the arm's physical parameters ``changes`` ({field of
-        :class:`fosmc_jax.ArmParams`: value}, e.g. ``{"F": F}``; each value of the field's own
-        shape, () or (3,)) in every plant of the batch (sampled arms lose that field's spread);
-        differentiable in them::
+        """The problem with the arm's nominal physical parameters ``changes`` ({field of
+        :class:`fosmc_jax.ArmParams`: value}, e.g. ``{"F": F}``, or an ``ArmParams``; each value
+        of the field's own shape, () or (3,)); differentiable in them::
 
             loss = lambda F: problem.with_arm({"F": F}).simulate(fast=False).mean().rms_error.mean()
             jax.grad(loss)(problem.arm_params()["F"])
-        """
-        if not isinstance(self.plants, Arm):
-            raise ValueError(f"with_arm: the problem's plants are {type(self.plants).__name__}, not the arm")
-        fields = self.plants.params
-        unknown = sorted(set(changes) - set(fields._fields))
+
+        Sampled arms (``[arm.uncertainty]``) keep their spread: each plant's entry is scaled by
+        value / nominal (the relative draws of the config), so ``with_arm(arm_params())`` is the
+        same problem; an entry whose nominal is 0 (never drawn: a zero stays zero) becomes the
+        value in every plant. Without a nominal (:attr:`arm` None: plants made by hand) a field
+        must be the same in every plant to be changed."""
+        fields, nominal = self._arm_fields("with_arm")
+        if isinstance(changes, ArmParams):
+            changes = {k: v for k, v in changes._asdict().items() if v is not None}
+        if not isinstance(changes, Mapping):
+            raise ValueError(f"with_arm: expected a dict of arm parameters or an ArmParams, got "
+                             f"{type(changes).__name__}")  # fmt: skip
+        unknown = sorted(set(changes) - set(ArmParams._fields))
         if unknown:
             raise ValueError(f"with_arm: unknown arm parameter(s) {', '.join(map(repr, unknown))} "
-                             f"(ArmParams: {', '.join(fields._fields)})")  # fmt: skip
-        new = {}
+                             f"(ArmParams: {', '.join(ArmParams._fields)})")  # fmt: skip
+        plant_fields, new_nominal = {}, {}
         for name, value in changes.items():
-            old = getattr(fields, name)  # (P, ...) : one row per plant
-            value = jnp.asarray(value, old.dtype)
-            if value.shape != old.shape[1:]:
-                raise ValueError(f"with_arm: arm.{name}: expected shape {old.shape[1:]}, got {value.shape}")
-            new[name] = jnp.broadcast_to(value, old.shape)
-        return self._replace(plants=self.plants._replace(params=fields._replace(**new)))
+            old = getattr(fields, name)  # (P, ...): one row per plant; None: a term left out
+            nom = getattr(nominal, name)
+            shape = np.shape(getattr(ARM_PARAMS, name))
+            dtype = jnp.result_type(self.dt) if old is None else old.dtype
+            try:
+                value = jnp.asarray(value, dtype)
+            except (TypeError, ValueError):
+                raise ValueError(f"with_arm: arm.{name}: expected numbers of shape {shape}, got {value!r}") from None
+            if value.shape != shape:
+                raise ValueError(f"with_arm: arm.{name}: expected shape {shape}, got {value.shape}")
+            _, rule, what = PARAM_RULES[name]  # a real arm's range, as the config's [arm]
+            if not isinstance(value, jax.core.Tracer) and not np.all(rule(np.asarray(value))):
+                raise ValueError(f"with_arm: arm.{name}: expected {what}, got {np.asarray(value).tolist()}")
+            P = _leading(self.plants)
+            if old is None:  # a term left out: zero in every plant
+                old = jnp.zeros((P, *shape), dtype)
+            if self.arm is None and not _concretely_equal_rows(old):
+                raise ValueError(f"with_arm: arm.{name} differs between the plants and the problem has no nominal arm "
+                                 "to scale them from (Problem.arm); build it from a config")  # fmt: skip
+            nom = old[0] if self.arm is None else jnp.asarray(nom, dtype)
+            safe = jnp.where(nom == 0, 1, nom)
+            plant_fields[name] = jnp.where(nom == 0, value, old * (value / safe))
+            new_nominal[name] = value
+        arm = None if self.arm is None else self.arm._replace(**new_nominal)
+        for j in (2, 3) if arm is not None else ():
+            c, length = getattr(arm, f"c{j}"), getattr(arm, f"l{j}")
+            if not isinstance(c, jax.core.Tracer) and not isinstance(length, jax.core.Tracer):
+                if error := centre_error(float(c), float(length), j):
+                    raise ValueError(f"with_arm: {error}")
+        plants = self.plants._replace(params=fields._replace(**plant_fields))
+        return self._replace(plants=plants, arm=arm)
 
     def arm_params(self) -> dict:
-        """The arm's physical parameters, by :class:`fosmc_jax.ArmParams` field: the first
-        plant's (every plant of a config's batch shares them, unless ``[arm.uncertainty]``
-        samples arms)."""
-        return {name: value[0] for name, value in self.plants.params._asdict().items()}
+        """The arm's nominal physical parameters, by :class:`fosmc_jax.ArmParams` field: the
+        configured ``[arm]`` (:attr:`arm`; sampled arms are drawn around it), or, for plants
+        made by hand, the first plant's."""
+        fields, nominal = self._arm_fields("arm_params")
+        return nominal._asdict()
+
+    def _arm_fields(self, what: str) -> tuple[ArmParams, ArmParams]:
+        """The plants' (P, ...) parameters and the nominal's (or the first plant's)."""
+        if not isinstance(self.plants, Arm):
+            raise ValueError(f"{what}: the problem's plants are {type(self.plants).__name__}, not the arm")
+        fields = self.plants.params
+        if self.arm is not None:
+            return fields, self.arm
+        first = ArmParams(*(None if x is None else x[0] for x in fields))
+        return fields, first
 
     @property
     def args(self) -> tuple:
@@ -113,6 +159,14 @@ class Problem(NamedTuple):
         return run(
             self.plants, ctrl, self.reference, self.X0s, self.dt, keys=self.keys, **dict(self.options, **options)
         )
+
+
+def _concretely_equal_rows(x) -> bool:
+    """Whether every row of ``x`` (P, ...) is the first (False for traced values: unknown)."""
+    if isinstance(x, jax.core.Tracer):
+        return False
+    a = np.asarray(x)
+    return bool(np.all(a == a[:1]))
 
 
 def _leading(tree) -> int:
