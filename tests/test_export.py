@@ -418,6 +418,9 @@ def test_fosmc_export_writes_the_point_of_a_front(tmp_path, capsys):
         and "void arm_ctl_update(arm_ctl_state *st, const int32_t counts[3]" in header
     )
     assert f"params: {front}, point 1" in header
+    printed = capsys.readouterr()
+    for path in (out / "arm_ctl.h", out / "arm_ctl.c"):  # each written file named once, on stdout or stderr
+        assert (printed.out + printed.err).count(str(path)) == 1, printed
     # the integrand CA + CBK is the package's, from these poles: derive(params) in float64
     problem = fj.build(fj.config.with_params(fj.config.load(str(toml)), front, 1))
     from fosmc_jax._controllers.fosmc import derive
@@ -467,3 +470,127 @@ def test_the_interrupt_example_of_the_docs_compiles(tmp_path):
     head, body = example.split("static fosmc_state st;")
     (tmp_path / "isr.c").write_text(head + stubs + "static fosmc_state st;" + body)
     E.check_compiles(tmp_path / "isr.c", CC, (*E.STRICT_FLAGS, "-O2"))
+
+
+def _loop_toml(tmp_path: Path) -> Path:
+    toml = tmp_path / "loop.toml"
+    toml.write_text('[plant]\nkind = "arm"\n[controller]\nsample_period = 1e-3\n')
+    return toml
+
+
+def test_fosmc_export_refuses_an_out_it_cannot_write_whole_in_one_line(tmp_path, capsys):
+    """A file as --out, or below it, or a folder where a target goes: exit status 2, one line
+    naming --out, and nothing written (no fosmc.h before a failing fosmc.c)."""
+    toml = _loop_toml(tmp_path)
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    blocked = tmp_path / "blocked"
+    (blocked / "fosmc.c").mkdir(parents=True)
+    cases = ((a_file, f"{a_file} exists and is not a folder"), (a_file / "fw", f"{a_file} exists and is not a folder"),
+             (blocked, f"{blocked / 'fosmc.c'} exists and is not a file"))  # fmt: skip
+    for out, why in cases:
+        assert main(["export", "--config", str(toml), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == f"fosmc: error: --out: {why} (nothing written)", err
+    assert a_file.read_text() == "mine"
+    assert [p.name for p in blocked.iterdir()] == ["fosmc.c"] and not any((blocked / "fosmc.c").iterdir())
+    # the library's write checks both targets before writing either, too
+    with pytest.raises(ValueError, match="fosmc.c exists and is not a file"):
+        E.write({"fosmc.h": "h", "fosmc.c": "c"}, blocked)
+    assert [p.name for p in blocked.iterdir()] == ["fosmc.c"]
+
+
+def test_run_export_takes_a_dict_of_parameters_as_simulate_does(tmp_path):
+    """``params`` as a dict by the kind's names (what run_tune's final.params and
+    Problem.params() are) exports what the same parameters in a result.json export, and the
+    config's point where the dict is the problem's own."""
+    point = {"delta": [11.0, 22.0, 33.0], "gamma": [300.0, 250.0, 25.0]}
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps({"final": {"params": point}}))
+    from_file = commands.run_export(config(), params=result)["files"]
+    from_dict = fj.run_export(config(), params=point)["files"]
+    drop = lambda text: [line for line in text.splitlines() if " * params: " not in line]  # noqa: E731
+    for filename in ("fosmc.h", "fosmc.c"):
+        assert drop(from_dict[filename]) == drop(from_file[filename])
+    assert "static const fosmc_real DELTA[3] = {\n    11.0, 22.0, 33.0\n};" in from_dict["fosmc.c"]
+    assert " * params: a dict of delta, gamma (the config's for the rest)" in from_dict["fosmc.h"]
+    own = commands.run_export(config("smc"), params=fj.build(config("smc")).params())["files"]["fosmc.c"]
+    assert drop(own) == drop(commands.run_export(config("smc"))["files"]["fosmc.c"])
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"point": 2.5}, r"^--point: expected an integer \(the index of a front's point\), got 2\.5"),
+        ({"point": True}, r"^--point: expected an integer"),
+        ({"params": 3.0}, r"^--params: expected a fosmc tune result\.json or fosmc front front\.json \(a path\), "
+                          r"or a dict of the controller kind's parameters by name, got float"),
+        ({"params": {"delta": [1.0, 2.0, 3.0]}, "point": 1}, r"^--point: needs --params FRONT\.json \(not a dict"),
+        ({"params": {"delta": [1.0, 2.0]}}, r"^params\.delta: expected shape \(3,\), got \(2,\)"),
+        ({"params": {"delta": [-1.0, 2.0, 3.0]}}, r"^params\.delta: expected 3 positive numbers"),
+        ({"params": {"k": [1.0, 2.0, 3.0]}}, r"^params: unknown name\(s\) 'k' for controller kind 'fosmc'"),
+        ({"params": {"delta": "abc"}}, r"^params"),
+    ],
+)  # fmt: skip
+def test_run_export_refuses_wrong_options_in_one_line_naming_them(options, message):
+    with pytest.raises(fj.ConfigError, match=message) as e:
+        commands.run_export(config(), **options)
+    assert "\n" not in str(e.value)
+
+
+def test_a_front_without_a_point_asks_for_one(tmp_path):
+    front = tmp_path / "front.json"
+    front.write_text(json.dumps({"points": [{"params": {}}, {"params": {}}]}))
+    with pytest.raises(fj.ConfigError, match=rf"^--point: {front} is a front of 2 points: name the one to export "
+                                             r"with --point I"):  # fmt: skip
+        commands.run_export(config(), params=front)
+
+
+def _constants(source: str, name: str) -> np.ndarray:
+    """The values of the C array ``name`` of a float64 export."""
+    block = source.split(f" {name}[3]")[1].split("= {", 1)[1].split("};")[0]
+    return np.array([float(x) for x in block.replace("{", " ").replace("}", " ").replace(",", " ").split()])
+
+
+@pytest.mark.parametrize("kind", ["fosmc", "smc"])
+def test_the_files_name_the_design_model_their_rows_come_from(kind, monkeypatch):
+    """The rows A_r, B_bar of the export are the config's design model's, and the comments say
+    which: the paper's (29), the config's own [model] rows, or the arm's ([model] from = "arm";
+    its derivation, seconds of compilation, replaced here by stand-in rows)."""
+    from fosmc_jax._app import config as C
+    from fosmc_jax._design import paper
+
+    A, B = paper.A_ROWS * 1.25, paper.B_ROWS * 0.8  # not the paper's: where the constants come from shows
+    box = (np.minimum(A * 0.9, A * 1.1), np.maximum(A * 0.9, A * 1.1), B * 0.9, B * 1.1)
+    monkeypatch.setattr(C, "_arm_model", lambda key: C.DesignModel("arm", A, B, box, "a test's stand-in rows"))
+    cases = {
+        "paper": ({}, paper.A_ROWS, paper.B_ROWS, "the paper's nominal model (29)"),
+        "own": ({"model": {"A_rows": A.tolist(), "B_rows": B.tolist()}}, A, B,
+                "the config's nominal model ([model] A_rows, B_rows)"),
+        "arm": ({"model": {"from": "arm"}}, A, B, "the model derived from the configured [arm] along the reference"),
+    }  # fmt: skip
+    for case, (tables, a_rows, b_rows, words) in cases.items():
+        r = commands.run_export(config(kind, **tables))
+        header, source = r["files"]["fosmc.h"], r["files"]["fosmc.c"]
+        assert r["model"] == words
+        assert np.array_equal(_constants(source, "A_R").reshape(3, 9), a_rows), case
+        if kind == "fosmc":
+            assert np.allclose(_constants(source, "B_BAR_INV").reshape(3, 3), np.linalg.inv(b_rows), rtol=1e-13)
+        flat = " ".join(" ".join(line.strip(" /*") for line in source.splitlines()).split())
+        assert f"A_r: rows 3, 6, 9 of A of {words}." in flat and f"designed on {words} (A_r, B_bar" in flat
+        assert ("(29)" in header + source) == (case == "paper"), case
+        source_line = "from = 'arm', the midpoint of the rows' box over a test's stand-in rows" if case == "arm" else \
+            "from = 'paper'"  # fmt: skip
+        assert f" * design model: [model] {source_line}" in header
+
+
+@pytest.mark.slow  # the arm's design model of the small_arm preset: a compilation and 60 arms, ~10-20 s
+def test_the_small_arm_export_holds_and_names_the_arms_rows(tmp_path, capsys):
+    assert main(["export", "--config", "small_arm", "--out", str(tmp_path)]) == 0
+    source = (tmp_path / "fosmc.c").read_text()
+    design = fj.config.design_model(fj.config.load("small_arm"))
+    assert design.source == "arm"
+    assert np.array_equal(_constants(source, "A_R").reshape(3, 9), design.A_rows)
+    assert np.allclose(_constants(source, "B_BAR_INV").reshape(3, 3), np.linalg.inv(design.B_rows), rtol=1e-13)
+    assert "(29)" not in source and "(29)" not in (tmp_path / "fosmc.h").read_text()
+    assert "designed on the model derived from the configured [arm]" in source

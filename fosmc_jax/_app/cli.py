@@ -462,11 +462,14 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("--delay", type=int, metavar="N",
                    help="samples from a logged voltage to the motor (default: controller.delay_samples)")  # fmt: skip
     i.add_argument("--window", type=float, default=0.2, metavar="S", help="shooting window, s (default 0.2)")
-    i.add_argument("--dt", type=float, metavar="S", help="integration step, s (default: the log's sample period)")
+    i.add_argument("--dt", type=float, metavar="S",
+                   help="longest integration step, s: the sample period cut in equal steps no longer (default: "
+                   "the log's sample period)")  # fmt: skip
     i.add_argument("--threshold", type=float, default=0.05, metavar="X",
                    help="relative standard deviation above which the log does not identify (default 0.05)")  # fmt: skip
     i.add_argument("--iterations", type=int, default=50, metavar="N", help="LM steps per fit pass (default 50)")
-    i.add_argument("--bootstrap", type=int, default=200, metavar="N", help="window resamples (default 200)")
+    i.add_argument("--bootstrap", type=int, default=200, metavar="N",
+                   help="window resamples (default 200; none below 5 windows)")  # fmt: skip
     i.add_argument("--json", action="store_true", help="print the report as JSON (without the config)")
     i.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     i.set_defaults(func=cmd_identify)

@@ -594,7 +594,7 @@ def run_export(
     config: Config = None,
     *,
     out: str | Path | None = None,
-    params: str | Path | None = None,
+    params: str | Path | dict | None = None,
     point: int | None = None,
     precision: str = "float64",
     name: str = "fosmc",
@@ -603,32 +603,62 @@ def run_export(
 ) -> dict[str, Any]:
     """``fosmc export``: the config's digital-loop controller as C99 (``fosmc_jax._firmware.export``):
     ``<name>.h`` and ``<name>.c`` with the constants of the config's point, or of the tuned
-    parameters ``params`` (a ``fosmc tune`` result.json, or point ``point`` of a ``fosmc front``
-    front.json, as ``run_simulate`` takes them), in ``precision`` (``float32`` or ``float64``).
+    parameters ``params``: a ``fosmc tune`` result.json, or point ``point`` of a ``fosmc front``
+    front.json, as ``run_simulate`` takes them, or a dict of the kind's parameters by name, as
+    ``fosmc_jax.build(config).simulate(params)`` takes it (a subset: the others stay the
+    config's; e.g. ``run_tune(...)["final"]["params"]``), checked as the simulator checks it;
+    in ``precision`` (``float32`` or ``float64``).
 
     The constants are computed in float64 whatever ``[sim] precision`` says and rounded to
-    ``precision`` when written. A config without a digital loop (``controller.sample_period`` =
-    0) is refused: its ideal loop reads the exact state at every integration step and integrates
-    the law's state with the plant, which no drive does, and the package has no simulation of
-    that law at another rate to check the code against. With ``out``, the files are written
-    there (existing files of those names replaced) and, with ``check``, compiled with the host's
-    C compiler under ``-std=c99 -Wall -Wextra -Werror -pedantic`` (skipped, and said so, without
-    one). Returns ``{"files": {filename: text}, "paths": [written paths], "kind",
-    "precision", "check": the compile command that passed, or why none ran}``.
+    ``precision`` when written; the files say which design model (``[model] from``) their rows
+    are. A config without a digital loop (``controller.sample_period`` = 0) is refused: its
+    ideal loop reads the exact state at every integration step and integrates the law's state
+    with the plant, which no drive does, and the package has no simulation of that law at
+    another rate to check the code against. With ``out``, a folder (created), the files are
+    written there (existing files of those names replaced; both targets checked before either
+    is written) and, with ``check``, compiled with the host's C compiler under ``-std=c99 -Wall
+    -Wextra -Werror -pedantic`` (skipped, and said so, without one); ``log`` gets the line of a
+    clean compile (the command line prints the paths). Returns ``{"files":
+    {filename: text}, "paths": [written paths], "kind", "precision", "model": the design model
+    in words, "check": the compile command that passed, or why none ran}``.
     """
-    from .._firmware.export import EXPORTED_KINDS, PRECISIONS, c_compiler, check_compiles, export_c, write
+    import re
+    from collections.abc import Mapping
 
-    if precision not in PRECISIONS:
-        raise ConfigError(f"--precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
-    if not (name.isidentifier() and name.isascii()):
+    from .._firmware import export as _export
+    from .._io import read_json
+    from .._simulator.checks import check_inputs
+
+    if not isinstance(precision, str) or precision not in _export.PRECISIONS:
+        raise ConfigError(f"--precision: expected one of {', '.join(_export.PRECISIONS)}, got {precision!r}")
+    if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise ConfigError(f"--name: expected a C identifier (letters, digits, _; not first a digit), got {name!r}")
+    if point is not None and (isinstance(point, bool) or not isinstance(point, (int, np.integer))):
+        raise ConfigError(f"--point: expected an integer (the index of a front's point), got {point!r}")
+    given = isinstance(params, Mapping) or hasattr(params, "_asdict")  # parameters, not a file
+    if not (params is None or given or isinstance(params, (str, Path))):
+        raise ConfigError(f"--params: expected a fosmc tune result.json or fosmc front front.json (a path), or a "
+                          f"dict of the controller kind's parameters by name, got {type(params).__name__}")  # fmt: skip
+    if point is not None and (params is None or given):
+        raise ConfigError("--point: needs --params FRONT.json" + (" (not a dict of parameters)" if given else ""))
+    if out is not None:
+        try:
+            out = _export.check_targets(out, (f"{name}.h", f"{name}.c"))
+        except ValueError as e:
+            raise ConfigError(f"--out: {e} (nothing written)") from None
     cfg = config_of(config)
-    if params:
+    if params is not None and not given:
+        if point is None:
+            try:
+                data = read_json(params)
+            except ValueError:
+                data = None  # with_params says why
+            if isinstance(data, dict) and isinstance(data.get("points"), list):
+                raise ConfigError(f"--point: {params} is a front of {len(data['points'])} points: name the one to "
+                                  "export with --point I (e.g. the one `fosmc select` names)")  # fmt: skip
         cfg = _config.with_params(cfg, params, point)
-    elif point is not None:
-        raise ConfigError("--point: needs --params FRONT.json")
-    if cfg["controller"]["kind"] not in EXPORTED_KINDS:
-        raise ConfigError(f"controller.kind: fosmc export writes {', '.join(EXPORTED_KINDS)}, got "
+    if cfg["controller"]["kind"] not in _export.EXPORTED_KINDS:
+        raise ConfigError(f"controller.kind: fosmc export writes {', '.join(_export.EXPORTED_KINDS)}, got "
                           f"{cfg['controller']['kind']!r}")  # fmt: skip
     if not cfg["controller"]["sample_period"]:
         raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
@@ -636,31 +666,56 @@ def run_export(
                           "integrates the law with the plant, which no drive does")  # fmt: skip
     cfg["sim"]["precision"] = "float64"  # the constants in full precision; rounded to `precision` when written
     problem = _config.build(cfg)
+    loop = problem.controller()
+    if given:  # as Problem.simulate takes them: names and shapes (Problem.controller), then signs and ranges
+        try:
+            loop = problem.controller(params)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the step-size warning is the simulation's, not the drive's
+                check_inputs(problem.plants, loop, problem.reference, problem.X0s, problem.dt, True, problem.options)
+        except ValueError as e:  # named as the option: params.delta, not controller.law.params.delta
+            message = re.sub(r"^controller\.law\.(params\.)?(?=\w+:)", "params.", str(e))
+            raise ConfigError(message if message.startswith("params") else f"params: {message}") from None
+    design = _config.design_model(cfg)
+    if design.source == "arm":
+        model = "the model derived from the configured [arm] along the reference"
+    elif all(cfg["model"][k] == _config.defaults()["model"][k] for k in ("A_rows", "B_rows")):
+        model = _export.PAPER_MODEL
+    else:
+        model = "the config's nominal model ([model] A_rows, B_rows)"
     origin = ["config: " + (str(config) if isinstance(config, (str, Path)) else "the paper's defaults"
                             if config is None else "a config dict")]  # fmt: skip
-    if params:
+    if given:
+        names = list(params if isinstance(params, Mapping) else params._asdict())
+        origin.append(f"params: a dict of {', '.join(names) or 'none'} (the config's for the rest)")
+    elif params is not None:
         origin.append(f"params: {params}" + (f", point {point}" if point is not None else " (final)"))
+    origin.append(f"design model: [model] from = '{design.source}'" + (
+        f", the midpoint of the rows' box over {design.sampled}" if design.source == "arm" else ""))  # fmt: skip
     try:
-        files = export_c(problem.controller(), problem.reference, precision=precision, name=name,
-                         source="\n".join(origin))  # fmt: skip
+        files = _export.export_c(loop, problem.reference, precision=precision, name=name,
+                                 source="\n".join(origin), model=model)  # fmt: skip
     except ValueError as e:
         raise ConfigError(str(e)) from None
     paths, checked = [], "not written"
     if out is not None:
-        paths = write(files, out)
-        log(f"fosmc export: wrote {', '.join(map(str, paths))}")
+        try:
+            paths = _export.write(files, out)
+        except (ValueError, OSError) as e:
+            raise ConfigError(f"--out: {e}") from None
         checked = "not checked"
         if check:
-            if c_compiler() is None:
+            if _export.c_compiler() is None:
                 checked = "not compiled: no C compiler found ($CC, cc, gcc, clang)"
             else:
                 try:
-                    checked = "compiled cleanly: " + check_compiles(paths[1])
+                    checked = "compiled cleanly: " + _export.check_compiles(paths[1])
                 except RuntimeError as e:
                     checked = f"did NOT compile: {e}"
-            log(f"fosmc export: {checked}")
+            if checked.startswith("compiled cleanly"):  # otherwise "check" says why (the command line warns)
+                log(f"fosmc export: {checked}")
     return {"files": files, "paths": paths, "kind": cfg["controller"]["kind"], "precision": precision,
-            "check": checked}  # fmt: skip
+            "model": model, "check": checked}  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- identify
@@ -691,57 +746,82 @@ def run_identify(
 
     ``payload``: the experiment's payload (kg; default: the config's ``plant.payloads`` if it
     lists one). ``delay``: samples between a logged voltage and the motor (default: the config's
-    ``controller.delay_samples``). ``dt``: the integration step (default: the log's sample period,
-    one step of the config's ``sim.integrator`` per sample). ``threshold``: the relative standard
+    ``controller.delay_samples``). ``dt``: the longest integration step (default: the log's sample
+    period, one step of the config's ``sim.integrator`` per sample; a ``dt`` that does not divide
+    the period gives the next shorter step that does, said in a ``log`` line). ``window``: in
+    seconds, rounded to whole sample periods (at least 2). ``threshold``: the relative standard
     deviation above which the log does not identify a direction. The encoder's quantum comes from
     ``sensors.encoder_counts``. ``out``: folder for ``identified.toml`` (the ``[arm]`` table to
     paste into a config) and ``identify.json`` (this function's result), refused when not empty
-    without ``force``.
+    without ``force``, or when a file. A bad option is a one-line :class:`ConfigError` naming it.
 
     Returns the report: :func:`fosmc_jax._firmware.identify.identify`'s dict (``entries``,
-    ``groups``, ``fixed``, ``poorly_identified``, ``params``, ``payload``, ``fit``, ``log``) with
-    the versions, ``names``, ``data``, ``toml`` (``identified.toml``'s text), ``config_check``
-    (``"ok"``, or the config error the identified arm raises, e.g. inertias that break the
-    triangle inequality) and ``config``.
+    ``groups``, ``fixed``, ``poorly_identified``, ``warnings``, ``params``, ``payload``, ``fit``,
+    ``log``) with the versions, ``names``, ``data``, ``toml`` (``identified.toml``'s text),
+    ``config_check`` (``"ok"``, or the config error the identified arm raises, e.g. inertias that
+    break the triangle inequality) and ``config``.
     """
+    import math
+    import numbers
+
     from .._firmware import identify as I
 
-    cfg = config_of(config)
-    names = [n.strip() for n in params.split(",") if n.strip()] if isinstance(params, str) else list(params)
-    checks = (("--window", window, window > 0, "a positive number (s)"),
-              ("--threshold", threshold, threshold > 0, "a positive number"),
-              ("--iterations", iterations, iterations >= 1, "a positive integer"),
-              ("--bootstrap", bootstrap, bootstrap >= 0, "a non-negative integer"),
-              ("--dt", dt, dt is None or dt > 0, "a positive number (s)"),
-              ("--delay", delay, delay is None or delay >= 0, "a non-negative integer (samples)"))  # fmt: skip
-    for option, value, ok, what in checks:
+    # (option, value, integer?, least, strictly above it?, what); None: the default, for the last three
+    checks = (("--window", window, False, 0, True, "a positive number (s)"),
+              ("--threshold", threshold, False, 0, True, "a positive number"),
+              ("--iterations", iterations, True, 1, False, "a positive integer"),
+              ("--bootstrap", bootstrap, True, 0, False, "a non-negative integer"),
+              ("seed", seed, True, 0, False, "a non-negative integer"),
+              ("--dt", dt, False, 0, True, "a positive number (s)"),
+              ("--delay", delay, True, 0, False, "a non-negative integer (samples)"),
+              ("--payload", payload, False, 0, False, "a non-negative mass (kg)"))  # fmt: skip
+    for name, value, integer, least, strict, what in checks:
+        if value is None and name in ("--dt", "--delay", "--payload"):
+            continue
+        ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
+        ok = ok and (integer or math.isfinite(value)) and (value > least if strict else value >= least)
         if not ok:
-            raise ConfigError(f"{option}: expected {what}, got {value}")
+            raise ConfigError(f"{name}: expected {what}, got {repr(value) if isinstance(value, str) else value}")
+    if isinstance(params, str):
+        names = [n.strip() for n in params.split(",") if n.strip()]
+    elif isinstance(params, (list, tuple)) and all(isinstance(n, str) for n in params):
+        names = list(params)
+    else:
+        raise ConfigError(f"--params: expected names, comma-separated or a list of strings, got {params!r}")
+    cfg = config_of(config)
     if payload is None:
         if len(cfg["plant"]["payloads"]) != 1:
             raise ConfigError(f"--payload: the config lists {len(cfg['plant']['payloads'])} payloads "
                               f"({cfg['plant']['payloads']}); give the experiment's (kg)")  # fmt: skip
         payload = cfg["plant"]["payloads"][0]
-    elif not payload >= 0:
-        raise ConfigError(f"--payload: expected a non-negative mass (kg), got {payload}")
     if out is not None:
+        out = Path(out)
+        here = next(p for p in (out, *out.parents) if p.exists())  # the nearest that exists ('.' or '/' at last)
+        if not here.is_dir():
+            raise ConfigError(f"--out: {out} is a file, not a folder" if here == out else
+                              f"--out: cannot make the folder {out}: {here} is a file")  # fmt: skip
         out = _fresh_out(out, force, "use --force to overwrite")
     counts = np.asarray(cfg["sensors"]["encoder_counts"], float)
     try:
         record = I.read_log(data)
-        period = float(np.median(np.diff(record.t)))
+        period = I.sample_period(record.t)
+        samples = round(window / period)
+        if samples < 2:
+            raise ValueError(f"--window: expected at least 2 of the log's sample periods ({2 * period:g} s), "
+                             f"got {window:g} s")  # fmt: skip
         settings = I.Settings(
-            window=max(2, round(window / period)),
+            window=samples,
             delay=cfg["controller"]["delay_samples"] if delay is None else int(delay),
             integrator=cfg["sim"]["integrator"],
-            dt=dt,
-            threshold=threshold,
-            iterations=iterations,
-            bootstrap=bootstrap,
-            seed=seed,
+            dt=None if dt is None else float(dt),
+            threshold=float(threshold),
+            iterations=int(iterations),
+            bootstrap=int(bootstrap),
+            seed=int(seed),
             resolution=tuple(np.where(counts > 0, 2 * np.pi / np.maximum(counts, 1), 0.0)),
         )
-        result = I.identify(_config.arm_params_of(cfg, np.float64), payload, record, names, settings, progress=log)
+        arm = _config.arm_params_of(cfg, np.float64)
+        result = I.identify(arm, float(payload), record, names, settings, progress=log)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
@@ -756,18 +836,25 @@ def run_identify(
     origin = str(config) if isinstance(config, (str, Path)) else "the paper's defaults" if config is None else "a dict"
     fit = result["fit"]
     rms = np.array2string(np.asarray(fit["rms_theta"]), precision=2)
+    noise = np.array2string(np.asarray(fit["noise_floor_theta"]), precision=2)
+    ratio = "" if fit["misfit"] is None else f", up to {fit['misfit']:.3g} x"
     header = (f"fosmc identify: {', '.join(names)} fitted to {data} ({result['log']['samples']} samples, "
               f"{result['log']['duration']:g} s{', with currents' if result['log']['currents'] else ''}), starting "
-              f"from the [arm] of {origin}.\nResidual RMS {rms} rad; +- is one standard deviation (the larger of "
-              "Gauss-Newton's and the bootstrap's over windows).")  # fmt: skip
+              f"from the [arm] of {origin}.\nResidual RMS {rms} rad{ratio} the angles' noise {noise} rad.\n"
+              f"+- is one standard deviation ({fit['stds']}), assuming the model is right (the residuals the log's "
+              "noise).")  # fmt: skip
+    for warning in result["warnings"]:
+        header += f"\nWARNING: {warning}."
     if config_check != "ok":
         header += f"\nWARNING: not a valid config as it stands: {config_check}"
     toml = I.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
     report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
                       "config": cfg})  # fmt: skip
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        write_text(out / "identified.toml", toml)
-        write_text(out / "identify.json", json.dumps(jsonable(report), indent=1))
-        log(f"identify: wrote {out}/identified.toml and {out}/identify.json")
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            write_text(out / "identified.toml", toml)
+            write_text(out / "identify.json", json.dumps(jsonable(report), indent=1))
+        except OSError as e:
+            raise ConfigError(f"--out: cannot write in {out}: {e.strerror or e}") from None
     return report

@@ -56,12 +56,20 @@ _LONG_NAME = {
     "smc": "conventional sliding mode controller (boundary layer)",
     "super_twisting": "super-twisting controller",
 }
+#: The phrase for the paper's design model, (29): ``export_c``'s ``model`` for its rows.
+PAPER_MODEL = "the paper's nominal model (29)"
 _SWITCHING = {"sign": "SGN(s)", "ratio": "s / (|s| + delta), (28)", "sat": "clip(s / delta, -1, 1)",
               "tanh": "tanh(s / delta)"}  # fmt: skip
 
 
 def export_c(
-    loop: DigitalLoop, reference: Any, *, precision: str = "float64", name: str = "fosmc", source: str = ""
+    loop: DigitalLoop,
+    reference: Any,
+    *,
+    precision: str = "float64",
+    name: str = "fosmc",
+    source: str = "",
+    model: str = "",
 ) -> dict[str, str]:
     """The C99 files of ``loop``'s controller: ``{"<name>.h": text, "<name>.c": text}``.
 
@@ -72,8 +80,11 @@ def export_c(
     exported as ``<name>_reference_at``. ``precision``: the C ``real`` type, ``float32`` or
     ``float64`` (the constants are the loop's values rounded to it). ``name``: the prefix of
     every public C identifier and of the files (a C identifier). ``source``: lines for the
-    files' head comment (where the constants come from). One-line ``ValueError`` for what has
-    no C form.
+    files' head comment (where the constants come from). ``model``: the design model whose
+    rows the law holds (its ``a_rows``, ``b_rows``, which K and (CB)^-1 are designed on), in
+    words, for the comments: :data:`PAPER_MODEL` for the paper's (29), or e.g. "the design
+    model derived from the configured [arm]" (default: "the law's design model", named no
+    further). One-line ``ValueError`` for what has no C form.
     """
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
@@ -88,13 +99,33 @@ def export_c(
                          f"{', '.join(k.__name__ for k in _KIND_OF)})")  # fmt: skip
     if not isinstance(reference, (Cycloid, Sinusoid)):
         raise ValueError(f"export: the reference must be a Cycloid or a Sinusoid, got {type(reference).__name__}")
-    g = _Generator(loop, reference, kind, precision, name, source)
+    g = _Generator(loop, reference, kind, precision, name, source, model or "the law's design model")
     return {f"{name}.h": g.header(), f"{name}.c": g.source()}
+
+
+def check_targets(out: str | Path, filenames: Any) -> Path:
+    """``out`` as a Path, once it is known that :func:`write` can put ``filenames`` there: a
+    one-line ``ValueError`` naming the path where ``out`` or a folder above it exists and is not
+    a folder, where a target exists and is not a file, or where the folder that would hold them
+    (or create them) is not writable."""
+    out = Path(out)
+    existing = next((p for p in (out, *out.parents) if p.exists() or p.is_symlink()), None)
+    if existing is not None and not existing.is_dir():
+        raise ValueError(f"{existing} exists and is not a folder")
+    for filename in filenames:
+        target = out / filename
+        if target.exists() and not target.is_file():
+            raise ValueError(f"{target} exists and is not a file")
+    if existing is not None and not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"{existing} is not writable")
+    return out
 
 
 def write(files: dict[str, str], out: str | Path) -> list[Path]:
     """Write :func:`export_c`'s files into the folder ``out`` (created; files of the same names
-    replaced, each atomically); their paths."""
+    replaced, each atomically); their paths. Every target is checked first
+    (:func:`check_targets`): where one cannot be written, nothing is."""
+    out = check_targets(out, files)
     paths = []
     for filename, text in files.items():
         write_text(Path(out) / filename, text)
@@ -139,8 +170,9 @@ def _np(x) -> np.ndarray:
 class _Generator:
     """The text of both files for one loop (see :func:`export_c`)."""
 
-    def __init__(self, loop: DigitalLoop, reference, kind: str, precision: str, name: str, source: str):
+    def __init__(self, loop: DigitalLoop, reference, kind: str, precision: str, name: str, source: str, model: str):
         self.loop, self.reference, self.kind, self.name, self.origin = loop, reference, kind, name, source
+        self.model = model
         self.f32 = precision == "float32"
         self.precision = precision
         self.P, self.M = name, name.upper()
@@ -217,8 +249,10 @@ class _Generator:
         law = f"The {_LONG_NAME[self.kind]}"
         if self.kind == "fosmc":
             law += f" (switching f(s) = {_SWITCHING[self.switching]}; law '{self.law_form}' (23))"
+        design = f"  designed on {self.model} (A_r, B_bar: its rows 3, 6, 9 of A, B),"
         lines = [
             *textwrap.wrap(law + ", as the digital loop of fosmc_jax (fosmc_jax.DigitalLoop) runs it:", 96),
+            *textwrap.wrap(design, 96, subsequent_indent="    "),
             f"  sample period T = {self.T:g} s ({1 / self.T:g} Hz), computation delay d = {self.delay} sample(s),",
             f"  {sensors},",
             f"  {rates},",
@@ -238,7 +272,7 @@ class _Generator:
         head = [
             f"{P}.h: generated by fosmc_jax {__version__} (`fosmc export`, {self.precision}). Do not edit: "
             "export again.",
-            *self.origin.splitlines(),
+            *_lines(self.origin),
             "",
             *self.describe(),
             "",
@@ -361,11 +395,10 @@ class _Generator:
         else:
             out += self.array("C_SURFACE", self.C, "The sliding surface s = C Z; columns [theta_1, theta_1', "
                               "theta_1'', theta_2, ...], as every 9-vector here.")  # fmt: skip
-            out += self.array("CB_INV", self.CB_inv, "(CB)^-1, B the nominal input rows of (29).")
-        out += self.array("A_R", self.a_rows, "Rows 3, 6, 9 of the nominal A of (29) (A_r).")
+            out += self.array("CB_INV", self.CB_inv, f"(CB)^-1, B the input rows of {self.model}.")
+        out += self.array("A_R", self.a_rows, f"A_r: rows 3, 6, 9 of A of {self.model}.")
         if self.kind == "fosmc":
-            out += self.array("B_BAR_INV", self.B_inv, "B_bar^-1: the inverse of rows 3, 6, 9 of the nominal B of "
-                              "(29).")  # fmt: skip
+            out += self.array("B_BAR_INV", self.B_inv, f"B_bar^-1: the inverse of rows 3, 6, 9 of B of {self.model}.")
         if self.kind == "smc":
             out += self.array("K_SWITCH", self.k, "k: the switching gains (V-scaled).")
             out += self.array("PHI", self.phi, "phi: the boundary-layer widths of sat(s / phi).")
@@ -570,7 +603,7 @@ class _Generator:
             ]
             return out
         out = [
-            "    /* s = C Z and ce = C e, e = X_d' - N(Y), N(Y) the rates of the nominal model (29) without input */",
+            *_comment(f"s = C Z and ce = C e, e = X_d' - N(Y), N(Y) the rates of {self.model} without input", 4),
             "    times9(A_R, y, jerk);",
             "    for (i = 0; i < 3; i++) {",
             "        z[3 * i] = y[3 * i] - x_d[3 * i];",
@@ -610,8 +643,8 @@ class _Generator:
                "measurement": f"const {r} measurement[9]"}[self.input_name]  # fmt: skip
         body = ["    /* the measurement Y_j */", *self.measure(), ""]
         if self.kind == "fosmc":
-            body += ["    /* X_d (6) and Omega = B_bar^-1 (theta_d''' - A_r X_d) (10): the input under which the",
-                     "     * nominal model (29) follows X_d */"]  # fmt: skip
+            body += _comment(f"X_d (6) and Omega = B_bar^-1 (theta_d''' - A_r X_d) (10): the input under which "
+                             f"{self.model} follows X_d", 4)  # fmt: skip
         else:
             body += ["    /* X_d (6) */"]
         body += [
@@ -724,7 +757,7 @@ class _Generator:
 
         P = self.P
         head = [f"{P}.c: generated by fosmc_jax {__version__} (`fosmc export`, {self.precision}). Do not edit: "
-                "export again.", *self.origin.splitlines(), "", *self.describe()]  # fmt: skip
+                "export again.", *_lines(self.origin), "", *self.describe()]  # fmt: skip
         if self.kind == "fosmc":
             head += ["", "The design behind the constants: K of (16) places the poles of A + BK per joint at"]
             head += [f"  joint {i + 1}: {', '.join(f'{p:g}' for p in row)} (1/s)" for i, row in enumerate(self.poles)]
@@ -743,12 +776,18 @@ class _Generator:
         return "\n".join(out)
 
 
-def _comment(text: str) -> list[str]:
-    """``text`` as a C comment, wrapped at 100 columns."""
-    lines = textwrap.wrap(text, 96)
+def _lines(text: str) -> list[str]:
+    """``text``'s lines wrapped at 96 columns (a long one continued indented by 2)."""
+    return [part for line in text.splitlines() for part in textwrap.wrap(line, 96, subsequent_indent="  ") or [""]]
+
+
+def _comment(text: str, indent: int = 0) -> list[str]:
+    """``text`` as a C comment indented by ``indent``, wrapped at 100 columns."""
+    pad = " " * indent
+    lines = textwrap.wrap(text, 96 - indent)
     if len(lines) == 1:
-        return [f"/* {lines[0]} */"]
-    return ["/* " + lines[0], *[" * " + line for line in lines[1:-1]], " * " + lines[-1] + " */"]
+        return [f"{pad}/* {lines[0]} */"]
+    return [f"{pad}/* " + lines[0], *[f"{pad} * " + line for line in lines[1:-1]], f"{pad} * " + lines[-1] + " */"]
 
 
 def _wrap(entries: list[str], first: str, rest: str, width: int = 100) -> list[str]:
