@@ -541,9 +541,18 @@ def _check_arm(cfg: dict) -> None:
     if unc["samples"] and not varies:
         raise ConfigError("arm.uncertainty.samples: nothing varies (set a half-width, e.g. arm.uncertainty.F = 0.3)")
     for k in varying:  # relative half-widths: a zero stays zero (the Coulomb and disturbance defaults)
-        if not np.any((np.broadcast_to(np.asarray(unc[k], float), np.shape(arm[k])) > 0) & (np.asarray(arm[k]) != 0)):
+        width, nominal = np.asarray(unc[k], float), np.asarray(arm[k])
+        if np.ndim(width) and np.any((width > 0) & (nominal == 0)) or not np.any((width > 0) & (nominal != 0)):
             raise ConfigError(f"arm.uncertainty.{k}: a relative half-width of arm.{k} = {_short(arm[k])} varies "
-                              f"nothing (a zero stays zero); set arm.{k}, the nominal")  # fmt: skip
+                              f"nothing where it is zero (a zero stays zero); set arm.{k}, the nominal")  # fmt: skip
+    # parameters of a term that is absent in every joint: a half-width on them varies nothing either
+    for k, term in (("v_coulomb", "Fc"), ("f_sin", "tau_sin"), ("t_step", "tau_step")):
+        if k in varying and not np.any(np.asarray(arm[term])):
+            raise ConfigError(f"arm.uncertainty.{k}: varies nothing while arm.{term} is zero; set arm.{term}")
+    silent = (np.asarray(arm["tau_sin"]) != 0) & (np.asarray(arm["f_sin"]) == 0)
+    if np.any(silent):
+        joint = np.flatnonzero(silent)[0] + 1
+        raise ConfigError(f"arm.tau_sin: a sinusoid at arm.f_sin = 0 Hz is zero (joint {joint}); set arm.f_sin")
     for j in (2, 3):
         if error := centre_error(arm[f"c{j}"], arm[f"l{j}"], j):
             raise ConfigError(error)
