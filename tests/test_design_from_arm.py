@@ -163,3 +163,17 @@ def test_bounds_reports_both_models_and_the_K_the_simulated_controller_uses(arm_
     out = capsys.readouterr().out
     assert out.startswith("model: arm (K, CB and the bounds below: the nominal arm and the 8 corners")
     assert "both design models (in use: arm):" in out and "K of the paper model (3x9; not the controller's):" in out
+
+
+def test_only_entries_that_move_the_rows_make_design_corners():
+    """Corners over the drawn entries that enter the rows: Fc's non-zero joint (a zero stays
+    zero) and F's three joints; the external torque's half-widths (outside the rows) add none."""
+    widths = {"Fc": 0.3, "F": 0.2, "tau_sin": 0.5, "f_sin": 0.5, "samples": 2}
+    arm = {"Fc": [1.0, 0.0, 0.0], "tau_sin": [0.5, 0.5, 0.5], "uncertainty": widths}
+    cfg = fj.config.resolve({"plant": {"kind": "arm", "payloads": [0.0]}, "arm": arm})
+    arms, which = C._design_arms(cfg["arm"], cfg["arm"]["uncertainty"])
+    assert len(arms) == 1 + 2**4 and "the 16 corners" in which
+    Fc = np.array([np.asarray(a.Fc) for a in arms])
+    np.testing.assert_allclose(sorted(set(Fc[:, 0])), [0.7, 1.0, 1.3])
+    assert not Fc[:, 1:].any()
+    assert all(np.array_equal(np.asarray(a.tau_sin), [0.5, 0.5, 0.5]) for a in arms)

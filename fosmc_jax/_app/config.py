@@ -28,7 +28,7 @@ from .._design import paper
 from .._design.gains import CONVENTIONS, DesignError, DesignSummary, check_design, stable_step, summarize
 from .._io import read_json
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
-from .._plants.arm import ARM_PARAMS, PARAM_RULES, PAYLOAD_RANGE, Arm, ArmParams, centre_error, rows_over
+from .._plants.arm import ARM_PARAMS, EXOGENOUS, PARAM_RULES, PAYLOAD_RANGE, Arm, ArmParams, centre_error, rows_over
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
@@ -757,15 +757,19 @@ def _arm_model(key: str) -> DesignModel:
 def _design_arms(arm: dict, widths: dict) -> tuple[list[ArmParams], str]:
     """The arms the design model is taken over, and their description: the nominal ``arm``
     ({field: value}), then the corners nominal x (1 +- h) of the relative half-widths ``widths``
-    (every corner of the m entries with h > 0 up to ``ARM_MODEL_CORNERS``, else that many
-    distinct corners drawn with a fixed seed, whatever ``arm.uncertainty.seed``). Corners, not
-    the sampled arms: the rows are monotone in most parameters (B_bar = M^-1 diag(Kt/L), the
-    R/L and F terms), so the corners bound the rows of every arm drawn in the ranges, and the
-    design does not change with the draw."""
+    (every corner of the m entries that move the rows, h > 0 on a non-zero nominal outside the
+    external torque, up to ``ARM_MODEL_CORNERS``, else the distinct ones of that many corners
+    drawn with a fixed seed, whatever ``arm.uncertainty.seed``). Corners, not the sampled arms:
+    the rows are monotone in most parameters (B_bar = M^-1 diag(Kt/L), the R/L and F terms), so
+    every corner bounds the rows of every arm drawn in the ranges (a drawn subset of them need
+    not), and the design does not change with the draw."""
     nominal = {k: np.asarray(arm[k], dtype=np.float64) for k in ArmParams._fields}
     h = {k: np.broadcast_to(np.asarray(widths[k], dtype=np.float64), v.shape) for k, v in nominal.items()}
     flat = np.concatenate([w.ravel() for w in h.values()])
-    live = np.flatnonzero(flat > 0)
+    # the entries that move the rows: drawn (h > 0, nominal not 0: a zero stays zero), and not the
+    # external torque's (outside the rows, third_order_rows)
+    enters = np.concatenate([np.full(v.size, k not in EXOGENOUS) & (v.ravel() != 0) for k, v in nominal.items()])
+    live = np.flatnonzero((flat > 0) & enters)
     m = live.size
     if not m:
         return [ArmParams(**nominal)], "the nominal arm"

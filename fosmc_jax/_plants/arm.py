@@ -268,6 +268,10 @@ def _external(p: ArmParams, t: Array) -> tuple[Array, Array, Array] | None:
     return tuple(d)
 
 
+#: The external torque's fields: outside the dynamics' rows (:func:`third_order_rows`), an input.
+EXOGENOUS = ("tau_bias", "tau_step", "t_step", "tau_sin", "f_sin")
+
+
 #: The optional terms, by the field of their amplitude: None there (:func:`without_idle_terms`)
 #: leaves the term out of the dynamics, at no cost.
 OPTIONAL_TERMS = ("Fc", "tau_bias", "tau_step", "tau_sin")
