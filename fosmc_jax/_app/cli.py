@@ -442,9 +442,9 @@ def parser() -> argparse.ArgumentParser:
     x.add_argument("--config", help="TOML config with a digital loop (controller.sample_period > 0)")
     x.add_argument("--params", metavar="JSON",
                    help="the tuned parameters of a `fosmc tune` result.json or a `fosmc front` front.json")  # fmt: skip
-    x.add_argument("--point", type=int, help="with a front.json: the point to export (index)")
+    x.add_argument("--point", type=int, help="with a front.json (required there): the point to export (index)")
     x.add_argument("--out", required=True, metavar="DIR",
-                   help="folder for NAME.h and NAME.c (files of those names replaced)")  # fmt: skip
+                   help="folder for NAME.h and NAME.c (created; files of those names replaced)")  # fmt: skip
     x.add_argument("--precision", choices=("float32", "float64"), default="float64",
                    help="the C real type (default float64)")  # fmt: skip
     x.add_argument("--name", default="fosmc", help="prefix of the files and of every C identifier (default fosmc)")

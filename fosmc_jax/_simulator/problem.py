@@ -189,7 +189,7 @@ def _checked(kind: str, base: Any, p: Mapping) -> dict:
         value = p[param.name]
         try:
             value = jnp.asarray(value, jnp.result_type(old))
-        except TypeError:
+        except (TypeError, ValueError):
             raise ValueError(f"params.{param.name}: expected numbers, got {type(value).__name__}") from None
         if value.shape != old.shape:
             raise ValueError(f"params.{param.name}: expected shape {old.shape}, got {value.shape}")
