@@ -777,8 +777,10 @@ class _Generator:
 
 
 def _lines(text: str) -> list[str]:
-    """``text``'s lines wrapped at 96 columns (a long one continued indented by 2)."""
-    return [part for line in text.splitlines() for part in textwrap.wrap(line, 96, subsequent_indent="  ") or [""]]
+    """``text``'s lines wrapped at 96 columns (a long one continued indented by 2) between words,
+    never inside one (a path stays whole)."""
+    wrap = lambda line: textwrap.wrap(line, 96, subsequent_indent="  ", break_long_words=False, break_on_hyphens=False)
+    return [part for line in text.splitlines() for part in wrap(line) or [""]]
 
 
 def _comment(text: str, indent: int = 0) -> list[str]:
