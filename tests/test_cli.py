@@ -182,3 +182,16 @@ def test_simulate_shards_over_every_core_by_default_and_equals_one_device(tmp_pa
     for a, b in zip(default["rollouts"], single["rollouts"], strict=True):
         for name in METRIC_NAMES:
             np.testing.assert_allclose(a["metrics"][name], b["metrics"][name], rtol=1e-12, atol=1e-300)
+
+
+@pytest.mark.parametrize("command", ["tune", "front"])
+def test_out_that_is_a_file_is_refused_in_one_line(capsys, tmp_path, command):
+    """--out naming a file, or a folder below one: one line, exit status 2, the file untouched."""
+    afile = tmp_path / "afile"
+    afile.write_text("keep")
+    below = afile / "sub"
+    for out, message in ((afile, f"--out: {afile} is a file, not a folder"),
+                         (below, f"--out: cannot make the folder {below}: {afile} is a file")):  # fmt: skip
+        code, _, err = run(capsys, tmp_path, SHORT, command, "--out", str(out))
+        assert code == 2 and err.strip().splitlines()[-1] == f"fosmc: error: {message}"
+    assert afile.read_text() == "keep"

@@ -70,6 +70,10 @@ def config_of(config: Config) -> dict[str, Any]:
 
 def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
     out = Path(out)
+    here = next((p for p in (out, *out.parents) if p.exists()), None)  # the nearest part that exists
+    if here is not None and not here.is_dir():
+        raise ConfigError(f"--out: {out} is a file, not a folder" if here == out else
+                          f"--out: cannot make the folder {out}: {here} is a file")  # fmt: skip
     if out.exists() and any(out.iterdir()) and not flags:
         raise ConfigError(f"--out: {out} exists and is not empty ({hint})")
     return out
@@ -795,11 +799,6 @@ def run_identify(
                               f"({cfg['plant']['payloads']}); give the experiment's (kg)")  # fmt: skip
         payload = cfg["plant"]["payloads"][0]
     if out is not None:
-        out = Path(out)
-        here = next(p for p in (out, *out.parents) if p.exists())  # the nearest that exists ('.' or '/' at last)
-        if not here.is_dir():
-            raise ConfigError(f"--out: {out} is a file, not a folder" if here == out else
-                              f"--out: cannot make the folder {out}: {here} is a file")  # fmt: skip
         out = _fresh_out(out, force, "use --force to overwrite")
     counts = np.asarray(cfg["sensors"]["encoder_counts"], float)
     try:
