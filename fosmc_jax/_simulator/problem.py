@@ -124,8 +124,7 @@ class Problem(NamedTuple):
         """The arm's nominal physical parameters, by :class:`fosmc_jax.ArmParams` field: the
         configured ``[arm]`` (:attr:`arm`; sampled arms are drawn around it), or, for plants
         made by hand, the first plant's."""
-        fields, nominal = self._arm_fields("arm_params")
-        return nominal._asdict()
+        return self._arm_fields("arm_params")[1]._asdict()
 
     def _arm_fields(self, what: str) -> tuple[ArmParams, ArmParams]:
         """The plants' (P, ...) parameters and the nominal's (or the first plant's)."""
