@@ -190,6 +190,7 @@ def _X0():
     return fj.desired_state(_reference()(jnp.zeros(())))
 
 
+@pytest.mark.slow  # ~7 s; batches equal to their rollouts one by one: test_simulator.py in the default tier
 def test_batched_payload_sweep_equals_one_by_one():
     payloads = jnp.array([0.0, 4.0, 10.0])
     ctrl, ref, X0 = _controller(), _reference(), _X0()
