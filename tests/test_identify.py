@@ -53,27 +53,24 @@ def test_a_log_reads_alike_from_csv_and_npz(tmp_path):
         assert (a.current is None) == (cur is None)
 
 
+#: Bad CSV logs, by kind: the file's text ("bad row": the 13th line of the file, after three
+#: comments and a blank line).
+_ROWS = ["t,theta1,theta2,theta3,u1,u2,u3"] + ["0.001,0,0,0,0,0,0"] * 7 + ["0.001,0,x,0,0,0,0"]
+BAD_CSV = {
+    "missing column": "t,theta1,theta2,theta3,u1,u2\n0,0,0,0,0,0\n",
+    "some currents": "t,theta1,theta2,theta3,u1,u2,u3,i1\n0,0,0,0,0,0,0,0\n",
+    "bad row": "# a\n# b\n\n" + "\n".join(_ROWS[:2]) + "\n# c\n" + "\n".join(_ROWS[2:]) + "\n",
+    "column twice": "t,theta1,theta2,theta3,u1,u2,u3,u3\n0,0,0,0,0,0,0,1\n",
+}
+
+
 def _bad(tmp_path, kind):
+    if kind in BAD_CSV:
+        path = tmp_path / "log.csv"
+        path.write_text(BAD_CSV[kind])
+        return path
     t = np.arange(400) * 1e-3
     theta, u = np.zeros((400, 3)), np.zeros((400, 3))
-    if kind == "missing column":
-        path = tmp_path / "log.csv"
-        path.write_text("t,theta1,theta2,theta3,u1,u2\n0,0,0,0,0,0\n")
-        return path
-    if kind == "some currents":
-        path = tmp_path / "log.csv"
-        path.write_text("t,theta1,theta2,theta3,u1,u2,u3,i1\n0,0,0,0,0,0,0,0\n")
-        return path
-    if kind == "bad row":  # the 13th line of the file, after three comments and a blank line
-        path = tmp_path / "log.csv"
-        rows = ["t,theta1,theta2,theta3,u1,u2,u3"] + ["0.001,0,0,0,0,0,0"] * 7 + ["0.001,0,x,0,0,0,0"]
-        path.write_text("# a\n# b\n\n" + "\n".join(rows[:2]) + "\n# c\n" + "\n".join(rows[2:]) + "\n")
-        assert path.read_text().splitlines()[12] == "0.001,0,x,0,0,0,0"
-        return path
-    if kind == "column twice":
-        path = tmp_path / "log.csv"
-        path.write_text("t,theta1,theta2,theta3,u1,u2,u3,u3\n0,0,0,0,0,0,0,1\n")
-        return path
     if kind == "missing array":
         path = tmp_path / "log.npz"
         np.savez(path, t=t, theta=theta)
@@ -104,6 +101,7 @@ def _bad(tmp_path, kind):
      ("wrong shape", "--data: theta: expected shape (400, 3)")],
 )  # fmt: skip
 def test_a_bad_log_is_refused_in_one_line_with_exit_status_2(tmp_path, capsys, kind, message):
+    assert BAD_CSV["bad row"].splitlines()[12] == "0.001,0,x,0,0,0,0"  # the line the message names
     path = _bad(tmp_path, kind)
     with pytest.raises(fj.ConfigError) as e:
         run_identify({"plant": {"kind": "arm", "payloads": [0.0]}}, data=path, params="F")
