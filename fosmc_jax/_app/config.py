@@ -1042,7 +1042,10 @@ def with_params(cfg: dict, path: str | Path, point: int | None = None) -> dict:
     except ValueError as e:
         raise ConfigError(f"--params: {e}") from None
     if isinstance(data, dict) and "points" in data:
-        if point is None or not 0 <= point < len(data["points"]):
+        if point is None:
+            raise ConfigError(f"--point: {path} is a front of {len(data['points'])} points: name one with --point I "
+                              "(e.g. the one `fosmc select` names)")  # fmt: skip
+        if not 0 <= point < len(data["points"]):
             raise ConfigError(f"--point: expected an index in [0, {len(data['points'])}) for the front {path}, "
                               f"got {point}")  # fmt: skip
         params = data["points"][point]["params"]
