@@ -102,7 +102,7 @@ def layout_header() -> str:
 TABLE_BYTES = 24 * 1024
 _HERE = Path(__file__).parent
 _SOURCES = [_HERE / "kernel.cc", _HERE / "arm_kernel.cc"]  # one library; both include kernel.h
-_HEADER = _HERE / "kernel.h"
+_HEADERS = [_HERE / "kernel.h", _HERE / "vecmath.h"]
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
 
 
@@ -136,7 +136,7 @@ def _build() -> Path:
         raise OSError("no C++ compiler found (set CXX)")
     # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (benchmarks/arm_levers.py's ablations); in the cache key
     cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}"]
-    text = [path.read_text() for path in (*_SOURCES, _HEADER)] + [layout_header()]
+    text = [path.read_text() for path in (*_SOURCES, *_HEADERS)] + [layout_header()]
     key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
     cache = cache_dir()
     lib = cache / f"kernel-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
@@ -157,6 +157,29 @@ def _build() -> Path:
                 [*cmd, *map(str, objects), "-o", str(out)], capture_output=True, text=True, timeout=600
             )
             _check(cxx, link.returncode, link.stderr)
+            os.replace(out, lib)
+    return lib
+
+
+def build_generated(source: str) -> Path:
+    """The shared library of a generated kernel's ``source`` (C++ that includes gen_kernel.h),
+    compiled once per source, headers, flags, compiler, jaxlib and CPU, cached as the kernels are."""
+    cxx = _compiler()
+    if cxx is None:
+        raise OSError("no C++ compiler found (set CXX)")
+    cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}",
+           f"-I{_HERE}"]  # fmt: skip
+    headers = [path.read_text() for path in (*_HEADERS, _HERE / "gen_kernel.h")]
+    key = "\n".join([source, *headers, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
+    cache = cache_dir()
+    lib = cache / f"generated-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
+    if not lib.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
+            src, out = Path(tmp) / "model.cc", Path(tmp) / lib.name
+            src.write_text(source)
+            run = subprocess.run([*cmd, str(src), "-o", str(out)], capture_output=True, text=True, timeout=600)
+            _check(cxx, run.returncode, run.stderr)
             os.replace(out, lib)
     return lib
 

@@ -181,6 +181,54 @@ def _u_max(ctrl) -> Array | None:
     return ctrl.u_max if isinstance(ctrl, SampledLoop) else None
 
 
+def sample_steps(ctrl) -> int:
+    """m: the simulation steps per controller sample (1 in the ideal loop)."""
+    return ctrl.sample_steps if isinstance(ctrl, SampledLoop) else 1
+
+
+def closed_loop_step(plant, ctrl, reference, dt: Array, integrator: str, divergence_bound, chattering_cutoff):
+    """The closed loop's step, ``step(carry, sample) -> carry``: one step of ``integrator``
+    over [t_k, t_k + dt) with the control held, then at t_{k+1} the observation, a controller
+    sample when ``sample`` (static), the divergence guard and the metrics' update. The one
+    source of the loop: :func:`simulate` scans it, and the generated kernels
+    (:mod:`fosmc_jax._simulator.generated`) are printed from it."""
+    u_max = _u_max(ctrl)
+    flows = isinstance(ctrl, ContinuousLaw)
+    dtype = dt.dtype
+    a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
+    theta = slice(0, 9, 3)
+    stepper = _STEPPERS[integrator]
+
+    def integrate(plant_state, ctrl_state, U, t):
+        if not flows:
+            return stepper(lambda t, y: derivative_at(plant, y, U, t), t, plant_state, dt), ctrl_state
+
+        def f(t, y):
+            ps, cs = y
+            return derivative_at(plant, ps, U, t), ctrl.derivative(cs, observe_at(plant, ps, t), reference(t), t)
+
+        return stepper(f, t, (plant_state, ctrl_state), dt)
+
+    def step(c: _Carry, sample: bool) -> _Carry:
+        plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt)
+        k = c.k + 1
+        t = k.astype(dtype) * dt
+        X = observe_at(plant, plant_state, t)
+        r = reference(t)
+        U = c.U
+        if sample:
+            U, ctrl_state = ctrl.update(ctrl_state, X, r, t)
+        ok = _finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
+        acc = _metrics.add(c.acc, X[theta] - r[0], U, c.U, a, u_max)
+        kept, diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, t, (c.plant_state, c.ctrl_state, c.U, c.acc),
+            (plant_state, ctrl_state, U, acc),
+        )  # fmt: skip
+        return _Carry(k, *kept, diverged, diverged_at)
+
+    return step
+
+
 def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
     """The carry at t = 0: the plant's state from X0, the controller's first sample, the
     metrics' first sample; flagged diverged (at 0) where any of it is not finite."""
@@ -267,44 +315,12 @@ def _simulate(
     ctrl = as_controller(controller, switching, law)
     check_plant(plant)
     check_controller(ctrl)
-    m = ctrl.sample_steps if isinstance(ctrl, SampledLoop) else 1
+    m = sample_steps(ctrl)
     if save_every % m:
         raise ValueError(f"save_every = {save_every} must be a multiple of the controller's sample_steps = {m}")
-    u_max = _u_max(ctrl)
-    flows = isinstance(ctrl, ContinuousLaw)
     dtype = X0.dtype
     dt = jnp.asarray(dt, dtype)
-    a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
-    theta = slice(0, 9, 3)
-    stepper = _STEPPERS[integrator]
-
-    def integrate(plant_state, ctrl_state, U, t):
-        if not flows:
-            return stepper(lambda t, y: derivative_at(plant, y, U, t), t, plant_state, dt), ctrl_state
-
-        def f(t, y):
-            ps, cs = y
-            return derivative_at(plant, ps, U, t), ctrl.derivative(cs, observe_at(plant, ps, t), reference(t), t)
-
-        return stepper(f, t, (plant_state, ctrl_state), dt)
-
-    def step(c: _Carry, sample: bool) -> _Carry:
-        """One simulation step; at its end a controller sample when ``sample``."""
-        plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt)
-        k = c.k + 1
-        t = k.astype(dtype) * dt
-        X = observe_at(plant, plant_state, t)
-        r = reference(t)
-        U = c.U
-        if sample:
-            U, ctrl_state = ctrl.update(ctrl_state, X, r, t)
-        ok = _finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
-        acc = _metrics.add(c.acc, X[theta] - r[0], U, c.U, a, u_max)
-        kept, diverged, diverged_at = _guard(
-            c.diverged, c.diverged_at, ok, t, (c.plant_state, c.ctrl_state, c.U, c.acc),
-            (plant_state, ctrl_state, U, acc),
-        )  # fmt: skip
-        return _Carry(k, *kept, diverged, diverged_at)
+    step = closed_loop_step(plant, ctrl, reference, dt, integrator, divergence_bound, chattering_cutoff)
 
     def held(c: _Carry, _) -> tuple[_Carry, None]:
         return step(c, sample=False), None

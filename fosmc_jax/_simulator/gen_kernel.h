@@ -1,0 +1,215 @@
+// The skeleton of the generated kernels (fosmc_jax/_simulator/generated.py): the time loop, the
+// blocks of lanes over XLA's thread pool, the checkpointed reverse sweep and the XLA FFI glue.
+// No formula of the closed loop is here: a model's file defines FOSMC_T, includes this header,
+// then defines `struct Model` with the step and its vector-Jacobian product printed from the
+// JAX model (fosmc_jax._simulator.codegen), and ends with FOSMC_GENERATED_HANDLERS(Model).
+//
+// Layouts (rows of N lanes, lane-minor; T the model's float):
+//   lanes  (kLaneHeld + kLaneSampled, N)  per rollout, what the steps take from the rollout's
+//          parameters (hoisted out of the time loop by JAX): the held step's, then the sampled step's
+//   table  (L, kTimeHeld + kTimeSampled)  per step k, what depends on time only (computed by JAX)
+//   carry  (kState, N)  the rollout's state, flat
+//   ckpt   (ceil(L / K), kState, N)  the carry at steps 0, K, 2K, ... (the forward stores them
+//          for the adjoint, which recomputes each block's states from them)
+// Step k (from t_k to t_{k+1}, k counted from the call's k0) ends with a controller sample when
+// (k0 + k + 1) % kM == 0: Model::Sampled, else Model::Held (kM = 1: the ideal loop).
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include "kernel.h"
+#include "vecmath.h"
+
+namespace ffi = xla::ffi;
+
+namespace gen {
+
+typedef FOSMC_T T;
+typedef fosmc::Simd<T>::V V;
+typedef decltype(V{} < V{}) M;
+constexpr int W = fosmc::Simd<T>::W;
+
+#define LIB(f) [](T a) { return std::f(a); }
+#define LIB2(f) [](T a, T b) { return std::f(a, b); }
+
+inline V Bc(T x) { return V{} + x; }
+const M kTrue = V{} == V{}, kFalse = V{} != V{};
+// XLA's max and min: NaN if either is NaN
+inline V Max(V a, V b) { return a != a ? a : (b > a) | (b != b) ? b : a; }
+inline V Min(V a, V b) { return a != a ? a : (b < a) | (b != b) ? b : a; }
+inline V Abs(V x) { return fosmc::Simd<T>::Abs(x); }
+inline V Sqrt(V x) { return fosmc::Simd<T>::Sqrt(x); }
+inline V Sign(V x) { return x > Bc(0) ? Bc(1) : x < Bc(0) ? Bc(-1) : x; }
+inline M IsFinite(V x) {
+  const V d = x - x;  // 0 where finite, NaN at inf and NaN
+  return d == d;
+}
+inline void SinCos(V x, V* s, V* c) { fosmc::SinCos<T>(x, s, c); }
+template <typename F>
+inline V Lib(V x, F f) {
+  V r;
+  for (int l = 0; l < W; l++) r[l] = f(x[l]);
+  return r;
+}
+template <typename F>
+inline V Lib2(V x, V y, F f) {
+  V r;
+  for (int l = 0; l < W; l++) r[l] = f(x[l], y[l]);
+  return r;
+}
+
+template <class Mo>
+inline void Step(int64_t k, const V* x, const V* lv, const T* row, V* y) {
+  if (Mo::kM == 1 || k % Mo::kM == 0)
+    Mo::Sampled(x, lv + Mo::kLaneHeld, row + Mo::kTimeHeld, y);
+  else
+    Mo::Held(x, lv, row, y);
+}
+
+template <class Mo>
+inline void StepVjp(int64_t k, const V* x, const V* lv, const T* row, const V* ct, V* gx, V* glv) {
+  if (Mo::kM == 1 || k % Mo::kM == 0)
+    Mo::SampledVjp(x, lv + Mo::kLaneHeld, row + Mo::kTimeHeld, ct, gx, glv + Mo::kLaneHeld);
+  else
+    Mo::HeldVjp(x, lv, row, ct, gx, glv);
+}
+
+struct Shape {
+  int64_t N, L, K, k0;
+};
+
+// One block of W lanes at column c: L steps from `in` to `out`, the carry stored every K steps
+// into `ckpt` where it is given.
+template <class Mo>
+void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out, T* ckpt, int64_t c) {
+  constexpr int n = Mo::kState, nl = Mo::kLaneHeld + Mo::kLaneSampled, nt = Mo::kTimeHeld + Mo::kTimeSampled;
+  V a[n], b[n], lv[nl > 0 ? nl : 1];
+  for (int r = 0; r < n; r++) a[r] = fosmc::Simd<T>::Load(in + r * s.N + c);
+  for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
+  V *x = a, *y = b;
+  for (int64_t k = 0; k < s.L; k++) {
+    if (ckpt && k % s.K == 0)
+      for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * s.N + c, x[r]);
+    Step<Mo>(s.k0 + k + 1, x, lv, table + k * nt, y);
+    std::swap(x, y);
+  }
+  for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(out + r * s.N + c, x[r]);
+}
+
+// The reverse sweep of one block: from the cotangent of the last carry, the cotangents of the
+// first carry and of the lanes (summed over the steps). Each block of K steps is recomputed from
+// its checkpoint, then swept backwards. `truncate` (> 0): at every step k with k % truncate == 0
+// the cotangent of the dynamic rows (Mo::kDynamic) stops: truncated backpropagation through time.
+template <class Mo>
+void Adjoint(const Shape& s, int64_t truncate, const T* lanes, const T* table, const T* ckpt, const T* ct_out,
+             T* ct_in, T* ct_lanes, int64_t c) {
+  constexpr int n = Mo::kState, nl = Mo::kLaneHeld + Mo::kLaneSampled, nt = Mo::kTimeHeld + Mo::kTimeSampled;
+  V lv[nl > 0 ? nl : 1], glv[nl > 0 ? nl : 1], g[n], gx[n];
+  for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c), glv[r] = V{};
+  for (int r = 0; r < n; r++) g[r] = fosmc::Simd<T>::Load(ct_out + r * s.N + c);
+  std::vector<V> states(static_cast<size_t>(std::min(s.K, s.L)) * n);
+  for (int64_t j = (s.L + s.K - 1) / s.K - 1; j >= 0; j--) {
+    const int64_t k1 = j * s.K, k2 = std::min(s.L, k1 + s.K);
+    V* st = states.data();
+    for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * s.N + c);
+    for (int64_t k = k1; k + 1 < k2; k++)
+      Step<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, st + (k - k1 + 1) * n);
+    for (int64_t k = k2 - 1; k >= k1; k--) {
+      StepVjp<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, g, gx, glv);
+      if (truncate > 0 && (s.k0 + k) % truncate == 0)
+        for (int r = 0; r < n; r++) gx[r] = Mo::kDynamic[r] ? V{} : gx[r];
+      std::copy(gx, gx + n, g);
+    }
+  }
+  for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ct_in + r * s.N + c, g[r]);
+  for (int r = 0; r < nl; r++) fosmc::Simd<T>::Store(ct_lanes + r * s.N + c, glv[r]);
+}
+
+template <class Mo>
+ffi::Error Check(ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer carry, Shape* s, int64_t K) {
+  const auto type = sizeof(T) == 8 ? ffi::DataType::F64 : ffi::DataType::F32;
+  const auto ld = lanes.dimensions(), td = table.dimensions(), cd = carry.dimensions();
+  if (lanes.element_type() != type || table.element_type() != type || carry.element_type() != type)
+    return ffi::Error::InvalidArgument("fosmc generated kernel: every buffer must have the model's dtype");
+  if (ld.size() != 2 || td.size() != 2 || cd.size() != 2 || cd[0] != Mo::kState ||
+      ld[0] != Mo::kLaneHeld + Mo::kLaneSampled || ld[1] != cd[1] || td[1] != Mo::kTimeHeld + Mo::kTimeSampled)
+    return ffi::Error::InvalidArgument("fosmc generated kernel: buffer shapes do not match the model's layout");
+  if (cd[1] % W) return ffi::Error::InvalidArgument("fosmc generated kernel: the lane count must fill whole blocks");
+  if (K < 1) return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoint interval must be positive");
+  *s = Shape{cd[1], td[0], K, 0};
+  return ffi::Error::Success();
+}
+
+template <class Mo>
+ffi::Error RunForward(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer in,
+                      ffi::Result<ffi::AnyBuffer> out, T* ckpt, int64_t k0, int64_t K) {
+  Shape s;
+  if (auto e = Check<Mo>(lanes, table, in, &s, K); e.failure()) return e;
+  s.k0 = k0;
+  const T *lp = lanes.typed_data<T>(), *tp = table.typed_data<T>(), *ip = in.typed_data<T>();
+  T* op = out->typed_data<T>();
+  fosmc::RunBlocks(pool, s.N / W, [=](int64_t i) { Forward<Mo>(s, lp, tp, ip, op, ckpt, i * W); });
+  return ffi::Error::Success();
+}
+
+template <class Mo>
+ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer ckpt,
+                      ffi::AnyBuffer ct_out, ffi::Result<ffi::AnyBuffer> ct_in, ffi::Result<ffi::AnyBuffer> ct_lanes,
+                      int64_t k0, int64_t K, int64_t truncate) {
+  Shape s;
+  if (auto e = Check<Mo>(lanes, table, ct_out, &s, K); e.failure()) return e;
+  s.k0 = k0;
+  if (ckpt.element_count() != ((s.L + K - 1) / K) * Mo::kState * s.N)
+    return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoints do not match the horizon");
+  const T *lp = lanes.typed_data<T>(), *tp = table.typed_data<T>(), *cp = ckpt.typed_data<T>(),
+          *gp = ct_out.typed_data<T>();
+  T *ip = ct_in->typed_data<T>(), *glp = ct_lanes->typed_data<T>();
+  fosmc::RunBlocks(pool, s.N / W, [=](int64_t i) { Adjoint<Mo>(s, truncate, lp, tp, cp, gp, ip, glp, i * W); });
+  return ffi::Error::Success();
+}
+
+}  // namespace gen
+
+#define FOSMC_GENERATED_HANDLERS(Mo)                                                                              \
+  static ffi::Error GenForward(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer in, \
+                               ffi::Result<ffi::AnyBuffer> out, int64_t k0) {                                     \
+    return gen::RunForward<Mo>(pool, lanes, table, in, out, nullptr, k0, 1);                                      \
+  }                                                                                                               \
+  static ffi::Error GenForwardCk(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table,                \
+                                 ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out,                              \
+                                 ffi::Result<ffi::AnyBuffer> ckpt, int64_t k0, int64_t K) {                       \
+    return gen::RunForward<Mo>(pool, lanes, table, in, out, ckpt->typed_data<gen::T>(), k0, K);                   \
+  }                                                                                                               \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenForward, GenForward,                                                      \
+                                ffi::Ffi::Bind()                                                                  \
+                                    .Ctx<ffi::ThreadPool>()                                                       \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Ret<ffi::AnyBuffer>()                                                        \
+                                    .Attr<int64_t>("k0"));                                                        \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenForwardCk, GenForwardCk,                                                  \
+                                ffi::Ffi::Bind()                                                                  \
+                                    .Ctx<ffi::ThreadPool>()                                                       \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Ret<ffi::AnyBuffer>()                                                        \
+                                    .Ret<ffi::AnyBuffer>()                                                        \
+                                    .Attr<int64_t>("k0")                                                          \
+                                    .Attr<int64_t>("K"));                                                         \
+  XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenAdjoint, gen::RunAdjoint<Mo>,                                             \
+                                ffi::Ffi::Bind()                                                                  \
+                                    .Ctx<ffi::ThreadPool>()                                                       \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Arg<ffi::AnyBuffer>()                                                        \
+                                    .Ret<ffi::AnyBuffer>()                                                        \
+                                    .Ret<ffi::AnyBuffer>()                                                        \
+                                    .Attr<int64_t>("k0")                                                          \
+                                    .Attr<int64_t>("K")                                                           \
+                                    .Attr<int64_t>("truncate"));

@@ -1,0 +1,518 @@
+"""Generated kernels: the closed loop's step printed from the JAX model into C++, forward and adjoint.
+
+One rollout's step, :func:`fosmc_jax._simulator.rollout.closed_loop_step` (the plant, the law, the
+loop, the integrator, the guard and the metrics, whatever pytrees they are: a user's law or plant
+too), is traced on one rollout's flat state and split by what each value depends on:
+
+- on the rollout's parameters only (the plant's and the controller's leaves: K, (CB)^-1, the
+  arm's constants): hoisted out of the time loop, computed by JAX once per rollout ("lanes");
+- on time only (the step index, dt, the reference): computed by JAX once per step for every
+  rollout (the "table");
+- on the state: printed by :mod:`fosmc_jax._simulator.codegen` into straight-line C++ over SIMD
+  lanes, with its vector-Jacobian product (built by ``jax.vjp``, printed the same way).
+
+The skeleton ``gen_kernel.h`` runs the time loop over blocks of lanes on every core, the forward
+storing the state every K ~ sqrt(n) steps, the adjoint recomputing each block from its
+checkpoint and sweeping it backwards. In JAX the kernel is one function of (state, lanes,
+table) with a ``custom_jvp`` whose tangent is a ``linear_call``: forward mode runs a
+``lax.scan`` of the same split step, reverse mode the transpose, the adjoint kernel. The
+hoisted parts are plain JAX, so derivatives reach every parameter through them.
+
+What cannot be printed (a primitive the printer does not know, a value that is an integer per
+rollout) raises :class:`fosmc_jax._simulator.codegen.Unsupported`; the callers then run the
+``vmap`` path, with one warning naming it.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import math
+import os
+import warnings
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.custom_derivatives import SymbolicZero, linear_call
+
+from . import codegen
+from . import native as _native
+
+_S, _L, _T = 1, 2, 4  # what a value depends on: the state, the rollout's parameters, time
+_INLINE = {"jit", "pjit", "closed_call", "core_call", "remat2", "checkpoint"}
+
+
+class _Entry(NamedTuple):
+    eqn: Any
+    ins: list[int]  # value ids
+    outs: list[int]
+    fn: Any = None  # evaluates the entry instead of binding eqn's primitive (a rewritten solve)
+
+
+def _record(jaxpr, consts, in_ids, tape: list, values: dict, counter: list) -> list:
+    """The equations of ``jaxpr`` appended to ``tape`` with calls inlined, values as ids."""
+    env = {}
+
+    def new():
+        counter[0] += 1
+        return counter[0]
+
+    def read(v):
+        if isinstance(v, jax.extend.core.Literal):
+            i = new()
+            values[i] = np.asarray(v.val)
+            return i
+        return env[v]
+
+    for v, c in zip(jaxpr.constvars, consts):
+        env[v] = new()
+        values[env[v]] = c
+    for v, i in zip(jaxpr.invars, in_ids):
+        env[v] = i
+    for eqn in jaxpr.eqns:
+        ins = [read(v) for v in eqn.invars]
+        if eqn.primitive.name in _INLINE:
+            sub = eqn.params["jaxpr" if "jaxpr" in eqn.params else "call_jaxpr"]
+            inner, inner_consts = (sub.jaxpr, sub.consts) if hasattr(sub, "consts") else (sub, [])
+            outs = _record(inner, inner_consts, ins, tape, values, counter)
+        else:
+            outs = [new() for _ in eqn.outvars]
+            tape.append(_Entry(eqn, ins, outs))
+        for v, o in zip(eqn.outvars, outs):
+            env[v] = o
+    return [read(v) for v in jaxpr.outvars]
+
+
+def _replay(entries, env: dict) -> None:
+    for e in entries:
+        if e.fn is not None:
+            out = e.fn(*(env[i] for i in e.ins))
+        else:
+            out = e.eqn.primitive.bind(*(env[i] for i in e.ins), **e.eqn.primitive.get_bind_params(e.eqn.params))
+        for i, o in zip(e.outs, out if e.eqn.primitive.multiple_results else [out]):
+            env[i] = o
+
+
+def _hoist_solves(tape: list, cls: dict, counter: list) -> list:
+    """A linear solve A x = b whose A depends on the rollout's parameters only and b on the state or time
+    (``jnp.linalg.solve(CB, .)`` in a law) becomes x = A^-1 b with A^-1 computed by the same
+    solve, once per rollout: the step then holds a product instead of a pivoting solve, whose
+    row exchanges vary by rollout. Derivatives are those of A^-1 b (exact: the same function)."""
+    out = []
+    for e in tape:
+        n = e.eqn.params.get("const_lengths") if e.eqn.primitive.name == "custom_linear_solve" else None
+        if n is None or e.eqn.invars[-1].aval.ndim != 1 or len(e.ins) != sum(n) + 1:
+            out.append(e)
+            continue
+        *consts, b = e.ins
+        if not all(cls[i] in (0, _L) for i in consts) or cls[b] in (0, _L):
+            out.append(e)
+            continue
+        size = e.eqn.invars[-1].aval.shape[0]
+        params = e.eqn.primitive.get_bind_params(e.eqn.params)
+        solve = lambda *a, p=e.eqn.primitive, params=params: p.bind(*a, **params)[0]
+        inverse = lambda *c, solve=solve, size=size, dtype=e.eqn.invars[-1].aval.dtype: jax.vmap(
+            lambda col: solve(*c, col), out_axes=1
+        )(jnp.eye(size, dtype=dtype))
+        counter[0] += 1
+        inv_id = counter[0]
+        cls[inv_id] = functools.reduce(int.__or__, (cls[i] for i in consts), 0)
+        out.append(_Entry(_Multi(False), list(consts), [inv_id], lambda *c, f=inverse: f(*c)))
+        out.append(_Entry(_Multi(True), [inv_id, b], list(e.outs), lambda A, v: [A @ v]))
+    return out
+
+
+class _Multi(NamedTuple):
+    """Stands in for a rewritten entry's equation: whether it returns a list."""
+
+    multiple: bool
+
+    @property
+    def primitive(self):
+        return self
+
+    @property
+    def multiple_results(self):
+        return self.multiple
+
+
+class Split(NamedTuple):
+    """One step split into what is hoisted and what is printed (see the module's docstring)."""
+
+    lane_pre: Any  # lane leaves -> list of hoisted values (one rollout)
+    time_pre: Any  # (k, glob leaves) -> list of hoisted values
+    core: Any  # (x, lane values, time values) -> x'
+    lane_avals: list
+    time_avals: list
+
+
+def split(step, x_aval, lane_avals, glob_avals) -> Split:
+    """Traces ``step(x, lane_leaves, glob_leaves, k) -> x'`` and splits it."""
+    k_aval = jax.ShapeDtypeStruct((), jnp.int32)
+    closed = jax.make_jaxpr(step)(x_aval, lane_avals, glob_avals, k_aval)
+    n_lane, n_glob = len(lane_avals), len(glob_avals)
+    tape: list[_Entry] = []
+    values: dict = {}
+    counter = [0]
+    ids = list(range(1, 2 + n_lane + n_glob + 1))
+    counter[0] = ids[-1]
+    x_id, lane_ids, glob_ids, k_id = ids[0], ids[1 : 1 + n_lane], ids[1 + n_lane : -1], ids[-1]
+    out_ids = _record(closed.jaxpr, closed.consts, ids, tape, values, counter)
+    cls = {x_id: _S, k_id: _T, **{i: _L for i in lane_ids}, **{i: _T for i in glob_ids}}
+    for i in values:
+        cls[i] = 0
+    for e in tape:
+        for o in e.outs:
+            cls[o] = functools.reduce(int.__or__, (cls[i] for i in e.ins), 0)
+    tape = _hoist_solves(tape, cls, counter)
+    lane_entries, time_entries, core_entries = [], [], []
+    with jax.ensure_compile_time_eval():
+        for e in tape:
+            c = functools.reduce(int.__or__, (cls[i] for i in e.ins), 0)
+            for o in e.outs:
+                cls[o] = c
+            if c == 0:  # constants: folded now
+                _replay([e], values)
+            else:
+                (lane_entries if c == _L else time_entries if c == _T else core_entries).append(e)
+    used = [i for e in core_entries for i in e.ins] + list(out_ids)
+    used = list(dict.fromkeys(used))
+    lane_hoist = [i for i in used if cls[i] == _L]
+    time_hoist = [i for i in used if cls[i] == _T]
+    consts = {i: values[i] for i in used if cls[i] == 0}
+
+    def lane_pre(lane):
+        env = {**values, **dict(zip(lane_ids, lane))}
+        _replay(lane_entries, env)
+        return [env[i] for i in lane_hoist]
+
+    def time_pre(k, glob):
+        env = {**values, **dict(zip(glob_ids, glob)), k_id: k}
+        _replay(time_entries, env)
+        return [env[i] for i in time_hoist]
+
+    def core(x, lv, tv):
+        env = {**consts, **dict(zip(lane_hoist, lv)), **dict(zip(time_hoist, tv)), x_id: x}
+        _replay(core_entries, env)
+        return env[out_ids[0]]
+
+    k0 = jax.ShapeDtypeStruct((), jnp.int32)
+    return Split(
+        lane_pre, time_pre, core, jax.eval_shape(lane_pre, lane_avals), jax.eval_shape(time_pre, k0, glob_avals)
+    )
+
+
+def _as_float(values, dtype) -> Array:
+    """Hoisted values (each flattened, cast to the model's float) as one vector."""
+    parts = [jnp.ravel(jnp.asarray(v)).astype(dtype) for v in values]
+    return jnp.concatenate(parts) if parts else jnp.zeros((0,), dtype)
+
+
+def _from_float(vector, avals) -> list:
+    out, at = [], 0
+    for a in avals:
+        n = math.prod(a.shape)
+        out.append(vector[at : at + n].reshape(a.shape).astype(a.dtype))
+        at += n
+    return out
+
+
+def _size(avals) -> int:
+    return sum(math.prod(a.shape) for a in avals)
+
+
+class Model(NamedTuple):
+    """A generated kernel, built: the split steps (held and sampled) and the FFI targets."""
+
+    held: Split | None  # None in the ideal loop (m = 1)
+    sampled: Split
+    n_state: int
+    m: int
+    dtype: Any
+    targets: tuple[str, str, str]  # forward, forward with checkpoints, adjoint
+    dynamic: np.ndarray  # (n_state,) bool: the rows whose derivative a truncation stops
+
+    def lanes(self, lane_leaves) -> Array:
+        """(n_lane,) of one rollout: the held step's hoisted values, then the sampled step's."""
+        parts = [] if self.held is None else self.held.lane_pre(lane_leaves)
+        return _as_float([*parts, *self.sampled.lane_pre(lane_leaves)], self.dtype)
+
+    def table_row(self, k, glob_leaves) -> Array:
+        parts = [] if self.held is None else self.held.time_pre(k, glob_leaves)
+        return _as_float([*parts, *self.sampled.time_pre(k, glob_leaves)], self.dtype)
+
+    def step(self, k1, x, lanes, row) -> Array:
+        """One step in JAX from the split pieces (the forward mode's scan): ``k1`` the step's end index."""
+
+        def run(s: Split, lanes, row):
+            return s.core(x, _from_float(lanes, s.lane_avals), _from_float(row, s.time_avals))
+
+        if self.held is None:
+            return run(self.sampled, lanes, row)
+        nl, nt = _size(self.held.lane_avals), _size(self.held.time_avals)
+        return jax.lax.cond(k1 % self.m == 0, lambda: run(self.sampled, lanes[nl:], row[nt:]),
+                            lambda: run(self.held, lanes[:nl], row[:nt]))  # fmt: skip
+
+
+def _print_model(held: Split | None, sampled: Split, n_state: int, m: int, dtype, dynamic) -> str:
+    x_aval = jax.ShapeDtypeStruct((n_state,), dtype)
+    sig = [("x", "V"), ("lv", "V"), ("tv", "T")]
+    functions = []
+    for name, s in (("held", held), ("sampled", sampled)):
+        if s is None:
+            functions.append(f"static inline void {name}(const V*, const V*, const T*, V*) {{}}\n")
+            functions.append(f"static inline void {name}_vjp(const V*, const V*, const T*, const V*, V*, V*) {{}}\n")
+            continue
+        lv, tv = list(s.lane_avals), list(s.time_avals)
+        fwd = jax.make_jaxpr(s.core)(x_aval, lv, tv)
+        inputs = [("x", "V")] + [("lv", "V")] * len(lv) + [("tv", "T")] * len(tv)
+        functions.append(codegen.print_function(name, fwd, dtype, inputs, [("y", False)], sig + [("y", "out")]))
+        diff = [jnp.issubdtype(a.dtype, jnp.floating) for a in lv]
+
+        def vjp(x, lv_, tv_, ct, s=s, diff=diff):
+            f = lambda x, d: s.core(x, _merge(lv_, d, diff), tv_)
+            return jax.vjp(f, x, [v for v, ok in zip(lv_, diff) if ok])[1](ct)
+
+        bwd = jax.make_jaxpr(vjp)(x_aval, lv, tv, x_aval)
+        # the lane rows of a non-float hoisted value get no cotangent (they stay zero)
+        outs = [("gx", False)] + [("glv", True)] * sum(diff)
+        text = codegen.print_function(name + "_vjp", bwd, dtype, inputs + [("ct", "V")], outs,
+                                      sig + [("ct", "V"), ("gx", "out"), ("glv", "out")])  # fmt: skip
+        if not all(diff):  # a skipped row still takes its place in glv: renumber
+            text = _renumber_glv(text, lv, diff)
+        functions.append(text)
+    nl = [0 if s is None else _size(s.lane_avals) for s in (held, sampled)]
+    nt = [0 if s is None else _size(s.time_avals) for s in (held, sampled)]
+    flags = ", ".join("true" if d else "false" for d in dynamic)
+    ctype = "double" if np.dtype(dtype) == np.float64 else "float"
+    return "\n".join([
+        "// Generated by fosmc_jax._simulator.generated from the JAX model: do not edit.",
+        f"#define FOSMC_T {ctype}",
+        '#include "gen_kernel.h"',
+        "namespace {",
+        "using namespace gen;",
+        *functions,
+        "struct Model {",
+        f"  static constexpr int kState = {n_state}, kLaneHeld = {nl[0]}, kLaneSampled = {nl[1]}, "
+        f"kTimeHeld = {nt[0]}, kTimeSampled = {nt[1]}, kM = {m};",
+        f"  static constexpr bool kDynamic[{n_state}] = {{{flags}}};",
+        "  static void Held(const V* x, const V* lv, const T* tv, V* y) { held(x, lv, tv, y); }",
+        "  static void Sampled(const V* x, const V* lv, const T* tv, V* y) { sampled(x, lv, tv, y); }",
+        "  static void HeldVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
+        "    held_vjp(x, lv, tv, ct, gx, glv);",
+        "  }",
+        "  static void SampledVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
+        "    sampled_vjp(x, lv, tv, ct, gx, glv);",
+        "  }",
+        "};",
+        "}  // namespace",
+        "FOSMC_GENERATED_HANDLERS(Model)",
+        "",
+    ])  # fmt: skip
+
+
+def _merge(lv, diff_values, diff):
+    it = iter(diff_values)
+    return [next(it) if ok else v for v, ok in zip(lv, diff)]
+
+
+def _renumber_glv(text: str, lv, diff) -> str:
+    import re
+
+    rows, at = [], 0
+    for a, ok in zip(lv, diff):
+        n = math.prod(a.shape)
+        if ok:
+            rows.extend(range(at, at + n))
+        at += n
+    return re.sub(r"glv\[(\d+)\]", lambda mt: f"glv[{rows[int(mt.group(1))]}]", text)
+
+
+@functools.lru_cache(maxsize=64)
+def _load(source: str) -> tuple[str, str, str]:
+    """Builds and registers a model's library (once per source in a process); its FFI targets."""
+    if os.environ.get("FOSMC_JAX_GENERATED_DUMP"):  # a folder to keep the printed sources in, to read them
+        path = Path(os.environ["FOSMC_JAX_GENERATED_DUMP"]) / f"{hashlib.sha256(source.encode()).hexdigest()[:16]}.cc"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(source)
+    lib = ctypes.cdll.LoadLibrary(str(_native.build_generated(source)))
+    tag = hashlib.sha256(source.encode()).hexdigest()[:16]
+    names = (f"fosmc_gen_{tag}_fwd", f"fosmc_gen_{tag}_fwd_ck", f"fosmc_gen_{tag}_adj")
+    for name, symbol in zip(names, ("FosmcGenForward", "FosmcGenForwardCk", "FosmcGenAdjoint")):
+        jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+    _LIBRARIES.append(lib)
+    return names
+
+
+_LIBRARIES: list = []  # the loaded libraries stay loaded while their targets are registered
+
+
+def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic) -> Model:
+    """The model of ``step_of(sample) -> step(x, lane_leaves, glob_leaves, k) -> x'``, printed,
+    compiled (cached) and registered. Raises :class:`codegen.Unsupported` or OSError."""
+    dtype = state_aval.dtype
+    sampled = split(step_of(True), state_aval, lane_avals, glob_avals)
+    held = split(step_of(False), state_aval, lane_avals, glob_avals) if m > 1 else None
+    source = _print_model(held, sampled, state_aval.shape[0], m, dtype, dynamic)
+    return Model(held, sampled, state_aval.shape[0], m, dtype, _load(source), np.asarray(dynamic, bool))
+
+
+# ----------------------------------------------------------------------------- in JAX
+
+
+def _pad(x: Array, W: int) -> Array:
+    return jnp.pad(x, ((0, 0), (0, (-x.shape[1]) % W)), mode="edge")
+
+
+def advance(model: Model, x0: Array, lanes: Array, table: Array, truncate: int = 0) -> Array:
+    """The state rows (n_state, N) after the table's L steps from ``x0`` (n_state, N), with the
+    rollouts' ``lanes`` (n_lane, N): the generated kernel, differentiable in ``x0`` and ``lanes``
+    (reverse mode: the adjoint kernel; forward mode: a ``lax.scan`` of the split step) and, by the
+    scan, in ``table``. ``truncate`` > 0: the dynamic rows' derivatives stop every ``truncate``
+    steps (:func:`fosmc_jax.simulate`'s ``truncate_every``)."""
+    dtype = model.dtype
+    W = 64 // np.dtype(dtype).itemsize
+    L = table.shape[0]
+    K = max(1, math.isqrt(max(L - 1, 0)) + 1)
+    truncate = truncate if 0 < truncate < L else 0
+    N = x0.shape[1]
+
+    def forward(x0, lanes, table):
+        xp, lp = _pad(x0, W), _pad(lanes, W)
+        call = jax.ffi.ffi_call(model.targets[0], jax.ShapeDtypeStruct(xp.shape, dtype), vmap_method="sequential")
+        return call(lp, table, xp, k0=np.int64(0))[:, :N]
+
+    def scan(x0, lanes, table):
+        dyn = jnp.asarray(model.dynamic)[:, None]
+
+        def body(x, k):
+            if truncate:
+                x = jnp.where(dyn & (k % truncate == 0), jax.lax.stop_gradient(x), x)
+            one = lambda x, lane: model.step(k + 1, x, lane, table[k])
+            return jax.vmap(one, (1, 1), 1)(x, lanes), None
+
+        return jax.lax.scan(body, x0, jnp.arange(L))[0]
+
+    def tangent(res, lin):
+        x0, lanes, table, _ = res
+        return jax.jvp(lambda x, ln: scan(x, ln, table), (x0, lanes), lin)[1]
+
+    def transpose(res, ct):
+        _, lanes, table, ckpt = res
+        lp, cp = _pad(lanes, W), _pad(ct, W)
+        shapes = (jax.ShapeDtypeStruct(cp.shape, dtype), jax.ShapeDtypeStruct(lp.shape, dtype))
+        call = jax.ffi.ffi_call(model.targets[2], shapes, vmap_method="sequential")
+        g_x, g_lanes = call(lp, table, ckpt, cp, k0=np.int64(0), K=np.int64(K), truncate=np.int64(truncate))
+        return g_x[:, :N], g_lanes[:, :N]
+
+    run = jax.custom_jvp(forward)
+
+    def rule(primals, tangents):
+        x0, lanes, table = primals
+        if not isinstance(tangents[2], SymbolicZero):  # a derivative in dt or the reference: the scan
+            full = [jnp.zeros(t.aval.shape, t.aval.dtype) if isinstance(t, SymbolicZero) else t for t in tangents]
+            return jax.jvp(scan, primals, tuple(full))
+        xp, lp = _pad(x0, W), _pad(lanes, W)
+        n_ck = -(-L // K)
+        shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((n_ck, *xp.shape), dtype))
+        call = jax.ffi.ffi_call(model.targets[1], shapes, vmap_method="sequential")
+        out, ckpt = call(lp, table, xp, k0=np.int64(0), K=np.int64(K))
+        lin = tuple(jnp.zeros(t.aval.shape, t.aval.dtype) if isinstance(t, SymbolicZero) else t for t in tangents[:2])
+        return out[:, :N], linear_call(tangent, transpose, (x0, lanes, table, ckpt), lin)
+
+    run.defjvp(rule, symbolic_zeros=True)
+    return run(x0, lanes, table)
+
+
+def warn_unsupported(reason: Exception) -> None:
+    warnings.warn(f"fosmc_jax: the generated kernel cannot run this model ({reason}); the vmap path runs",
+                  stacklevel=3)  # fmt: skip
+
+
+def _state_layout(carry) -> tuple[Any, list, np.ndarray]:
+    """The carry's flat layout without its step count: (treedef, leaf avals, dynamic rows)."""
+    from .rollout import _DYNAMIC
+
+    rest = tuple(carry[1:])
+    leaves, treedef = jax.tree.flatten(rest)
+    dynamic = []
+    for name, field in zip(carry._fields[1:], rest):
+        n = sum(math.prod(jnp.shape(x)) for x in jax.tree.leaves(field))
+        dynamic += [name in _DYNAMIC] * n
+    return treedef, [jax.ShapeDtypeStruct(jnp.shape(x), x.dtype) for x in leaves], np.asarray(dynamic, bool)
+
+
+def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, truncate_every: int = 0):
+    """:func:`fosmc_jax.simulate_batch` of ``args`` = (plants, ctrl, reference, X0s, dt, keys,
+    divergence_bound, chattering_cutoff) on the generated kernel, plants crossed with initial
+    states or (``paired``) the i-th with the i-th, one noise key; raises
+    :class:`codegen.Unsupported` or OSError where the model cannot be printed or built."""
+    from . import metrics as _metrics
+    from .rollout import Result, _Carry, closed_loop_step, sample_steps, start
+
+    plants, ctrl, reference, X0s, dt, keys, bound, cutoff = args
+    dtype = X0s.dtype
+    dt = jnp.asarray(dt, dtype)
+    P = jax.tree.leaves(plants)[0].shape[0]
+    O = 1 if paired else X0s.shape[0]
+    N = P * O
+    key = keys[0]
+    one = lambda plant, X0: start(plant, ctrl, reference, X0, key, bound)
+    if paired:
+        carry = jax.vmap(one)(plants, X0s)
+    else:
+        carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
+        carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
+    lane_plants = jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants)
+    lane_leaves, lane_def = jax.tree.flatten((lane_plants, ctrl))
+    n_plant = len(jax.tree.leaves(lane_plants))
+    # the controller's leaves are one rollout's (shared); the plants' carry the batch axis
+    lane_avals = [jax.ShapeDtypeStruct(x.shape[1:] if i < n_plant else jnp.shape(x), x.dtype)
+                  for i, x in enumerate(lane_leaves)]  # fmt: skip
+    glob_leaves, glob_def = jax.tree.flatten((reference, dt, jnp.asarray(bound, dtype), jnp.asarray(cutoff, dtype)))
+    glob_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in glob_leaves]
+    one_carry = jax.tree.map(lambda x: x[0], carry)
+    state_def, state_avals, dynamic = _state_layout(one_carry)
+    n_state = _size(state_avals)
+    m = sample_steps(ctrl)
+
+    def flatten(c) -> Array:
+        return _as_float(jax.tree.leaves(tuple(c[1:])), dtype)
+
+    def unflatten(k, x) -> Any:
+        return _Carry(
+            k,
+            *jax.tree.unflatten(
+                state_def,
+                [
+                    v.astype(a.dtype) if a.dtype != jnp.bool_ else v != 0
+                    for v, a in zip(_from_float(x, state_avals), state_avals)
+                ],
+            ),
+        )
+
+    def step_of(sample: bool):
+        def step(x, lane, glob, k):
+            plant, ctrl_ = jax.tree.unflatten(lane_def, lane)
+            ref, dt_, bound_, cutoff_ = jax.tree.unflatten(glob_def, glob)
+            advance_one = closed_loop_step(plant, ctrl_, ref, dt_, integrator, bound_, cutoff_)
+            return flatten(advance_one(unflatten(k, x), sample))
+
+        return step
+
+    # float views of the avals for the flat state (the bool rows are 0 / 1 floats there)
+    state_aval = jax.ShapeDtypeStruct((n_state,), dtype)
+    model = build(step_of, state_aval, lane_avals, glob_avals, m, dynamic)
+    x0 = jax.vmap(flatten)(carry).T
+    per_lane = [x if i < n_plant else jnp.broadcast_to(x, (N, *jnp.shape(x))) for i, x in enumerate(lane_leaves)]
+    lanes = jax.vmap(model.lanes)(per_lane).T
+    table = jax.vmap(lambda k: model.table_row(k, glob_leaves))(jnp.arange(n_steps, dtype=jnp.int32))
+    x = advance(model, x0, lanes, table, truncate_every)
+    final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x))(x.T)
+    metrics = jax.vmap(lambda c: _metrics.masked(_metrics.finish(c.acc, n_steps * dt), c.diverged))(final)
+    return Result(metrics, final.diverged, final.diverged_at, None)
