@@ -42,6 +42,7 @@ from .._plants.arm import Arm, ArmParams, cast_params
 from .._plants.reference import desired_state
 from . import metrics as _metrics
 from . import native as _native
+from .generated import jvp_perturbed
 
 # The layouts of arm_kernel.cc: its lane rows, and where the carry's rows hold the accumulator's
 # fields (field-major), the divergence flag and its time, the delay line after them (defined in
@@ -241,17 +242,17 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     return Result(_metrics.masked(_metrics.finish(acc, n_steps * dt), diverged), diverged, out[DIVERGED_AT], None)
 
 
-def simulate_batch(args: tuple, vmap_path, *, n_steps: int, integrator: str, paired: bool = False) -> Result:  # noqa: F821
+def simulate_batch(args: tuple, derivative, *, n_steps: int, integrator: str, paired: bool = False) -> Result:  # noqa: F821
     """:func:`fosmc_jax.simulate_batch` in the kernel (:func:`supports` must hold) for ``args`` =
     (plants, ctrl, reference, X0s, dt, keys, divergence_bound, chattering_cutoff), plants
     crossed with initial states or (``paired``) the i-th with the i-th; the loop draws no
-    noise, so ``keys`` only reach the derivatives, which are those of ``vmap_path(*args)``,
-    the ``vmap`` of ``simulate``."""
+    noise, so ``keys`` only reach the derivatives, which are those of ``derivative(*args)``
+    (the generated kernel's: :mod:`fosmc_jax._simulator.generated`)."""
 
     def kernel(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
         return _native_batch(plants, ctrl, reference, X0s, dt, n_steps=n_steps, integrator=integrator,
                              divergence_bound=bound, chattering_cutoff=cutoff, paired=paired)  # fmt: skip
 
     run = jax.custom_jvp(kernel)
-    run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
+    run.defjvp(lambda primals, tangents: jvp_perturbed(derivative, primals, tangents), symbolic_zeros=True)
     return run(*args)

@@ -21,6 +21,7 @@ rollout's numbers are XLA's to the last bits of its transcendental functions.
 from __future__ import annotations
 
 import math
+import re
 from typing import Any, NamedTuple
 
 import jax
@@ -103,17 +104,24 @@ def _jaxpr_and_consts(j) -> tuple[jcore.Jaxpr, list]:
 class Printer:
     """Prints jaxprs into the statements of one C++ function body (``lines``), with fresh names."""
 
-    def __init__(self, dtype):
+    def __init__(self, dtype, zeros: bool = False):
+        self.zeros = zeros
+        self.seen: dict[tuple[str, str], Atom] = {}
         self.lines: list[str] = []
         self.count = 0
         self.dtype = np.dtype(dtype)
         self.sincos: dict[str, tuple[str, str]] = {}
 
     def fresh(self, kind: str, expr: str) -> Atom:
+        # every expression is pure: one printed twice (the same accelerations in the plant's
+        # derivative and in an observation) is computed once
+        if (kind, expr) in self.seen:
+            return self.seen[kind, expr]
         name = f"{'v' if kind == 'V' else 'm'}{self.count}"
         self.count += 1
         self.lines.append(f"const {kind} {name} = {expr};")
-        return Atom(kind, name)
+        self.seen[kind, expr] = Atom(kind, name)
+        return self.seen[kind, expr]
 
     def vec(self, a: Atom) -> str:
         """``a`` as a float vector expression."""
@@ -248,8 +256,32 @@ class Printer:
         # an operator takes a scalar literal as it is (V op T acts lane by lane); a function a vector
         functional = not fmt.startswith(("{0}", "-"))
         cast = self.vec if functional else self.operand
-        return [self.folded(args) or self.fresh(kind, fmt.format(*map(cast, args)))
+        if fmt == "{0} / {1}" and self.zeros:  # a derivative divides by few values, many times: reciprocals
+            return [self.folded(args) or self.identity(fmt, args) or
+                    self.fresh(kind, f"{cast(args[0])} * {self.fresh('V', f'Bc(1) / {self.vec(args[1])}').expr}")
+                    for args in zip(*self.broadcast(ins))]  # fmt: skip
+        return [self.folded(args) or self.identity(fmt, args) or self.fresh(kind, fmt.format(*map(cast, args)))
                 for args in zip(*self.broadcast(ins))]  # fmt: skip
+
+    def identity(self, fmt: str, args) -> Atom | None:
+        """x + 0, x - 0, x * 1, x / 1 as x; in a derivative (``zeros``), x * 0 as 0 (a cotangent
+        that is zero stays zero where the primal is not finite; JAX's would be NaN there), and a
+        division a product with the reciprocal, computed once per divisor (to rounding)."""
+        if len(args) != 2 or not any(a.kind == "c" for a in args):
+            return None
+        a, b = args
+        c = lambda x, v: x.kind == "c" and float(x.value) == v
+        if fmt == "{0} + {1}":
+            return b if c(a, 0) else a if c(b, 0) else None
+        if fmt == "{0} - {1}":
+            return a if c(b, 0) else None
+        if fmt == "{0} * {1}":
+            if self.zeros and (c(a, 0) or c(b, 0)):
+                return _const(np.zeros((), self.dtype))
+            return b if c(a, 1) else a if c(b, 1) else None
+        if fmt == "{0} / {1}":
+            return a if c(b, 1) else None
+        return None
 
     def folded(self, args) -> Atom | None:
         """The element's value where all its operands are constants (some elements of an
@@ -296,6 +328,8 @@ class Printer:
         for p, a, b in zip(pred, *cases):
             if p.kind == "c":
                 out.append(b if p.value else a)
+            elif a == b or (a.kind == b.kind == "c" and a.value == b.value):
+                out.append(a)
             else:
                 m = self.mask(p) if p.kind == "M" else f"({p.expr} != Bc(0))"  # an integer index
                 out.append(self.fresh(kind, f"{m} ? {cast(b)} : {cast(a)}"))
@@ -488,6 +522,33 @@ class Printer:
         return self.jaxpr(*_jaxpr_and_consts(eqn.params["branches"][int(index[0].value)]), args)
 
 
+_NAME = re.compile(r"\b[vmsc]\d+\b")
+
+
+def _live(lines: list[str]) -> list[str]:
+    """``lines`` without the statements whose results nothing uses (the primal values a
+    vector-Jacobian product computes and does not need): a smaller file to compile."""
+    live: set[str] = set()
+    kept = []
+    for line in reversed(lines):
+        if line.startswith("const "):
+            name = line.split(" = ", 1)[0].split()[-1]
+            if name not in live:
+                continue
+            live.update(_NAME.findall(line.split(" = ", 1)[1]))
+        elif line.startswith("V s"):  # the declaration of a SinCos pair
+            if not set(_NAME.findall(line)) & live:
+                continue
+        elif line.startswith("SinCos("):
+            if not set(_NAME.findall(line)[-2:]) & live:
+                continue
+            live.update(_NAME.findall(line)[:-2])
+        else:
+            live.update(_NAME.findall(line.split(" = ", 1)[-1] if " += " not in line else line))
+        kept.append(line)
+    return kept[::-1]
+
+
 def print_function(
     name: str,
     jaxpr,
@@ -495,16 +556,18 @@ def print_function(
     inputs: list[tuple[str, str]],
     outputs: list[tuple[str, bool]],
     signature: list[tuple[str, str]],
+    derivative: bool = False,
 ) -> str:
-    """A C++ function ``name`` of straight-line code computing closed ``jaxpr``'s outputs.
+    """A C++ function ``name`` (external linkage: each is compiled on its own, in parallel) of
+    straight-line code computing closed ``jaxpr``'s outputs.
 
     ``inputs``: per invar, (C array name, ``"V"`` for vectors per lane or ``"T"`` for one
     scalar shared by the lanes), flattened; ``outputs``: per outvar, (C array name, accumulate:
     ``+=`` instead of ``=``). Invars and outvars of the same array name fill it in order.
     ``signature``: the function's parameters in order, (array name, ``"V"``, ``"T"`` or
-    ``"out"``)."""
+    ``"out"``). ``derivative``: a vector-Jacobian product, whose products with a constant 0 are 0."""
     closed, consts = _jaxpr_and_consts(jaxpr)
-    p = Printer(dtype)
+    p = Printer(dtype, zeros=derivative)
     args, offsets = [], {}
     with jax.ensure_compile_time_eval():
         for (array, kind), v in zip(inputs, closed.invars, strict=True):
@@ -527,6 +590,7 @@ def print_function(
                 body.append(f"{array}[{start + i}] = {value};")
             elif a.kind != "c" or a.value != 0:
                 body.append(f"{array}[{start + i}] += {value};")
+    body = _live(body)
     ctype = {"V": "const V* __restrict", "T": "const T* __restrict", "out": "V* __restrict"}
     params = ", ".join(f"{ctype[kind]} {array}" for array, kind in signature)
-    return "\n".join([f"static inline void {name}({params}) {{", *("  " + line for line in body), "}", ""])
+    return "\n".join([f"void {name}({params}) {{", *("  " + line for line in body), "}", ""])

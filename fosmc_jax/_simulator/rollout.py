@@ -45,6 +45,8 @@ from .._plants.base import check_plant, derivative_at, observe_at
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import arm_native as _arm_native
+from . import codegen as _codegen
+from . import generated as _generated
 from . import metrics as _metrics
 from . import native as _native
 from .checks import check_inputs
@@ -675,11 +677,26 @@ def _simulate_batch(
 
     options.setdefault("integrator", "rk4")
     args = (plants, ctrl, reference, X0s, dt, keys, *(jnp.asarray(x, X0s.dtype) for x in traced))
-    arm_fast = fast and native and keys.shape[0] == 1 and not options.get("save_every")
-    if arm_fast and _arm_native.supports(plants, ctrl, options["integrator"]):
-        return _arm_native.simulate_batch(args, vmap_path, n_steps=options["n_steps"], integrator=options["integrator"],
-                                          paired=paired)  # fmt: skip
-    return vmap_path(*args)
+    if not (fast and native and keys.shape[0] == 1 and not options.get("save_every")):
+        return vmap_path(*args)
+    n_steps, integrator = options["n_steps"], options["integrator"]
+    generated = _generated.mode()
+
+    def kernel_path(*args):
+        """The generated kernel (forward and adjoint), else, where the model cannot be printed, the vmap path."""
+        if generated == "0":
+            return vmap_path(*args)
+        try:
+            return _generated.simulate_batch(args, n_steps=n_steps, integrator=integrator, paired=paired,
+                                             truncate_every=-(-options.get("truncate_every", 0) // m) * m)  # fmt: skip
+        except _codegen.Unsupported as e:
+            _generated.warn_unsupported(e)
+            return vmap_path(*args)
+
+    m = sample_steps(ctrl)
+    if _arm_native.supports(plants, ctrl, integrator):  # the hand-written forward, the generated derivatives
+        return _arm_native.simulate_batch(args, kernel_path, n_steps=n_steps, integrator=integrator, paired=paired)
+    return kernel_path(*args) if generated == "all" else vmap_path(*args)
 
 
 def _checked(jitted, batch: bool):

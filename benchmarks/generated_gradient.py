@@ -1,0 +1,141 @@
+"""Value and gradient against the forward through the public default path (issue 32), one command:
+
+    python benchmarks/generated_gradient.py                    # the three shapes below
+    python benchmarks/generated_gradient.py --only ideal --steps 500 --rounds 1   # a short trial
+    python benchmarks/generated_gradient.py --out /tmp/generated_gradient.json
+
+Shapes (the issue's): ``ideal``, 64 arm rollouts x 4,000 RK4 float64 steps of
+``tuning/configs/arm_ideal_set2.toml`` (8 payloads in [0, 10] kg x 8 initial offsets, as
+benchmarks/arm_gradient.py builds them); ``digital``, the same batch in the ``realistic_arm``
+preset's 1 kHz digital loop (dt 0.1 ms: m = 10, encoder, delay, voltage limit); ``euler32``,
+1,024 rollouts (32 payloads x 32 offsets) x 1,000 Euler float32 steps of arm_ideal_set2.
+
+For each, timed after compilation (the compile time recorded), the median of ``--rounds``
+rounds of ``--round-s`` seconds at least:
+- ``forward``: ``problem.simulate(p)`` (the default path: the arm's native kernel), jitted;
+- ``value_and_grad``: ``jax.value_and_grad`` of the loss mean(rms_error) + 1e-3 mean(chattering)
+  over ``problem.simulate(p)`` in the FOSMC's 15 parameters (delta, gamma, the poles): the
+  generated adjoint kernel;
+- ``vmap_value_and_grad`` (``--vmap``): the same through ``simulate(p, fast=False)`` (the
+  ``vmap`` path, what a gradient cost before; slow: off by default).
+The gradients of the two paths are compared (max relative difference) where both run. The
+1-minute load average is recorded with every round; ``--out`` writes all as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def build(shape: str, steps: int | None):
+    import numpy as np
+
+    import fosmc_jax as fj
+    from fosmc_jax import config as _config
+
+    if shape == "digital":
+        cfg = _config.load("realistic_arm")
+        payloads, offsets, integrator, precision, default_steps = 8, 8, "rk4", "float64", 4000
+    else:
+        cfg = _config.load(ROOT / "tuning" / "configs" / "arm_ideal_set2.toml")
+        if shape == "ideal":
+            payloads, offsets, integrator, precision, default_steps = 8, 8, "rk4", "float64", 4000
+        else:
+            payloads, offsets, integrator, precision, default_steps = 32, 32, "euler", "float32", 1000
+    steps = steps or default_steps
+    lo, hi = cfg["plant"].get("payload_range", [0.0, 10.0]) if shape == "digital" else (0.0, 10.0)
+    cfg["plant"]["payloads"] = np.linspace(lo, hi, payloads).tolist()
+    cfg["plant"].pop("uncertainty", None)
+    cfg["sim"].update(integrator=integrator, precision=precision, t_final=steps * cfg["sim"]["dt"],
+                      initial_offset=np.random.default_rng(1).uniform(-0.05, 0.05, (offsets, 9)).tolist())  # fmt: skip
+    problem = fj.build(cfg)
+    assert problem.rollouts == payloads * offsets, (problem.rollouts, payloads * offsets)
+    return problem, steps
+
+
+def timed(fn, args, rounds: int, round_s: float) -> dict:
+    import jax
+
+    t0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(compiled(*args))
+    warm = time.perf_counter() - t0
+    calls = max(1, int(round_s / max(warm, 1e-6)))
+    per_call, loads = [], []
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            out = jax.block_until_ready(compiled(*args))
+        per_call.append((time.perf_counter() - t0) / calls)
+        loads.append(load())
+    return {"s": statistics.median(per_call), "all_s": per_call, "compile_s": compile_s, "loads": loads, "out": out}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--only", choices=["ideal", "digital", "euler32"], action="append", help="shapes (default all)")
+    ap.add_argument("--steps", type=int, help="steps per rollout (default: the shape's)")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--round-s", type=float, default=1.0)
+    ap.add_argument("--vmap", action="store_true", help="also time the vmap path's value and gradient (slow)")
+    ap.add_argument("--out", help="write the results as JSON")
+    args = ap.parse_args(argv)
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)
+    uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    info = {"command": "python benchmarks/generated_gradient.py " + " ".join(sys.argv[1:] if argv is None else argv),
+            "uptime_start": uptime, "cpus": os.cpu_count(), "shapes": {}}  # fmt: skip
+    print(f"start: {uptime}", flush=True)
+    for shape in args.only or ["ideal", "digital", "euler32"]:
+        problem, steps = build(shape, args.steps)
+        p0 = problem.params()
+
+        def loss(p, fast=True):
+            m = problem.simulate(p, fast=fast).mean()
+            return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering)
+
+        row = {"rollouts": problem.rollouts, "steps": steps}
+        fwd = timed(lambda p: loss(p), (p0,), args.rounds, args.round_s)
+        vg = timed(jax.value_and_grad(loss), (p0,), args.rounds, args.round_s)
+        row["forward"] = {k: v for k, v in fwd.items() if k != "out"}
+        row["value_and_grad"] = {k: v for k, v in vg.items() if k != "out"}
+        row["ratio"] = vg["s"] / fwd["s"]
+        row["value_match"] = float(abs(vg["out"][0] - fwd["out"]) / abs(fwd["out"]))
+        line = (f"{shape}: {problem.rollouts} x {steps}: forward {fwd['s'] * 1e3:.1f} ms, value and gradient "
+                f"{vg['s'] * 1e3:.1f} ms = {row['ratio']:.2f}x (compile {fwd['compile_s']:.1f} / "
+                f"{vg['compile_s']:.1f} s), load {vg['loads']}")  # fmt: skip
+        if args.vmap:
+            vm = timed(jax.value_and_grad(lambda p: loss(p, fast=False)), (p0,), 1, 0.0)
+            row["vmap_value_and_grad"] = {k: v for k, v in vm.items() if k != "out"}
+            diffs = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))),
+                                 vg["out"][1], vm["out"][1])  # fmt: skip
+            row["grad_rel_diff_vs_vmap"] = max(jax.tree.leaves(diffs))
+            line += (f"; vmap path {vm['s'] * 1e3:.0f} ms = {vm['s'] / fwd['s']:.0f}x, gradients within "
+                     f"{row['grad_rel_diff_vs_vmap']:.1e} relative")  # fmt: skip
+        print(line, flush=True)
+        info["shapes"][shape] = row
+    info["uptime_end"] = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    if args.out:
+        Path(args.out).write_text(json.dumps(info, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,246 @@
+"""The generated kernels (fosmc_jax._simulator.generated, codegen): the closed loop's step printed
+from the JAX model, forward and adjoint, against the ``vmap`` path of ``simulate`` (values and
+gradients, the issue's tolerances: 1e-9 relative in float64 on smooth loops, 1e-6 on the quantized
+digital loop), against central differences, in forward mode, under truncation, and the fallback
+where a model cannot be printed. Each model's first build compiles C++ (seconds to tens of
+seconds): the default tier holds one small model, the arm's in the slow tier."""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import fosmc_jax as fj
+from fosmc_jax import paper
+from fosmc_jax._simulator import codegen, generated, native, rollout
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="no C++ compiler: no generated kernels")
+KEY = jax.random.PRNGKey(0)[None]
+
+
+def _linear(dtype=jnp.float64):
+    c = lambda x: jnp.asarray(x, dtype)
+    plants = fj.LinearPlant(c(paper.A_ROWS)[None] * c([[1.0], [1.1]])[..., None], c(paper.B_ROWS)[None].repeat(2, 0))
+    ref = fj.Cycloid(c(paper.THETA_START), c(paper.THETA_END), c(paper.TAU))
+    X0s = fj.desired_state(ref(jnp.zeros((), dtype)))[None] + c([[0.0], [0.02]])
+    return plants, ref, X0s, c(1e-3)
+
+
+def _smc_loop(k, dtype=jnp.float64):
+    """SMC (its solve with CB) in a digital loop with a period of 2 steps, delay 1, a limit."""
+    c = lambda x: jnp.asarray(x, dtype)
+    surface = fj.SurfaceParams(c(paper.C), c(paper.A_ROWS), c(paper.B_ROWS))
+    law = fj.SMC(surface, k, c(jnp.full(3, 0.05)))
+    return fj.DigitalLoop(law, fj.Sensors(jnp.zeros(3), None, "difference"), c(jnp.full(3, 24.0)), c(2e-3), 2, 1)
+
+
+def _both(args, n, integrator, truncate=0):
+    """The generated kernel's result and the vmap path's (simulate_batch with fast=False)."""
+    plants, ctrl, ref, X0s, dt = args
+    full = (plants, ctrl, ref, X0s, dt, KEY, jnp.asarray(1e6, X0s.dtype), jnp.asarray(10.0, X0s.dtype))
+    gen = generated.simulate_batch(full, n_steps=n, integrator=integrator, paired=False, truncate_every=truncate)
+    ref_ = rollout.simulate_batch(plants, ctrl, ref, X0s, dt, n_steps=n, integrator=integrator, fast=False,
+                                  truncate_every=truncate)  # fmt: skip
+    return gen, ref_
+
+
+def _loss(res):
+    return jnp.sum(res.metrics.rms_error) + 1e-3 * jnp.sum(res.metrics.chattering)
+
+
+def _rel(a, b):
+    a, b = np.asarray(a), np.asarray(b)
+    return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300)))
+
+
+@pytest.fixture(scope="module")
+def linear_loop():
+    """A small model (the linear plant under SMC in a digital loop, Euler, 60 steps): its value
+    and gradient in the gains and the plants, both paths, one build shared by the module."""
+    plants, ref, X0s, dt = _linear()
+    k0 = jnp.array([20.0, 25.0, 30.0])
+
+    def run(path):
+        def loss(k, a_rows):
+            gen, vm = _both((plants._replace(a_rows=a_rows), _smc_loop(k), ref, X0s, dt), 60, "euler")
+            return _loss(gen if path == "gen" else vm)
+
+        return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(k0, plants.a_rows)
+
+    return run("gen"), run("vmap")
+
+
+def test_a_digital_smc_loop_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients(linear_loop):
+    (v_gen, g_gen), (v_vm, g_vm) = linear_loop
+    assert np.isfinite(v_gen) and v_gen > 0
+    assert _rel(v_gen, v_vm) < 1e-12
+    # the kernel's SMC multiplies by the hoisted (CB)^-1 where the law solves with CB: rounding
+    assert _rel(g_gen[0], g_vm[0]) < 1e-9 and _rel(g_gen[1], g_vm[1]) < 1e-9
+    assert np.all(np.asarray(g_gen[0]) != 0) and np.any(np.asarray(g_gen[1]) != 0)
+
+
+@pytest.mark.slow
+def test_forward_mode_runs_the_split_step_and_equals_the_vmap_path():
+    plants, ref, X0s, dt = _linear()
+    k0 = jnp.array([20.0, 25.0, 30.0])
+
+    def loss(k, path):
+        gen, vm = _both((plants, _smc_loop(k), ref, X0s, dt), 60, "euler")
+        return _loss(gen if path == "gen" else vm)
+
+    t = jnp.array([1.0, -0.5, 0.25])
+    _, d_gen = jax.jvp(lambda k: loss(k, "gen"), (k0,), (t,))
+    _, d_vm = jax.jvp(lambda k: loss(k, "vmap"), (k0,), (t,))
+    assert _rel(d_gen, d_vm) < 1e-9 and d_vm != 0
+
+
+def test_a_primitive_the_printer_does_not_know_is_named_and_the_batch_runs_the_vmap_path():
+    @functools.partial(jax.tree_util.register_dataclass, data_fields=["K"], meta_fields=[])
+    @dataclasses.dataclass(frozen=True)
+    class Looping:
+        K: jax.Array
+
+        def init(self, X0, r0, key=None):
+            return ()
+
+        def update(self, state, Y, r, t):
+            e = Y - fj.desired_state(r)
+            # a while loop: nothing the printer prints
+            U = jax.lax.while_loop(lambda u: jnp.sum(u * u) > 1e6, lambda u: u / 2, self.K @ e)
+            return U, state
+
+    plants, ref, X0s, dt = _linear()
+    ctrl = Looping(-jnp.ones((3, 9)))
+    full = (plants, ctrl, ref, X0s, dt, KEY, jnp.asarray(1e6), jnp.asarray(10.0))
+    with pytest.raises(codegen.Unsupported, match="while"):
+        generated.simulate_batch(full, n_steps=5, integrator="euler", paired=False)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FOSMC_JAX_GENERATED", "all")
+        with pytest.warns(UserWarning, match="cannot run this model .*while.*vmap path runs"):
+            res = rollout.simulate_batch(plants, ctrl, ref, X0s, dt, n_steps=5, integrator="euler")
+    want = rollout.simulate_batch(plants, ctrl, ref, X0s, dt, n_steps=5, integrator="euler", fast=False)
+    np.testing.assert_array_equal(res.metrics.rms_error, want.metrics.rms_error)
+
+
+def test_the_mode_is_checked():
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FOSMC_JAX_GENERATED", "always")
+        with pytest.raises(ValueError, match="FOSMC_JAX_GENERATED: expected one of derivatives, all, 0"):
+            generated.mode()
+
+
+# ------------------------------------------------------------------------------ the arm (slow)
+
+
+def _arm(cfg="realistic_arm", steps=300, **sim):
+    c = fj.config.load(cfg)
+    c["sim"].update(t_final=steps * c["sim"]["dt"], **sim)
+    return fj.build(c)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cfg, tol", [("arm_ideal", 1e-9), ("realistic_arm", 1e-6)])
+def test_the_arms_gradient_on_the_default_path_is_the_generated_adjoints_and_equals_the_vmap_paths(cfg, tol):
+    # The public default path: the hand-written kernel forward, the generated kernel's derivatives.
+    if cfg == "arm_ideal":
+        problem = _arm("tuning/configs/arm_ideal_set2.toml", 300, integrator="rk4")
+    else:
+        problem = _arm(cfg, 300)
+    p0 = problem.params()
+
+    def loss(p, fast):
+        m = problem.simulate(p, fast=fast).mean()
+        return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering)
+
+    v, g = jax.jit(jax.value_and_grad(lambda p: loss(p, True)))(p0)
+    w, h = jax.jit(jax.value_and_grad(lambda p: loss(p, False)))(p0)
+    assert _rel(v, w) < 1e-12
+    for name in p0:
+        assert _rel(g[name], h[name]) < tol, (name, g[name], h[name])
+        assert np.any(np.asarray(h[name]) != 0)
+
+
+@pytest.mark.slow
+def test_the_arms_gradient_in_its_physical_parameters_and_payloads_equals_the_vmap_paths():
+    problem = _arm("tuning/configs/arm_ideal_set2.toml", 200, integrator="rk4")
+    arm = problem.arm_params()
+
+    def loss(F, Kt, fast):
+        m = problem.with_arm({"F": F, "Kt": Kt}).simulate(fast=fast).mean()
+        return jnp.mean(m.rms_error)
+
+    g = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, True), argnums=(0, 1)))(arm.F, arm.Kt)
+    h = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, False), argnums=(0, 1)))(arm.F, arm.Kt)
+    assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
+
+
+@pytest.mark.slow
+def test_the_generated_gradient_matches_central_differences_on_a_smooth_loop():
+    problem = _arm("tuning/configs/arm_ideal_set2.toml", 200, integrator="rk4")
+    delta = problem.params()["delta"]
+    loss = jax.jit(lambda d: jnp.mean(problem.simulate({"delta": d}).mean().rms_error))
+    g = np.asarray(jax.grad(loss)(delta))
+    for i in range(3):
+        h = 1e-4 * float(delta[i])
+        e = jnp.zeros(3).at[i].set(h)
+        fd = (float(loss(delta + e)) - float(loss(delta - e))) / (2 * h)
+        assert abs(g[i] - fd) <= 1e-5 * abs(fd) + 1e-12, (i, g[i], fd)
+
+
+@pytest.mark.slow
+def test_truncated_gradients_stop_in_the_adjoint_as_in_the_scan():
+    problem = _arm("tuning/configs/arm_ideal_set2.toml", 200, integrator="rk4")
+    p0 = problem.params()
+
+    def loss(p, fast):
+        return jnp.mean(problem.simulate(p, fast=fast, truncate_every=50).mean().rms_error)
+
+    g = jax.jit(jax.grad(lambda p: loss(p, True)))(p0)
+    h = jax.jit(jax.grad(lambda p: loss(p, False)))(p0)
+    full = jax.jit(jax.grad(lambda p: jnp.mean(problem.simulate(p, fast=False).mean().rms_error)))(p0)
+    for name in p0:
+        assert _rel(g[name], h[name]) < 1e-9, name
+    assert _rel(h["delta"], full["delta"]) > 1e-6  # the truncation changes the gradient
+
+
+@pytest.mark.slow
+def test_a_users_law_with_a_state_of_its_own_runs_on_the_arm_kernel_in_float32():
+    @functools.partial(jax.tree_util.register_dataclass, data_fields=["K", "Ki", "a_rows", "b_rows"], meta_fields=[])
+    @dataclasses.dataclass(frozen=True)
+    class PIDTanh:
+        """Feedforward (10) + pole placement + an integral of the angle error, through tanh."""
+
+        K: jax.Array
+        Ki: jax.Array
+        a_rows: jax.Array
+        b_rows: jax.Array
+
+        def init(self, X0, r0, key=None):
+            return jnp.zeros(3, X0.dtype)
+
+        def update(self, z, Y, r, t):
+            e = Y - fj.desired_state(r)
+            z = z + 1e-4 * e[0::3]
+            U = fj.feedforward(self.a_rows, self.b_rows, r) + 24.0 * jnp.tanh((self.K @ e + self.Ki * z) / 24.0)
+            return U, z
+
+    problem = _arm("tuning/configs/arm_ideal_set2.toml", 200, integrator="euler", precision="float32")
+    base = problem.params()  # noqa: F841 (the problem's FOSMC is replaced by the user's law)
+    c = lambda x: jnp.asarray(x, jnp.float32)
+    law = PIDTanh(c(-jnp.kron(jnp.eye(3), jnp.array([[400.0, 40.0, 1.0]]))), c(jnp.full(3, -100.0)),
+                  c(paper.A_ROWS), c(paper.B_ROWS))  # fmt: skip
+    plants, ref, X0s, dt = problem.plants, problem.reference, problem.X0s, problem.dt
+    from fosmc_jax._plants.arm import without_idle_terms
+
+    plants = without_idle_terms(plants)
+
+    def loss(Ki, path):
+        gen, vm = _both((plants, dataclasses.replace(law, Ki=Ki), ref, X0s, dt), 200, "euler")
+        return _loss(gen if path == "gen" else vm)
+
+    v, g = jax.value_and_grad(lambda k: loss(k, "gen"))(law.Ki)
+    w, h = jax.value_and_grad(lambda k: loss(k, "vmap"))(law.Ki)
+    assert _rel(v, w) < 1e-4 and _rel(g, h) < 1e-3  # float32: to rounding over 200 steps
