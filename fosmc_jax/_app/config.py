@@ -461,14 +461,32 @@ def load(path: str | Path | None) -> dict[str, Any]:
         path = PRESETS[path]
     path = Path(path)
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as e:
         raise ConfigError(f"cannot read config file {str(path)!r}: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8")  # TOML is UTF-8 whatever the locale
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (a TOML file is UTF-8; byte {e.start} is {data[e.start]:#04x}); "
+                          "save it as UTF-8") from None  # fmt: skip
     try:
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML: {e}") from None
     return resolve(user)
+
+
+def check_horizon(t_final: Any, dt: Any, names: tuple[str, str] = ("sim.t_final", "sim.dt")) -> None:
+    """The rules of ``[sim] t_final`` and ``dt``: each a positive finite number, dt at most
+    t_final, at most :data:`MAX_STEPS` steps; a :class:`ConfigError` naming ``names`` (the
+    keys, or a command's options: ``fosmc reproduce --t-final``, ``--dt``) otherwise."""
+    t_name, dt_name = names
+    SCHEMA["sim"]["t_final"](t_name, t_final)
+    SCHEMA["sim"]["dt"](dt_name, dt)
+    if dt > t_final:
+        raise ConfigError(f"{dt_name}: expected at most {t_name} = {t_final}, got {dt}")
+    if t_final / dt > MAX_STEPS:
+        raise ConfigError(f"{dt_name}: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {t_final / dt:.3g}")
 
 
 def _check_consistency(cfg: dict) -> None:
@@ -498,10 +516,7 @@ def _check_consistency(cfg: dict) -> None:
         raise ConfigError(
             f"tune.train_dt: expected at most the training horizon {train_t}, got {cfg['tune']['train_dt']}"
         )
-    if sim["t_final"] / sim["dt"] > MAX_STEPS:
-        raise ConfigError(
-            f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}"
-        )
+    check_horizon(sim["t_final"], sim["dt"])
     _check_loop(cfg)
     for m in ("A", "B"):
         if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
@@ -591,9 +606,18 @@ def _check_loop(cfg: dict) -> None:
                     f"sample_period = sim.dt = {dt} gives a digital loop at the simulation's rate)"
                 )
         return
+    horizon = sim["t_final"]
+    if T > horizon:  # a period past the horizon samples once, at t = 0 (and overflows the step count)
+        raise ConfigError(f"controller.sample_period: expected at most sim.t_final = {horizon} s (the controller "
+                          f"samples every period), got {T}")  # fmt: skip
     m = T / dt
     if round(m) < 1 or abs(m - round(m)) > 1e-9 * max(1.0, m):
         raise ConfigError(f"controller.sample_period: expected an integer multiple (>= 1) of sim.dt = {dt}, got {T}")
+    samples = math.ceil(round(horizon / dt) / round(m))  # the controller's samples within the horizon
+    if ctl["delay_samples"] >= samples:
+        raise ConfigError(f"controller.delay_samples: expected fewer than the {samples} controller samples within "
+                          f"sim.t_final = {horizon} s (a delay of that many or more means the controller never acts "
+                          f"on the plant), got {ctl['delay_samples']}")  # fmt: skip
     if sim["save_every"] % round(m):
         raise ConfigError(
             f"sim.save_every: expected a multiple of controller.sample_period / sim.dt = {round(m)}, "
