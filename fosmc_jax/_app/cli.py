@@ -49,8 +49,19 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     """Per-rollout metrics and the batch's summary; for a Monte-Carlo batch (a ``[sample]``
-    table) the summary with percentiles, and ``--plot`` draws histograms instead of traces."""
+    table) the summary with percentiles, and ``--plot`` draws histograms instead of traces.
+    ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation."""
     sampled = C.config_of(args.config)["sample"]["count"] > 0
+    if args.plot:
+        from .plots import check_figure_path
+
+        try:
+            check_figure_path(args.plot)
+        except ValueError as e:
+            raise _config.ConfigError(f"--plot: {e}") from None
+    for option, path in (("--npz", args.npz), ("--plot", args.plot)):
+        if path:
+            C.writable(path, option)
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
                        keep_trace=bool(args.plot) and not sampled, records=not (args.json or args.npz or sampled),
                        log=_log)  # fmt: skip
@@ -355,8 +366,33 @@ def cmd_identify(args) -> int:
 # ---------------------------------------------------------------------------- main
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser with its errors in the form of the config's: one line ``fosmc: error:
+    <option>: <what is wrong>`` on stderr and exit status 2, without the usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"fosmc: error: {_option_first(message)}\n")
+
+
+#: argparse's error messages, rewritten to name the option first: (pattern, replacement).
+_ARGPARSE_ERRORS = (
+    (r"argument (\S+?)(?:/\S+)?: (.*)", r"\1: \2"),
+    (r"the following arguments are required: (.*)", r"\1: required"),
+    (r"unrecognized arguments: (.*)", r"\1: not an option of this command (fosmc <command> --help lists them)"),
+    (r"one of the arguments (.*) is required", r"\1: one of them is required"),
+    (r"ambiguous option: (\S+) could match (.*)", r"\1: ambiguous, could be \2"),
+)
+
+
+def _option_first(message: str) -> str:
+    for pattern, replacement in _ARGPARSE_ERRORS:
+        if re.fullmatch(pattern, message, flags=re.S):
+            return re.sub(pattern, replacement, message, flags=re.S)
+    return message
+
+
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
+    p = _Parser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="simulate the closed loop; print metrics per rollout")
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -481,16 +517,20 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``fosmc`` command: 0 when done; 2 and one line ``fosmc: error: <key or option>:
+    <what is wrong>`` for a bad input, before the work."""
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
     from .._simulator.cache import use_compilation_cache
-    from .._simulator.sharding import use_all_cores, use_host_devices  # before the first JAX operation
+    from .._simulator.sharding import _cores, use_all_cores, use_host_devices  # before the first JAX operation
 
     if getattr(args, "devices", None) is None:
         use_all_cores()  # simulate, front (and tune's global stage) split their batches over every local device
     else:
-        if args.devices < 1:
-            print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
+        # each CPU device has its own threads: thousands abort the process (LLVM's pthread_create)
+        if not 1 <= args.devices <= _cores():
+            print(f"fosmc: error: --devices: expected an integer in [1, {_cores()}] (the cores this process may run "
+                  f"on; more devices than cores run no faster), got {args.devices}", file=sys.stderr)  # fmt: skip
             return 2
         try:
             use_host_devices(args.devices)
