@@ -8,9 +8,12 @@ import argparse
 import json
 import os
 import re
+import shlex
+import signal
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -516,9 +519,17 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"fosmc: warning: {message}", file=sys.stderr)
 
 
+#: Exit statuses of a run cut short, as a shell reports a process killed by the signal (128 + its number).
+INTERRUPTED, BROKEN_PIPE = 128 + signal.SIGINT, 128 + signal.SIGPIPE
+
+
 def main(argv: list[str] | None = None) -> int:
     """The ``fosmc`` command: 0 when done; 2 and one line ``fosmc: error: <key or option>:
-    <what is wrong>`` for a bad input, before the work."""
+    <what is wrong>`` for a bad input, before the work; 130 on Ctrl-C (SIGINT), with one line
+    saying how to resume ``tune`` and ``front`` from their checkpoint; 141 when the reader of
+    the output went away (``| head``), quietly."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    started = time.time()
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
     from .._simulator.cache import use_compilation_cache
@@ -540,10 +551,44 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
     try:
-        return args.func(args)
+        code = args.func(args)
+        sys.stdout.flush()  # a reader that went away shows here, not at the interpreter's exit
+        return code
     except _config.ConfigError as e:
         print(f"fosmc: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _silence_stdout()
+        return BROKEN_PIPE
+    except KeyboardInterrupt:
+        _log(_interrupted(args, argv, started))
+        return INTERRUPTED
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that the interpreter's last flush of what the gone reader
+    did not take raises nothing (Python's documented recipe for SIGPIPE)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout is not a file (a test's capture)
+        pass
+
+
+def _interrupted(args, argv: list[str], started: float) -> str:
+    """The one line of a run cut short by Ctrl-C: for ``tune`` and ``front``, whether its
+    checkpoint (written atomically, so whole) holds work to resume from, and the command that
+    does; ``started``: this process's start (``time.time()``), to tell this run's checkpoint
+    from an earlier run's that ``--force`` was about to replace."""
+    out = getattr(args, "out", None)
+    if args.command not in ("tune", "front") or out is None:
+        return "fosmc: interrupted"
+    checkpoint = Path(out) / "checkpoint.npz"
+    if checkpoint.exists() and (args.resume or checkpoint.stat().st_mtime >= started):
+        again = [a for a in argv if a != "--force"] + ([] if args.resume else ["--resume"])
+        return (f"fosmc: interrupted; {checkpoint} keeps the work done so far: resume with "
+                f"`fosmc {shlex.join(again)}`")  # fmt: skip
+    return f"fosmc: interrupted before the first checkpoint in {out}: nothing to resume, run the command again"
 
 
 if __name__ == "__main__":
