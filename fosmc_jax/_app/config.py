@@ -618,6 +618,11 @@ def _check_loop(cfg: dict) -> None:
         raise ConfigError(f"controller.delay_samples: expected fewer than the {samples} controller samples within "
                           f"sim.t_final = {horizon} s (a delay of that many or more means the controller never acts "
                           f"on the plant), got {ctl['delay_samples']}")  # fmt: skip
+    train_t = cfg["tune"]["train_t_final"]
+    if train_t and ctl["delay_samples"] >= math.ceil(train_t / T - 1e-9):  # tune's training horizon
+        raise ConfigError(f"tune.train_t_final: expected more than controller.delay_samples = "
+                          f"{ctl['delay_samples']} controller samples of {T} s (within it the controller would never "
+                          f"act), got {train_t}")  # fmt: skip
     if sim["save_every"] % round(m):
         raise ConfigError(
             f"sim.save_every: expected a multiple of controller.sample_period / sim.dt = {round(m)}, "
