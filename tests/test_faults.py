@@ -28,8 +28,8 @@ from hypothesis import strategies as st
 import fosmc_jax as fj
 from fosmc_jax._app import commands as C
 from fosmc_jax._app import config as _config
+from fosmc_jax._app import memory, study
 from fosmc_jax._app import reproduce as R
-from fosmc_jax._app import study
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import check_writable
 from fosmc_jax._simulator.checks import check_inputs
@@ -348,6 +348,13 @@ def _fosmc(*argv) -> list[str]:
     return [sys.executable, "-m", "fosmc_jax", *map(str, argv)]
 
 
+def _after(prelude: str, cmd: list[str]) -> list[str]:
+    """``cmd`` run by a Python that first runs ``prelude`` (a process setting: a signal's
+    handling, a resource limit) and then becomes ``cmd`` (exec), without a fork hook in this
+    multithreaded (JAX) process."""
+    return [sys.executable, "-c", f"import os, sys; {prelude}; os.execv(sys.argv[1], sys.argv[1:])", *cmd]
+
+
 ENV = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
 
@@ -450,9 +457,8 @@ def _interrupt(cmd: list[str], ready: Path, progress: str, timeout: float = 300)
     env = dict(ENV, JAX_NUM_CPU_DEVICES="1")
     # SIGINT as a terminal delivers it: a test run in the background (`pytest &`) ignores it, and
     # a child would inherit that
-    default = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=default)  # fmt: skip
+    default = "import signal; signal.signal(signal.SIGINT, signal.SIG_DFL)"
+    proc = subprocess.Popen(_after(default, cmd), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     lines, deadline = [], time.monotonic() + timeout
     try:
         for line in proc.stderr:
@@ -493,3 +499,91 @@ def test_ctrl_c_during_front_leaves_a_checkpoint_to_resume(tmp_path):
     assert code == 130 and lines[-1].startswith(f"fosmc: interrupted; {cut / 'checkpoint.npz'} keeps"), lines[-3:]
     assert lines[-1].endswith("--resume`") and not any("Traceback" in line for line in lines)
     assert not (cut / "front.json").exists()
+
+
+# ---------------------------------------------------------------------------- memory (item 2: the refusal)
+
+
+# The issue's five batches that passed validation and died in NumPy or XLA, and the key each names
+OVERSIZED = {
+    "plant.samples": {"plant": {"uncertainty": "sample", "samples": 10**8}},
+    "sample.count": {"sample": {"count": 10**8, "offsets": [0.01] + [0.0] * 8}},
+    "sensors.realizations": {"controller": {"sample_period": 1e-3}, "sensors": {"realizations": 10**8}},
+    "arm.uncertainty.samples": {"plant": {"kind": "arm"}, "arm": {"uncertainty": {"samples": 10**7, "F": 0.2}}},
+    "arm.uncertainty.sampling": {  # 2^24 corners of 24 varying entries
+        "plant": {"kind": "arm"},
+        "arm": {
+            "uncertainty": {"sampling": "vertices", **{k: 0.1 for k in ("F", "R", "Kt", "Kb", "Jm", "L", "I2", "I3")}}
+        },
+    },
+}
+LIMIT = (16 * 10**9, "a test's 16 GB")
+
+
+@pytest.mark.parametrize("key", OVERSIZED)
+def test_oversized_batch_is_refused_with_the_estimate_the_limit_and_the_key(capsys, tmp_path, monkeypatch, key):
+    """Refused in one line that gives the estimate, the limit it was held against and the key,
+    before anything is drawn (fj.build) and through the command line; the limit is a fixed 16
+    GB here, so that no machine draws these batches."""
+    monkeypatch.setattr(memory, "limit", lambda: LIMIT)
+    with jax.enable_x64(True), pytest.raises(_config.ConfigError) as e:
+        fj.build(OVERSIZED[key])
+    message = str(e.value)
+    pattern = (rf"{re.escape(key)}: the batch needs at least [\d.]+ GB \(.*\), more than the 16 GB this process "
+               rf"may use \(a test's 16 GB\): .*{re.escape(key.split('.')[-1])}.*")  # fmt: skip
+    assert re.fullmatch(pattern, message), message
+    config = tmp_path / "c.toml"
+    config.write_text(_toml(OVERSIZED[key]))
+    assert_refused(*cli(capsys, "simulate", "--config", config)[::2], option=key)
+
+
+def _toml(cfg: dict, prefix: str = "") -> str:
+    """A nested dict of tables as TOML (numbers, strings and lists of numbers only)."""
+    scalars = {k: v for k, v in cfg.items() if not isinstance(v, dict)}
+    text = f"[{prefix}]\n" if prefix and scalars else ""
+    text += "".join(f"{k} = {json.dumps(v)}\n" for k, v in scalars.items())
+    return text + "".join(_toml(v, f"{prefix}.{k}" if prefix else k) for k, v in cfg.items() if isinstance(v, dict))
+
+
+def test_oversized_batches_are_refused_under_an_address_space_limit():
+    """Under `ulimit -v 12000000` (12 GB of address space, as the issue's campaign ran), in a
+    process of its own: each batch refused naming its key and the limit, none drawn."""
+    script = (
+        "import json, sys, jax\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        "import fosmc_jax as fj\n"
+        "for cfg in json.loads(sys.argv[1]):\n"
+        "    try:\n"
+        "        fj.build(cfg)\n"
+        "        print('built')\n"
+        "    except ValueError as e:\n"
+        "        print(e)\n"
+    )
+    limit = "import resource; resource.setrlimit(resource.RLIMIT_AS, (12 * 10**9, 12 * 10**9))"
+    cmd = _after(limit, [sys.executable, "-c", script, json.dumps(list(OVERSIZED.values()))])
+    done = subprocess.run(cmd, env=ENV, capture_output=True, text=True, timeout=300)
+    lines = done.stdout.splitlines()
+    assert done.returncode == 0 and len(lines) == len(OVERSIZED), done.stderr[-2000:]
+    for key, line in zip(OVERSIZED, lines):
+        assert line.startswith(f"{key}: the batch needs at least") and "(ulimit -v)" in line, line
+
+
+def test_the_estimate_is_a_lower_bound_of_the_arrays_drawn_and_the_limit_is_a_boundary():
+    """The estimate counts at least the plants and initial states build draws (and not a
+    thousand times more); a batch of exactly the room left fits, one byte less is refused."""
+    cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 500}, "sim": {"t_final": 0.01, "dt": 1e-3}})
+    need = memory.estimate(cfg)
+    with jax.enable_x64(True):
+        problem = _config.build(cfg)
+    drawn = sum(x.nbytes for x in jax.tree.leaves(problem.plants)) + problem.X0s.nbytes
+    assert need.key == "plant.samples" and need.batch == "500 rollout(s) of 500 plant(s)"
+    assert drawn <= need.bytes <= 1000 * drawn
+    assert memory.refusal(cfg, (need.bytes, "x")) is None
+    assert memory.refusal(cfg, (need.bytes - 1, "x")).startswith("plant.samples: the batch needs at least")
+
+
+@pytest.mark.parametrize("preset", [None, "realistic_arm"])  # small_arm's design takes 20 s to resolve
+def test_the_presets_fit(preset):
+    """The package's own configs pass the check on this machine (they need a few MB)."""
+    cfg = _config.load(preset)
+    assert memory.refusal(cfg) is None and memory.estimate(cfg).bytes < 10**8

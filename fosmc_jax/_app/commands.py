@@ -410,7 +410,7 @@ def one_plant(cfg: dict) -> str | None:
     plant = cfg["plant"]
     if plant["kind"] == "arm":
         payloads = sorted(set(plant["payloads"]))
-        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_samples(cfg) is not None
+        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_varies(cfg)
         return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 and not varied else None
     if plant["uncertainty"] == "none":
         return "the nominal linear model"

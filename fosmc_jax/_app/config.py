@@ -34,6 +34,7 @@ from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
 from .._simulator.problem import Problem
 from .._simulator.rollout import INTEGRATORS, PAIRINGS
+from . import memory
 
 try:  # Python >= 3.11
     import tomllib
@@ -890,6 +891,12 @@ def draws(cfg: dict) -> dict[str, np.ndarray]:
     return out
 
 
+def arm_varies(cfg: dict) -> bool:
+    """Whether ``[arm.uncertainty]`` sets a half-width, so :func:`arm_samples` draws arms (known
+    without drawing them)."""
+    return any(np.any(np.asarray(cfg["arm"]["uncertainty"][k], float) > 0) for k in ArmParams._fields)
+
+
 def arm_samples(cfg: dict) -> dict[str, np.ndarray] | None:
     """``[arm.uncertainty]``'s arms, {field: (N, ...)} float64 (None: none): each field x (1 + h u),
     h its relative half-width, u ~ U(-1, 1) per entry (``sampling = "uniform"``, ``samples``
@@ -952,12 +959,19 @@ def build(config: str | Path | dict | None = None) -> Problem:
     parameters: the FOSMC's :class:`FOSMCParams`, or the SMC's or super-twisting's law with
     the config's gains.
 
+    A batch that cannot fit in the memory this process may use (:mod:`fosmc_jax._app.memory`:
+    a lower bound of its memory above the smaller of the available memory and ``ulimit -v``) is
+    refused before anything is drawn, naming the key to change.
+
     ``sim.precision = "float64"`` (the default) needs JAX's 64-bit mode, which only the user
     may switch on (it changes every array of the process):
     ``jax.config.update("jax_enable_x64", True)`` first, or ``with jax.enable_x64(True):``
     around the script, or ``[sim] precision = "float32"``.
     """
     cfg = as_config(config)
+    too_large = memory.refusal(cfg)  # before anything is drawn
+    if too_large is not None:
+        raise ConfigError(too_large)
     if cfg["sim"]["precision"] == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError('sim.precision: "float64" needs JAX\'s 64-bit mode: call jax.config.update('
                           '"jax_enable_x64", True) before building, or set [sim] precision = "float32"')  # fmt: skip
