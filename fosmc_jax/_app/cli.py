@@ -9,7 +9,6 @@ import json
 import os
 import re
 import shlex
-import signal
 import sys
 import time
 import warnings
@@ -519,8 +518,9 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"fosmc: warning: {message}", file=sys.stderr)
 
 
-#: Exit statuses of a run cut short, as a shell reports a process killed by the signal (128 + its number).
-INTERRUPTED, BROKEN_PIPE = 128 + signal.SIGINT, 128 + signal.SIGPIPE
+#: Exit statuses of a run cut short, as a shell reports a process killed by the signal: 128 + SIGINT (2),
+#: 128 + SIGPIPE (13) (numbers, not ``signal``'s names: Windows has no SIGPIPE).
+INTERRUPTED, BROKEN_PIPE = 130, 141
 
 
 def main(argv: list[str] | None = None) -> int:
