@@ -2,8 +2,9 @@
 
 :func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` run :func:`check_inputs` on
 every Python call, before their jitted programs. Every rule is one entry of :data:`RULES`
-(the package's plant, controller and reference types, field by field) or of
-:data:`ARGUMENTS` (X0, dt, the keys): shapes are checked always, tracers included (under
+(the package's plant, controller and reference types, field by field), of
+:data:`ARGUMENTS` (X0, dt, the keys) or of :data:`OPTIONS` (the keyword options; a name the
+functions do not take is refused): shapes are checked always, tracers included (under
 ``jit``, ``grad`` and ``vmap`` shapes are known), values (finite, signs, ranges) wherever they
 are concrete. A type that is not in :data:`RULES` (a user's controller, plant or reference)
 passes as it is.
