@@ -616,7 +616,7 @@ def _check_loop(cfg: dict) -> None:
         raise ConfigError(f"controller.sample_period: expected an integer multiple (>= 1) of sim.dt = {dt}, got {T}")
     samples = math.ceil(round(horizon / dt) / round(m))  # the controller's samples within the horizon
     if ctl["delay_samples"] >= samples:
-        raise ConfigError(f"controller.delay_samples: expected fewer than the {samples} controller samples within "
+        raise ConfigError(f"controller.delay_samples: expected fewer than the {samples} controller sample(s) within "
                           f"sim.t_final = {horizon} s (a delay of that many or more means the controller never acts "
                           f"on the plant), got {ctl['delay_samples']}")  # fmt: skip
     train_t = cfg["tune"]["train_t_final"]
