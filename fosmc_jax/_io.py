@@ -64,6 +64,35 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
             os.remove(tmp)
 
 
+def check_writable(path: str | Path, *, folder: bool) -> Path:
+    """``path`` as a ``Path`` if a file (``folder`` False) or a folder (True) can be made there
+    and written into; a one-line ``ValueError`` otherwise (the caller names the option).
+
+    Run before the work whose results go there, so that a run never ends in an error about its
+    output: the nearest part of ``path`` that exists must be a folder (or, for a file, the file
+    itself beside a folder), and a probe file is created in that folder and removed, which
+    catches what permission bits cannot tell (read-only or virtual file systems, ``root``).
+    Nothing is left behind; folders still to be made are made by the writer."""
+    path = Path(path)
+    here = next((p for p in (path, *path.parents) if p.exists()), Path("."))  # the nearest part that exists
+    if folder and not here.is_dir():
+        raise ValueError(f"{path} is a file, not a folder" if here == path else
+                         f"cannot make the folder {path}: {here} is a file")  # fmt: skip
+    if not folder:
+        if path.is_dir():
+            raise ValueError(f"{path} is a folder, not a file")
+        if here != path and not here.is_dir():
+            raise ValueError(f"cannot make {path}: {here} is a file")
+    probe = here if here.is_dir() else path.parent  # the folder the file's temporary goes in
+    try:
+        fd, name = tempfile.mkstemp(prefix=".fosmc-probe-", dir=probe)
+        os.close(fd)
+        os.remove(name)
+    except OSError as e:
+        raise ValueError(f"cannot write in {probe}: {e.strerror or e}") from None
+    return path
+
+
 def write_text(path: str | Path, text: str) -> None:
     """Atomically write ``text`` to ``path``."""
     atomic_write(path, lambda tmp: Path(tmp).write_text(text))

@@ -8,9 +8,11 @@ import argparse
 import json
 import os
 import re
+import shlex
 import sys
 import time
 import warnings
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -49,8 +51,19 @@ def _log(msg: str) -> None:
 
 def cmd_simulate(args) -> int:
     """Per-rollout metrics and the batch's summary; for a Monte-Carlo batch (a ``[sample]``
-    table) the summary with percentiles, and ``--plot`` draws histograms instead of traces."""
+    table) the summary with percentiles, and ``--plot`` draws histograms instead of traces.
+    ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation."""
     sampled = C.config_of(args.config)["sample"]["count"] > 0
+    if args.plot:
+        from .plots import check_figure_path
+
+        try:
+            check_figure_path(args.plot)
+        except ValueError as e:
+            raise _config.ConfigError(f"--plot: {e}") from None
+    for option, path in (("--npz", args.npz), ("--plot", args.plot)):
+        if path:
+            C.writable(path, option)
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
                        keep_trace=bool(args.plot) and not sampled, records=not (args.json or args.npz or sampled),
                        log=_log)  # fmt: skip
@@ -355,8 +368,33 @@ def cmd_identify(args) -> int:
 # ---------------------------------------------------------------------------- main
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser with its errors in the form of the config's: one line ``fosmc: error:
+    <option>: <what is wrong>`` on stderr and exit status 2, without the usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"fosmc: error: {_option_first(message)}\n")
+
+
+#: argparse's error messages, rewritten to name the option first: (pattern, replacement).
+_ARGPARSE_ERRORS = (
+    (r"argument (\S+?)(?:/\S+)?: (.*)", r"\1: \2"),
+    (r"the following arguments are required: (.*)", r"\1: required"),
+    (r"unrecognized arguments: (.*)", r"\1: not an option of this command (fosmc <command> --help lists them)"),
+    (r"one of the arguments (.*) is required", r"\1: one of them is required"),
+    (r"ambiguous option: (\S+) could match (.*)", r"\1: ambiguous, could be \2"),
+)
+
+
+def _option_first(message: str) -> str:
+    for pattern, replacement in _ARGPARSE_ERRORS:
+        if re.fullmatch(pattern, message, flags=re.S):
+            return re.sub(pattern, replacement, message, flags=re.S)
+    return message
+
+
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
+    p = _Parser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="simulate the closed loop; print metrics per rollout")
     s.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -480,17 +518,30 @@ def _warn(message, category, filename, lineno, file=None, line=None) -> None:
     print(f"fosmc: warning: {message}", file=sys.stderr)
 
 
+#: Exit statuses of a run cut short, as a shell reports a process killed by the signal: 128 + SIGINT (2),
+#: 128 + SIGPIPE (13) (numbers, not ``signal``'s names: Windows has no SIGPIPE).
+INTERRUPTED, BROKEN_PIPE = 130, 141
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The ``fosmc`` command: 0 when done; 2 and one line ``fosmc: error: <key or option>:
+    <what is wrong>`` for a bad input, before the work; 130 on Ctrl-C (SIGINT), with one line
+    saying how to resume ``tune`` and ``front`` from their checkpoint; 141 when the reader of
+    the output went away (``| head``), quietly."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    started = time.time()
     args = parser().parse_args(argv)
     warnings.showwarning = _warn
     from .._simulator.cache import use_compilation_cache
-    from .._simulator.sharding import use_all_cores, use_host_devices  # before the first JAX operation
+    from .._simulator.sharding import _cores, use_all_cores, use_host_devices  # before the first JAX operation
 
     if getattr(args, "devices", None) is None:
         use_all_cores()  # simulate, front (and tune's global stage) split their batches over every local device
     else:
-        if args.devices < 1:
-            print(f"fosmc: error: --devices: expected a positive integer, got {args.devices}", file=sys.stderr)
+        # each CPU device has its own threads: thousands abort the process (LLVM's pthread_create)
+        if not 1 <= args.devices <= _cores():
+            print(f"fosmc: error: --devices: expected an integer in [1, {_cores()}] (the cores this process may run "
+                  f"on; more devices than cores run no faster), got {args.devices}", file=sys.stderr)  # fmt: skip
             return 2
         try:
             use_host_devices(args.devices)
@@ -500,10 +551,44 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
     try:
-        return args.func(args)
+        code = args.func(args)
+        sys.stdout.flush()  # a reader that went away shows here, not at the interpreter's exit
+        return code
     except _config.ConfigError as e:
         print(f"fosmc: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _silence_stdout()
+        return BROKEN_PIPE
+    except KeyboardInterrupt:
+        _log(_interrupted(args, argv, started))
+        return INTERRUPTED
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so that the interpreter's last flush of what the gone reader
+    did not take raises nothing (Python's documented recipe for SIGPIPE)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # stdout is not a file (a test's capture)
+        pass
+
+
+def _interrupted(args, argv: list[str], started: float) -> str:
+    """The one line of a run cut short by Ctrl-C: for ``tune`` and ``front``, whether its
+    checkpoint (written atomically, so whole) holds work to resume from, and the command that
+    does; ``started``: this process's start (``time.time()``), to tell this run's checkpoint
+    from an earlier run's that ``--force`` was about to replace."""
+    out = getattr(args, "out", None)
+    if args.command not in ("tune", "front") or out is None:
+        return "fosmc: interrupted"
+    checkpoint = Path(out) / "checkpoint.npz"
+    if checkpoint.exists() and (args.resume or checkpoint.stat().st_mtime >= started):
+        again = [a for a in argv if a != "--force"] + ([] if args.resume else ["--resume"])
+        return (f"fosmc: interrupted; {checkpoint} keeps the work done so far: resume with "
+                f"`fosmc {shlex.join(again)}`")  # fmt: skip
+    return f"fosmc: interrupted before the first checkpoint in {out}: nothing to resume, run the command again"
 
 
 if __name__ == "__main__":

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import functools
 import json
+import math
+import numbers
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -36,7 +38,7 @@ import jax
 import numpy as np
 
 from .._design import paper as _paper
-from .._io import jsonable, stamped, write_text
+from .._io import check_writable, jsonable, stamped, write_text
 from .._simulator.metrics import METRIC_NAMES, UNITS
 from .._simulator.rollout import simulate_batch
 from . import config as _config
@@ -69,14 +71,34 @@ def config_of(config: Config) -> dict[str, Any]:
 
 
 def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
-    out = Path(out)
-    here = next((p for p in (out, *out.parents) if p.exists()), None)  # the nearest part that exists
-    if here is not None and not here.is_dir():
-        raise ConfigError(f"--out: {out} is a file, not a folder" if here == out else
-                          f"--out: cannot make the folder {out}: {here} is a file")  # fmt: skip
+    """``out``, a folder that can be made and written (:func:`writable`), empty unless ``flags``
+    (``--force``, ``--resume``); else a :class:`ConfigError` naming ``--out``, before any work."""
+    out = writable(out, "--out", folder=True)
     if out.exists() and any(out.iterdir()) and not flags:
         raise ConfigError(f"--out: {out} exists and is not empty ({hint})")
     return out
+
+
+def writable(path: str | Path, option: str, *, folder: bool = False) -> Path:
+    """``path`` (:func:`fosmc_jax._io.check_writable`: a file or folder that can be made and
+    written there, probed now), or a one-line :class:`ConfigError` naming ``option``."""
+    try:
+        return check_writable(path, folder=folder)
+    except ValueError as e:
+        raise ConfigError(f"{option}: {e}") from None
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+#: The largest ``fosmc front --seed``: its CMA-ES runs seed NumPy's legacy generator with
+#: ``seed * 1_000_003 + 700_000 + run`` (``fosmc_jax._search.front``), which must stay below 2^32.
+MAX_FRONT_SEED = (2**32 - 1 - 700_000 - 1_000) // 1_000_003
 
 
 # ---------------------------------------------------------------------------- simulate
@@ -271,6 +293,18 @@ def run_reproduce(
         raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
     if integrator not in ("euler", "rk4"):
         raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
+    _config.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
+    if plant == "arm":  # the realistic loop's horizon too (its period, its delay), before any case runs
+        try:
+            _config.resolve(R.realistic_config(t_final))
+        except ConfigError as e:
+            raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
+    if report:
+        report = writable(report, "--report")
+        try:
+            report.read_text()
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"--report: cannot read {report}: {getattr(e, 'strerror', None) or e}") from None
     if out is not None:
         out = _fresh_out(out, force, "use --force to overwrite")
         out.mkdir(parents=True, exist_ok=True)
@@ -306,7 +340,6 @@ def run_reproduce(
                 write_text(out / name, files[name])
             figures += R.write_realistic_figures(cases + realistic, sweeps, out)
     if report:
-        report = Path(report)
         text = report.read_text()
         text = R.replace_block(text, "metrics", files["metrics.md"])
         text = R.replace_block(text, "design", files["design.md"])
@@ -342,6 +375,8 @@ def run_certify(
     """
     from . import certify as _certify
 
+    if not (_is_integer(seed) and seed >= 0):
+        raise ConfigError(f"--seed: expected a non-negative integer, got {seed}")
     cfg = config_of(config)
     switching = cfg["controller"]["switching"] if configured_switching else "sign"
     opts = {"switching": switching, "seed": seed}
@@ -375,7 +410,7 @@ def one_plant(cfg: dict) -> str | None:
     plant = cfg["plant"]
     if plant["kind"] == "arm":
         payloads = sorted(set(plant["payloads"]))
-        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_samples(cfg) is not None
+        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_varies(cfg)
         return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 and not varied else None
     if plant["uncertainty"] == "none":
         return "the nominal linear model"
@@ -573,11 +608,13 @@ def run_front(
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
     for name, value in (("--points", points), ("--candidates", candidates), ("--steps", steps)):
-        if value is not None and value < (1 if name == "--points" else 0):
+        if value is not None and not (_is_integer(value) and value >= (1 if name == "--points" else 0)):
             raise ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
                               f"integer, got {value}")  # fmt: skip
-    if not budget > 0:
-        raise ConfigError(f"--budget: expected a positive number of seconds, got {budget}")
+    if not (_is_real(budget) and math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"--budget: expected a positive, finite number of seconds, got {budget}")
+    if not (_is_integer(seed) and 0 <= seed <= MAX_FRONT_SEED):
+        raise ConfigError(f"--seed: expected an integer in [0, {MAX_FRONT_SEED}], got {seed}")
     for path in compare:
         try:
             json.loads(Path(path).read_text())
@@ -650,6 +687,7 @@ def run_export(
             out = _export.check_targets(out, (f"{name}.h", f"{name}.c"))
         except ValueError as e:
             raise ConfigError(f"--out: {e} (nothing written)") from None
+        writable(out, "--out", folder=True)  # a probe: what permission bits do not tell (root, read-only mounts)
     cfg = config_of(config)
     if params is not None and not given:
         if point is None:
@@ -765,9 +803,6 @@ def run_identify(
     ``config_check`` (``"ok"``, or the config error the identified arm raises, e.g. inertias that
     break the triangle inequality) and ``config``.
     """
-    import math
-    import numbers
-
     from .._firmware import identify as I
 
     # (option, value, integer?, least, strictly above it?, what); None: the default, for the last three

@@ -34,6 +34,7 @@ from .._plants.reference import Cycloid, desired_state
 from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
 from .._simulator.problem import Problem
 from .._simulator.rollout import INTEGRATORS, PAIRINGS
+from . import memory
 
 try:  # Python >= 3.11
     import tomllib
@@ -461,14 +462,32 @@ def load(path: str | Path | None) -> dict[str, Any]:
         path = PRESETS[path]
     path = Path(path)
     try:
-        text = path.read_text()
+        data = path.read_bytes()
     except OSError as e:
         raise ConfigError(f"cannot read config file {str(path)!r}: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8")  # TOML is UTF-8 whatever the locale
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (a TOML file is UTF-8; byte {e.start} is {data[e.start]:#04x}); "
+                          "save it as UTF-8") from None  # fmt: skip
     try:
         user = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{path}: not valid TOML: {e}") from None
     return resolve(user)
+
+
+def check_horizon(t_final: Any, dt: Any, names: tuple[str, str] = ("sim.t_final", "sim.dt")) -> None:
+    """The rules of ``[sim] t_final`` and ``dt``: each a positive finite number, dt at most
+    t_final, at most :data:`MAX_STEPS` steps; a :class:`ConfigError` naming ``names`` (the
+    keys, or a command's options: ``fosmc reproduce --t-final``, ``--dt``) otherwise."""
+    t_name, dt_name = names
+    SCHEMA["sim"]["t_final"](t_name, t_final)
+    SCHEMA["sim"]["dt"](dt_name, dt)
+    if dt > t_final:
+        raise ConfigError(f"{dt_name}: expected at most {t_name} = {t_final}, got {dt}")
+    if t_final / dt > MAX_STEPS:
+        raise ConfigError(f"{dt_name}: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {t_final / dt:.3g}")
 
 
 def _check_consistency(cfg: dict) -> None:
@@ -498,10 +517,7 @@ def _check_consistency(cfg: dict) -> None:
         raise ConfigError(
             f"tune.train_dt: expected at most the training horizon {train_t}, got {cfg['tune']['train_dt']}"
         )
-    if sim["t_final"] / sim["dt"] > MAX_STEPS:
-        raise ConfigError(
-            f"sim.dt: t_final / dt must be at most {MAX_STEPS:.0e} steps, got {sim['t_final'] / sim['dt']:.3g}"
-        )
+    check_horizon(sim["t_final"], sim["dt"])
     _check_loop(cfg)
     for m in ("A", "B"):
         if np.any(np.asarray(box[f"{m}_lower"]) > np.asarray(box[f"{m}_upper"])):
@@ -591,9 +607,23 @@ def _check_loop(cfg: dict) -> None:
                     f"sample_period = sim.dt = {dt} gives a digital loop at the simulation's rate)"
                 )
         return
+    horizon = sim["t_final"]
+    if T > horizon:  # a period past the horizon samples once, at t = 0 (and overflows the step count)
+        raise ConfigError(f"controller.sample_period: expected at most sim.t_final = {horizon} s (the controller "
+                          f"samples every period), got {T}")  # fmt: skip
     m = T / dt
     if round(m) < 1 or abs(m - round(m)) > 1e-9 * max(1.0, m):
         raise ConfigError(f"controller.sample_period: expected an integer multiple (>= 1) of sim.dt = {dt}, got {T}")
+    samples = math.ceil(round(horizon / dt) / round(m))  # the controller's samples within the horizon
+    if ctl["delay_samples"] >= samples:
+        raise ConfigError(f"controller.delay_samples: expected fewer than the {samples} controller sample(s) within "
+                          f"sim.t_final = {horizon} s (a delay of that many or more means the controller never acts "
+                          f"on the plant), got {ctl['delay_samples']}")  # fmt: skip
+    train_t = cfg["tune"]["train_t_final"]
+    if train_t and ctl["delay_samples"] >= math.ceil(train_t / T - 1e-9):  # tune's training horizon
+        raise ConfigError(f"tune.train_t_final: expected more than controller.delay_samples = "
+                          f"{ctl['delay_samples']} controller samples of {T} s (within it the controller would never "
+                          f"act), got {train_t}")  # fmt: skip
     if sim["save_every"] % round(m):
         raise ConfigError(
             f"sim.save_every: expected a multiple of controller.sample_period / sim.dt = {round(m)}, "
@@ -861,6 +891,12 @@ def draws(cfg: dict) -> dict[str, np.ndarray]:
     return out
 
 
+def arm_varies(cfg: dict) -> bool:
+    """Whether ``[arm.uncertainty]`` sets a half-width, so :func:`arm_samples` draws arms (known
+    without drawing them)."""
+    return any(np.any(np.asarray(cfg["arm"]["uncertainty"][k], float) > 0) for k in ArmParams._fields)
+
+
 def arm_samples(cfg: dict) -> dict[str, np.ndarray] | None:
     """``[arm.uncertainty]``'s arms, {field: (N, ...)} float64 (None: none): each field x (1 + h u),
     h its relative half-width, u ~ U(-1, 1) per entry (``sampling = "uniform"``, ``samples``
@@ -923,12 +959,19 @@ def build(config: str | Path | dict | None = None) -> Problem:
     parameters: the FOSMC's :class:`FOSMCParams`, or the SMC's or super-twisting's law with
     the config's gains.
 
+    A batch that cannot fit in the memory this process may use (:mod:`fosmc_jax._app.memory`:
+    a lower bound of its memory above the smaller of the available memory and ``ulimit -v``) is
+    refused before anything is drawn, naming the key to change.
+
     ``sim.precision = "float64"`` (the default) needs JAX's 64-bit mode, which only the user
     may switch on (it changes every array of the process):
     ``jax.config.update("jax_enable_x64", True)`` first, or ``with jax.enable_x64(True):``
     around the script, or ``[sim] precision = "float32"``.
     """
     cfg = as_config(config)
+    too_large = memory.refusal(cfg)  # before anything is drawn
+    if too_large is not None:
+        raise ConfigError(too_large)
     if cfg["sim"]["precision"] == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError('sim.precision: "float64" needs JAX\'s 64-bit mode: call jax.config.update('
                           '"jax_enable_x64", True) before building, or set [sim] precision = "float32"')  # fmt: skip

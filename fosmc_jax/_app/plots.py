@@ -9,10 +9,22 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
 
 from .._io import atomic_write  # noqa: E402
 
 JOINTS = ("joint 1", "joint 2", "joint 3")
+
+
+def check_figure_path(path: str | Path) -> None:
+    """A one-line ``ValueError`` unless ``path`` ends in a format :func:`save_figure` writes
+    (the extension matplotlib's Agg canvas knows: png, pdf, svg, ...), checked before the work
+    whose figure it is."""
+    formats = FigureCanvasBase.get_supported_filetypes()
+    suffix = Path(path).suffix[1:].lower()
+    if suffix not in formats:
+        got = f"'.{suffix}'" if suffix else "no extension"
+        raise ValueError(f"expected a file name ending in a figure format ({', '.join(sorted(formats))}), got {got}")
 
 
 def save_figure(fig, path: str | Path) -> None:

@@ -2,8 +2,9 @@
 
 :func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` run :func:`check_inputs` on
 every Python call, before their jitted programs. Every rule is one entry of :data:`RULES`
-(the package's plant, controller and reference types, field by field) or of
-:data:`ARGUMENTS` (X0, dt, the keys): shapes are checked always, tracers included (under
+(the package's plant, controller and reference types, field by field), of
+:data:`ARGUMENTS` (X0, dt, the keys) or of :data:`OPTIONS` (the keyword options; a name the
+functions do not take is refused): shapes are checked always, tracers included (under
 ``jit``, ``grad`` and ``vmap`` shapes are known), values (finite, signs, ranges) wherever they
 are concrete. A type that is not in :data:`RULES` (a user's controller, plant or reference)
 passes as it is.
@@ -13,6 +14,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
+import numbers
 import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -171,6 +174,65 @@ ARGUMENTS: dict[bool, dict[str, Field]] = {
 }
 
 
+def _count(least: int, what: str) -> Field:
+    """A static option that is an integer (Python's or NumPy's, not a bool) of at least ``least``."""
+    ok = lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= least
+    return Field(STATIC, ok, what)
+
+
+_FLAG = Field(STATIC, lambda v: isinstance(v, bool), "True or False")
+#: The options of :func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` whose values
+#: are checked here; ``integrator`` and ``pairing`` the simulator checks itself, ``key`` and
+#: ``keys`` are in :data:`ARGUMENTS`. Any other name is refused (:func:`_option_names`).
+OPTIONS: dict[str, Field] = {
+    "n_steps": _count(1, "a positive integer (steps)"),
+    "save_every": _count(0, "a non-negative integer (steps; 0: no trace)"),
+    "checkpoint_every": _count(0, "a non-negative integer (steps; 0: none)"),
+    "truncate_every": _count(0, "a non-negative integer (steps; 0: the full horizon)"),
+    "switching": _one_of(SWITCHING),
+    "law": _one_of(LAWS),
+    "divergence_bound": Field((), _positive, "a positive number"),
+    "chattering_cutoff": Field((), _positive, "a positive frequency (Hz)"),
+    "fast": _FLAG,
+    "native": _FLAG,
+}
+
+
+@functools.cache
+def _option_names(batch: bool) -> tuple[str, ...]:
+    """The keyword options :func:`fosmc_jax.simulate` (``batch`` False) or
+    :func:`fosmc_jax.simulate_batch` (True) take: the keyword-only parameters of their jitted
+    functions (the batch's own and, through its ``**options``, the single rollout's)."""
+    from . import rollout  # rollout imports this module
+
+    functions = (rollout._simulate_batch, rollout._simulate) if batch else (rollout._simulate,)
+    names = []
+    for f in functions:
+        for p in inspect.signature(f).parameters.values():
+            if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in names:
+                names.append(p.name)
+    return tuple(names)
+
+
+def _check_options(walk: _Walk, batch: bool, options: dict) -> None:
+    """``options``' names among :func:`_option_names` (else a ``TypeError`` naming the first
+    unknown one) and the values of :data:`OPTIONS` (else a one-line ``ValueError``)."""
+    known = _option_names(batch)
+    unknown = [name for name in options if name not in known]
+    if unknown:
+        function = "simulate_batch" if batch else "simulate"
+        raise TypeError(f"{unknown[0]}: not an option of {function} (its options: {', '.join(known)})")
+    for name, field in OPTIONS.items():
+        if name not in options:
+            continue
+        value = options[name]
+        if field.shape is STATIC:
+            if not field.rule(value):
+                raise ValueError(f"{name}: expected {field.what}, got {_short(value)}")
+        elif value is not None:
+            walk.array(value, name, field)
+
+
 def _shape_text(shape: tuple) -> str:
     return "(" + ", ".join(map(str, shape)) + ("," if len(shape) == 1 else "") + ")"
 
@@ -323,7 +385,9 @@ def check_inputs(
     """(plant, controller, reference, X0, dt) checked and normalised for :func:`fosmc_jax.simulate`
     (``batch`` False: X0 (9,), unbatched plant) or :func:`fosmc_jax.simulate_batch` (True:
     ``plants`` with a leading axis P on every leaf, X0s (O, 9), ``options["keys"]`` (R, 2) or R
-    typed keys); ``options`` are theirs (read, not changed).
+    typed keys); ``options`` are theirs (read, not changed): an unknown name is a ``TypeError``
+    naming it, a value of :data:`OPTIONS` out of range (``n_steps`` not a positive integer) a
+    ``ValueError``; X0 of an integer dtype a ``TypeError`` naming its dtype.
 
     The rules are :data:`RULES` and :data:`ARGUMENTS`. Lists and tuples of numbers in the
     fields of those types, and X0 and dt given as lists, become arrays of X0's floating dtype
@@ -337,7 +401,12 @@ def check_inputs(
     names = ARGUMENTS[batch]
     x0_name, plant_name = ("X0s", "plants") if batch else ("X0", "plant")
     walk = _Walk(X0)
+    _check_options(walk, batch, options)
     X0 = walk.array(X0, x0_name, names[x0_name])
+    dtype = getattr(X0, "dtype", None)
+    if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):  # X0's dtype is the run's
+        raise TypeError(f"{x0_name}: expected floating-point numbers (float32 or float64: the dtype sets the run's "
+                        f"precision), got an array of {dtype}")  # fmt: skip
     dt = walk.array(dt, "dt", names["dt"])
     for key in ("keys", "key"):
         if key in names and options.get(key) is not None:

@@ -59,6 +59,11 @@ class Problem(NamedTuple):
         here; the simulator checks the rest (signs, ranges)."""
         params = self.base
         if p is not None:
+            if not (isinstance(p, Mapping) or hasattr(p, "_asdict")):
+                space = SPACES[self.kind]
+                raise TypeError(f"params: expected a dict of the parameters of controller kind '{self.kind}' by name "
+                                f"({', '.join(space.names)}) or a {space.values.__name__}, got "
+                                f"{type(p).__name__}")  # fmt: skip
             new = _checked(self.kind, self.base, p if isinstance(p, Mapping) else p._asdict())
             params = dataclasses.replace(params, **new) if dataclasses.is_dataclass(params) else params._replace(**new)
         return params if self.make is None else self.make(params)

@@ -1,0 +1,174 @@
+"""Memory as a resource, like time: a resolved config's batch estimated before anything is drawn
+or compiled (:func:`estimate`), held against what this process may use (:func:`limit`), and a
+batch that cannot fit refused in one line naming the key to change (:func:`refusal`).
+
+The estimate is a lower bound: it counts the arrays a run certainly holds (the drawn plants in
+float64 and in the run's precision, each rollout's state, metric accumulators and metrics, a
+trace where ``[sim] save_every`` keeps one), not XLA's temporaries or the command line's
+records. A batch refused here would certainly not fit; one that passes may still be too large.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .._plants.arm import ArmParams
+from .._simulator.metrics import METRIC_NAMES
+
+#: Floats of one rollout's working set and outputs: its plant state (9) and metric accumulators
+#: (3 per metric) while it runs, then its metrics (3 per metric) with ``diverged`` and
+#: ``diverged_at``, twice (the device's result and the NumPy copy a command reads).
+ROLLOUT_FLOATS = 9 + 3 * len(METRIC_NAMES) + 2 * (3 * len(METRIC_NAMES) + 2)
+#: Floats of one sample of a trace: t, X (9), X_d (9), U (3), s (3).
+TRACE_FLOATS = 1 + 9 + 9 + 3 + 3
+#: Entries of one linear plant: rows 3, 6, 9 of A (3 x 9) and of B (3 x 3).
+LINEAR_ENTRIES = 27 + 9
+
+
+class Estimate(NamedTuple):
+    """A batch's memory (bytes, a lower bound), its size in words, and the config key whose
+    count dominates it (the one to change)."""
+
+    bytes: int
+    batch: str
+    key: str
+
+
+#: What to do with the dominating key (default: lower it).
+ADVICE = {
+    "sim.save_every": "raise sim.save_every (fewer trace samples; 0: none)",
+    "arm.uncertainty.sampling": "set arm.uncertainty.samples to fewer corners, or sampling = 'uniform'",
+    "plant.payloads": "list fewer plant.payloads",
+    "sim.initial_offset": "list fewer sim.initial_offset rows",
+}
+
+
+def _box_vertices(cfg: dict) -> float:
+    """How many vertices the linear box has (2^m, m its entries of non-zero width)."""
+    box = cfg["plant"]["box"]
+    m = sum(int(np.sum(np.asarray(box[f"{x}_upper"]) > np.asarray(box[f"{x}_lower"]))) for x in ("A", "B"))
+    return 2.0**m
+
+
+def _arms(cfg: dict) -> tuple[int, str]:
+    """How many sampled arms ``[arm.uncertainty]`` draws (1: none), and the key that sets it."""
+    unc, arm = cfg["arm"]["uncertainty"], cfg["arm"]
+    live = sum(int(np.sum(np.broadcast_to(np.asarray(unc[k], float), np.shape(arm[k])) > 0)) for k in ArmParams._fields)
+    if not live:
+        return 1, "arm.uncertainty.samples"
+    if unc["sampling"] == "uniform":
+        return unc["samples"], "arm.uncertainty.samples"
+    corners = 2**live
+    if not unc["samples"] or unc["samples"] >= corners:
+        return corners, "arm.uncertainty.sampling"  # every corner of the varying entries
+    return unc["samples"], "arm.uncertainty.samples"
+
+
+def estimate(cfg: dict) -> Estimate:
+    """The memory a resolved config's batch needs at least (see the module's docstring), from
+    its plants (P), initial states (O), noise realizations (R), horizon and trace."""
+    item = np.dtype(cfg["sim"]["precision"]).itemsize
+    plant, sample, sim = cfg["plant"], cfg["sample"], cfg["sim"]
+    plant_factors: dict[str, float] = {}  # key -> the count of plants it sets
+    if plant["kind"] == "arm":
+        entries = sum(int(np.size(cfg["arm"][k])) for k in ArmParams._fields)
+        arms, arm_key = _arms(cfg)
+        plant_factors[arm_key] = arms
+        plant_factors["sample.count" if sample["payloads"] else "plant.payloads"] = (
+            sample["count"] if sample["payloads"] else len(plant["payloads"])
+        )
+        drawn = 2 * arms * entries * 8  # the draws and the sampled arms, float64
+    else:
+        entries, drawn = LINEAR_ENTRIES, 0
+        samples = plant["samples"] if plant["uncertainty"] in ("sample", "vertices") else 1
+        plant_factors["plant.samples"] = (
+            min(samples, _box_vertices(cfg)) if plant["uncertainty"] == "vertices" else samples
+        )
+    offsets = sample["count"] if any(sample["offsets"]) else len(np.atleast_2d(sim["initial_offset"]))
+    offset_key = "sample.count" if any(sample["offsets"]) else "sim.initial_offset"
+    realizations = cfg["sensors"]["realizations"] if cfg["controller"]["sample_period"] else 1
+    if sim["pairing"] == "paired":  # the i-th plant with the i-th initial state
+        plants = max(*plant_factors.values(), offsets)
+        rollouts = plants * realizations
+    else:
+        plants = math.prod(plant_factors.values())
+        rollouts = plants * offsets * realizations
+    factors = {**plant_factors, offset_key: max(offsets, plant_factors.get(offset_key, 0)),
+               "sensors.realizations": realizations}  # fmt: skip
+    n_steps = max(1, round(sim["t_final"] / sim["dt"]))
+    trace = TRACE_FLOATS * (n_steps // sim["save_every"] + 1) if sim["save_every"] else 0
+    total = drawn + plants * entries * (8 + item) + rollouts * (ROLLOUT_FLOATS + trace) * item
+    key = max(factors, key=lambda k: factors[k])
+    if trace and rollouts * trace > rollouts * ROLLOUT_FLOATS + plants * entries:
+        key = "sim.save_every"
+    batch = f"{rollouts:.4g} rollout(s) of {plants:.4g} plant(s)" + (f", a trace of {trace // TRACE_FLOATS} samples"
+                                                                       if trace else "")  # fmt: skip
+    return Estimate(int(min(total, 2**62)), batch, key)
+
+
+def _meminfo(field: str) -> int | None:
+    """A field of /proc/meminfo in bytes (Linux); None elsewhere."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _mapped() -> int:
+    """The address space this process maps now (VmSize, bytes; 0 where unknown)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def limit() -> tuple[int | None, str]:
+    """(bytes, what they are): the memory this process may still use, the smaller of the
+    machine's available memory and, where ``ulimit -v`` sets one, its address-space limit less
+    what the process maps already; (None, ...) where neither is known."""
+    found = []
+    available = _meminfo("MemAvailable")
+    if available is None:
+        try:
+            available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (ValueError, OSError, AttributeError):
+            available = None
+    if available is not None:
+        found.append((available, "the machine's available memory"))
+    try:
+        import resource
+
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+        if soft != resource.RLIM_INFINITY:
+            found.append((max(0, soft - _mapped()), "the address-space limit (ulimit -v) less what this process maps"))
+    except (ImportError, OSError, ValueError):
+        pass
+    return min(found) if found else (None, "unknown")
+
+
+def refusal(cfg: dict, available: tuple[int | None, str] | None = None) -> str | None:
+    """The one-line refusal of a batch whose :func:`estimate` exceeds :func:`limit` (or
+    ``available``), naming the key to lower first; None when it fits (or no limit is known)."""
+    need = estimate(cfg)
+    room, what = limit() if available is None else available
+    if room is None or need.bytes <= room:
+        return None
+    advice = ADVICE.get(need.key, f"lower {need.key}")
+    return (f"{need.key}: the batch needs at least {_gb(need.bytes)} ({need.batch}), more than the {_gb(room)} this "
+            f"process may use ({what}): {advice}")  # fmt: skip
+
+
+def _gb(n: Any) -> str:
+    return f"{n / 1e9:.3g} GB"
