@@ -172,8 +172,8 @@ def test_the_arms_gradient_in_its_physical_parameters_and_payloads_equals_the_vm
         m = problem.with_arm({"F": F, "Kt": Kt}).simulate(fast=fast).mean()
         return jnp.mean(m.rms_error)
 
-    g = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, True), argnums=(0, 1)))(arm.F, arm.Kt)
-    h = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, False), argnums=(0, 1)))(arm.F, arm.Kt)
+    g = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, True), argnums=(0, 1)))(arm["F"], arm["Kt"])
+    h = jax.jit(jax.grad(lambda F, Kt: loss(F, Kt, False), argnums=(0, 1)))(arm["F"], arm["Kt"])
     assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
 
 

@@ -689,7 +689,7 @@ def _simulate_batch(
         try:
             return _generated.simulate_batch(args, n_steps=n_steps, integrator=integrator, paired=paired,
                                              truncate_every=-(-options.get("truncate_every", 0) // m) * m)  # fmt: skip
-        except _codegen.Unsupported as e:
+        except (_codegen.Unsupported, OSError) as e:  # not printable, or its C++ did not build
             _generated.warn_unsupported(e)
             return vmap_path(*args)
 
