@@ -206,7 +206,7 @@ def _folded(advance):
 
 def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, divergence_bound, chattering_cutoff,
                   paired=False):  # fmt: skip
-    from .rollout import Result, start
+    from .rollout import Result, start_batch
 
     dtype = X0s.dtype
     dt = jnp.asarray(dt, dtype)
@@ -215,12 +215,7 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     N = P * O
     digital = type(ctrl) is DigitalLoop
     bound = jnp.asarray(divergence_bound, dtype)
-    one = lambda plant, X0: start(plant, ctrl, reference, X0, None, bound)
-    if paired:
-        carry = jax.vmap(one)(plants, X0s)
-    else:
-        carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
-        carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
+    carry = start_batch(plants, ctrl, reference, X0s, None, bound, paired)
     acc3 = jax.vmap(lambda plant, state: plant.accelerations(state, jnp.zeros((), dtype)), (0, 0))(
         jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
     )

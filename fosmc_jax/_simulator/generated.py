@@ -504,7 +504,7 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     states or (``paired``) the i-th with the i-th, one noise key; raises
     :class:`codegen.Unsupported` or OSError where the model cannot be printed or built."""
     from . import metrics as _metrics
-    from .rollout import Result, _Carry, closed_loop_step, sample_steps, start
+    from .rollout import Result, _Carry, closed_loop_step, sample_steps, start_batch
 
     plants, ctrl, reference, X0s, dt, keys, bound, cutoff = args
     dtype = X0s.dtype
@@ -512,13 +512,7 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     P = jax.tree.leaves(plants)[0].shape[0]
     O = 1 if paired else X0s.shape[0]
     N = P * O
-    key = keys[0]
-    one = lambda plant, X0: start(plant, ctrl, reference, X0, key, bound)
-    if paired:
-        carry = jax.vmap(one)(plants, X0s)
-    else:
-        carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
-        carry = jax.tree.map(lambda x: x.reshape((N,) + x.shape[2:]), carry)
+    carry = start_batch(plants, ctrl, reference, X0s, keys[0], bound, paired)
     lane_plants = jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants)
     lane_leaves, lane_def = jax.tree.flatten((lane_plants, ctrl))
     n_plant = len(jax.tree.leaves(lane_plants))

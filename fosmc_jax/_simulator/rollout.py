@@ -252,6 +252,16 @@ def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
     )
 
 
+def start_batch(plants, ctrl, reference, X0s: Array, key, divergence_bound, paired: bool) -> _Carry:
+    """:func:`start` of every plant (leading axis P) with every initial state (O, 9), plant-major,
+    or (``paired``) of the i-th plant with the i-th state: a carry with a leading axis P O (or P)."""
+    one = lambda plant, X0: start(plant, ctrl, reference, X0, key, divergence_bound)
+    if paired:
+        return jax.vmap(one)(plants, X0s)
+    carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
+
+
 _STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
 
 
