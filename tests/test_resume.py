@@ -14,6 +14,7 @@ import time
 
 import pytest
 
+import fosmc_jax as fj
 from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import jsonable
@@ -197,6 +198,18 @@ def test_resume_on_a_finished_front_says_so_and_changes_nothing(finished, capsys
     assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()} == before
 
 
+def test_resume_on_a_finished_tune_says_so_and_changes_nothing(finished):
+    config, out = finished
+    (out / "front.json").rename(out / "result.json")
+    before = {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()}
+    lines = []
+    done = fj.run_tune(str(config), out=out, resume=True, log=lines.append)
+    assert lines == [f"tune: {out / 'result.json'} is complete (nothing to resume): left as it is; --force starts "
+                     "afresh"]  # fmt: skip
+    assert done == json.loads((out / "result.json").read_text())
+    assert {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in out.iterdir()} == before
+
+
 def test_resume_refuses_a_finished_run_of_another_config_and_resume_with_force(finished, tmp_path, capsys):
     config, out = finished
     other = tmp_path / "other.toml"
@@ -230,16 +243,21 @@ def test_replay_refuses_a_config_beside_it_and_a_file_without_recorded_work(fini
 # ---------------------------------------------------------------------------- SIGKILL, in the slow tier
 
 
-def _killed_at(cmd, env, after_s):
-    """Start ``cmd`` and SIGKILL it ``after_s`` seconds later (or let it finish first)."""
+def _run_until(cmd, env, checkpoint, after_s=None):
+    """Run ``cmd``; with ``after_s``, SIGKILL it that long after ``checkpoint`` first appears
+    (the search under way, compilation done). Returns (killed, seconds from the checkpoint's
+    appearance to the end)."""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    while proc.poll() is None and not checkpoint.exists():
+        time.sleep(0.01)
+    seen = time.perf_counter()
     try:
         proc.wait(timeout=after_s)
-        return False  # it finished first
+        return False, time.perf_counter() - seen
     except subprocess.TimeoutExpired:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
-        return True
+        return True, time.perf_counter() - seen
 
 
 @pytest.fixture(scope="module")
@@ -248,42 +266,65 @@ def subprocess_env():
     return dict(os.environ, JAX_NUM_CPU_DEVICES="1", PYTHONPATH=os.getcwd())
 
 
-@pytest.mark.slow  # 6 front processes of given sizes and 5 resumes (~2-3 min on 2 cores)
+@pytest.mark.slow  # 6 front processes of given sizes and 6 resumes (5 min on 2 cores at load 6)
 def test_fronts_killed_with_sigkill_at_five_random_moments_resume_to_the_uninterrupted_one(tmp_path, subprocess_env):
     config = tmp_path / "c.toml"
     config.write_text(TINY_TOML)
-    sizes = ["--config", str(config), "--candidates", "64", "--steps", "12", "--points", "3"]
-    t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "fosmc_jax", "front", *sizes, "--out", str(tmp_path / "whole")],
-                   env=subprocess_env, check=True, capture_output=True)  # fmt: skip
-    duration = time.perf_counter() - t
-    whole = json.loads((tmp_path / "whole" / "front.json").read_text())
+    sizes = ["--config", str(config), "--candidates", "320", "--steps", "60", "--points", "3"]
+    whole = tmp_path / "whole"
+    _, work = _run_until([sys.executable, "-m", "fosmc_jax", "front", *sizes, "--out", str(whole)], subprocess_env,
+                         whole / "checkpoint.npz")  # fmt: skip
+    front = _strip(json.loads((whole / "front.json").read_text()))
     rng = random.Random(34)
-    killed = 0
     for i in range(5):
         out = tmp_path / f"killed{i}"
         cmd = [sys.executable, "-m", "fosmc_jax", "front", *sizes, "--out", str(out)]
-        killed += _killed_at(cmd, subprocess_env, rng.uniform(0.3, 0.95) * duration)
-        assert not (out / "front.json").exists() or not killed
-        assert not [p for p in out.iterdir() if p.name.startswith(".")] if out.exists() else True
+        killed, _ = _run_until(cmd, subprocess_env, out / "checkpoint.npz", rng.uniform(0.0, 0.8) * work)
+        assert killed and not (out / "front.json").exists(), f"kill {i}: the run ended first ({work:.1f} s of work)"
+        assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no half-written file kept
         subprocess.run(cmd + ["--resume"], env=subprocess_env, check=True, capture_output=True)
-        assert _strip(json.loads((out / "front.json").read_text())) == _strip(whole), f"kill {i}"
-    assert killed >= 3  # most kills landed before the end
+        assert _strip(json.loads((out / "front.json").read_text())) == front, f"kill {i}"
+    # and --resume on the finished run leaves it byte for byte
+    before = (whole / "front.json").read_bytes()
+    subprocess.run([sys.executable, "-m", "fosmc_jax", "front", *sizes, "--out", str(whole), "--resume"],
+                   env=subprocess_env, check=True, capture_output=True)  # fmt: skip
+    assert (whole / "front.json").read_bytes() == before
 
 
-@pytest.mark.slow  # 4 budgeted front processes, their resumes and replays (~3 min on 2 cores)
+@pytest.mark.slow  # 2 budgeted front processes, killed, resumed and replayed (3 min on 2 cores at load 6)
 def test_budgeted_fronts_killed_with_sigkill_replay_to_their_resumed_fronts(tmp_path, subprocess_env):
     config = tmp_path / "c.toml"
     config.write_text(TINY_TOML)
-    args = ["--config", str(config), "--budget", "40", "--points", "3"]
+    args = ["--config", str(config), "--budget", "25", "--points", "3"]
     rng = random.Random(35)
     for i in range(2):
         out = tmp_path / f"killed{i}"
         cmd = [sys.executable, "-m", "fosmc_jax", "front", *args, "--out", str(out)]
-        assert _killed_at(cmd, subprocess_env, rng.uniform(15, 35))
+        killed, _ = _run_until(cmd, subprocess_env, out / "checkpoint.npz", rng.uniform(0.0, 5.0))
+        assert killed
         subprocess.run(cmd + ["--resume"], env=subprocess_env, check=True, capture_output=True)
         resumed = json.loads((out / "front.json").read_text())
         replay = tmp_path / f"replay{i}"
         subprocess.run([sys.executable, "-m", "fosmc_jax", "front", "--replay", str(out / "front.json"), "--out",
                         str(replay)], env=subprocess_env, check=True, capture_output=True)  # fmt: skip
         assert _strip(json.loads((replay / "front.json").read_text())) == _strip(resumed), f"kill {i}"
+
+
+@pytest.mark.slow  # 4 tuning processes (~1-2 min on 2 cores)
+def test_a_tune_killed_with_sigkill_resumes_to_the_uninterrupted_result_json(tmp_path, subprocess_env):
+    """With a global stage: the resumed run keeps the start it found (result.json's ``start``),
+    so the whole result.json is the uninterrupted run's."""
+    config = tmp_path / "c.toml"
+    config.write_text(TINY_TOML + 'global_candidates = 16\nsteps = 12\ncheckpoint_every = 1\nmode = "reverse"\n')
+    whole = tmp_path / "whole"
+    tune = [sys.executable, "-m", "fosmc_jax", "tune", "--config", str(config), "--out"]
+    _, work = _run_until(tune + [str(whole)], subprocess_env, whole / "checkpoint.npz")
+    result = json.loads((whole / "result.json").read_text())
+    assert result["start"]["global_candidates"] == 16
+    rng = random.Random(36)
+    for i in range(2):
+        out = tmp_path / f"killed{i}"
+        killed, _ = _run_until(tune + [str(out)], subprocess_env, out / "checkpoint.npz", rng.uniform(0.0, 0.8) * work)
+        assert killed and not (out / "result.json").exists()
+        subprocess.run(tune + [str(out), "--resume"], env=subprocess_env, check=True, capture_output=True)
+        assert json.loads((out / "result.json").read_text()) == result, f"kill {i}"
