@@ -483,6 +483,9 @@ def run_tune(
     start_params = p0
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
+    kept = T.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
+    if kept and "start" in kept:
+        start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
     if tcfg["global_candidates"] and floor is None and not resuming:
         from .._search.front import global_stage
 
@@ -499,8 +502,10 @@ def run_tune(
                           tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
+    found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
+    keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                       terms=terms, log=log)  # fmt: skip
+                       terms=terms, extra=keep, log=log)  # fmt: skip
     final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
