@@ -117,6 +117,7 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
     assert before + after == work  # no finished unit of work done twice
 
 
+@pytest.mark.slow  # a budgeted run and its replay (6-20 s): the default tier keeps its 4 minutes
 def test_a_budgeted_front_replays_bit_for_bit(problems):
     lines = []
     budgeted, _ = _run(problems, F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1), log=lines.append)
