@@ -2,6 +2,7 @@
 controller (FOSMC) of "A Full Order Sliding Mode Tracking Controller For A Class of Uncertain
 Dynamical System", for a 3-DOF direct-drive arm."""
 
+from ._app.bench import identification_log
 from ._app.certify import certify
 from ._app.commands import (
     run_bounds,
@@ -72,6 +73,8 @@ __all__ = [
     "run_tune",
     "run_export",
     "run_identify",
+    # the log of an experiment from a simulation, in fosmc identify's layout
+    "identification_log",
     "ARM_PARAMS",
     "PAYLOAD_RANGE",
     "Arm",

@@ -28,8 +28,10 @@ from ._search.front import (
     local_factors,
     pick_starts,
     point_of,
+    replay_settings,
     sample_candidates,
 )
+from ._search.front import Plan as FrontPlan
 from ._search.front import Settings as FrontSettings
 from ._search.front import run as front_search
 from ._search.pareto import additive_epsilon, dominated_by, epsilon, hypervolume, nondominated
@@ -95,6 +97,7 @@ __all__ = [
     "AXES",
     "DIM",
     "Evaluator",
+    "FrontPlan",
     "FrontSettings",
     "axes",
     "bounds",
@@ -108,6 +111,7 @@ __all__ = [
     "local_factors",
     "pick_starts",
     "point_of",
+    "replay_settings",
     "sample_candidates",
     # choosing a front point (fosmc_jax._search.select)
     "controller_toml",

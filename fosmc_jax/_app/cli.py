@@ -258,7 +258,7 @@ def cmd_front(args) -> int:
     start = process_start()
     result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
                          steps=args.steps, seed=args.seed, compare=tuple(args.compare), force=args.force,
-                         resume=args.resume, started=start, log=_log)  # fmt: skip
+                         resume=args.resume, replay=args.replay, started=start, log=_log)  # fmt: skip
     _log(
         f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
         "start)"
@@ -452,6 +452,7 @@ def parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
+    f.add_argument("--replay", metavar="JSON", help="redo the work a front.json records, bit for bit")
     f.set_defaults(func=cmd_front)
     e = sub.add_parser("select", help="the front point that best meets a bound on error or chattering; its TOML")
     e.add_argument("--front", required=True, metavar="JSON", help="a `fosmc front` front.json")

@@ -476,6 +476,8 @@ def run_tune(
     from .._search import tune as T
     from . import study
 
+    if resume and force:
+        raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
     cfg = config_of(config)
     tcfg = cfg["tune"]
     if steps is not None:
@@ -492,6 +494,10 @@ def run_tune(
                           f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
+        if resume and (done := study.finished(out, "result.json", cfg, "tune", log)) is not None:
+            return done
+        if not resume:
+            study.start_afresh(out, "result.json", "checkpoint.npz")
     _warn_one_plant(cfg, "tune")
     plain, problem, p0 = _config.tuning_problems(cfg)
     if out is not None:
@@ -512,6 +518,9 @@ def run_tune(
     start_params = p0
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
+    kept = T.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
+    if kept and "start" in kept:
+        start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
     if tcfg["global_candidates"] and floor is None and not resuming:
         from .._search.front import global_stage
 
@@ -528,8 +537,10 @@ def run_tune(
                           tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
+    found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
+    keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                       terms=terms, log=log)  # fmt: skip
+                       terms=terms, extra=keep, log=log)  # fmt: skip
     final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
@@ -579,6 +590,7 @@ def run_front(
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
+    replay: str | Path | None = None,
     started: float | None = None,
     log: Log = _quiet,
 ) -> dict[str, Any]:
@@ -592,7 +604,9 @@ def run_front(
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
-    this call).
+    this call). ``replay``: a front.json whose recorded work (``stages.replay``) is redone with
+    its config, seed and sizes, without a clock: bit for bit the same front on the same machine
+    and device count (``config``, ``points``, ``candidates``, ``steps`` not given).
 
     Returns what ``front.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"},
     "axes", "points": [{params, metrics, held_out, diverged}], "stages", "references",
@@ -604,7 +618,16 @@ def run_front(
     from .._search import front as F
     from . import study
 
-    cfg = config_of(config)
+    if resume and force:
+        raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
+    if replay is not None:
+        given = [n for n, v in (("--config", config), ("--points", points), ("--candidates", candidates),
+                                ("--steps", steps)) if v is not None]  # fmt: skip
+        if given:
+            raise ConfigError(f"--replay: takes the config and sizes from its front.json: leave out {', '.join(given)}")
+        cfg, replayed = study.replayed(replay)
+    else:
+        cfg = config_of(config)
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force")
     for name, value in (("--points", points), ("--candidates", candidates), ("--steps", steps)):
@@ -624,6 +647,8 @@ def run_front(
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
+    if replay is not None:
+        settings = replayed._replace(budget=budget)
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
 
 

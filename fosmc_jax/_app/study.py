@@ -1,7 +1,8 @@
 """The study behind fosmc front: a resolved config's training, plain and held-out problems
-built once, the search of :mod: run on them, every front point
+built once, the search of :mod:`fosmc_jax._search.front` run on them, every front point
 evaluated on the held-out batch, the paper's references beside it, and front.json / front.png
-written."""
+written; what ``--resume`` finds in an output folder (:func:`finished`, :func:`start_afresh`)
+and what ``--replay`` redoes (:func:`replayed`)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 from .._design import paper
 from .._io import jsonable, write_text
 from .._search import tune as T
-from .._search.front import Evaluator, Settings, point_of, run
+from .._search.front import Evaluator, Settings, point_of, replay_settings, run
 from . import config as _config
 
 
@@ -76,6 +77,47 @@ def references(cfg: dict, chunk: int, plain: Evaluator | None = None) -> dict[st
     return out
 
 
+def finished(out: Path | None, name: str, cfg: dict, command: str, log: Callable[[str], None]) -> dict | None:
+    """What ``--resume`` finds in ``out`` when the run there is complete: its final file
+    ``name`` (``front.json``, ``result.json``; written last, and removed when a run starts
+    afresh, :func:`start_afresh`), returned as it is after one line saying so; None when there
+    is none (the run resumes from its checkpoint, or starts). A complete run of another config
+    is refused (``ConfigError`` naming ``--resume``): resuming it would mix two studies."""
+    path = None if out is None else Path(out) / name
+    if path is None or not path.exists():
+        return None
+    try:
+        done = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise _config.ConfigError(f"--resume: cannot read {path}: {e}") from None
+    if done.get("config") != json.loads(json.dumps(jsonable(cfg))):
+        raise _config.ConfigError(f"--resume: {path} is a complete run of another config: give its config, or "
+                                  "--force to start afresh")  # fmt: skip
+    log(f"{command}: {path} is complete (nothing to resume): left as it is; --force starts afresh")
+    return done
+
+
+def start_afresh(out: Path | None, *names: str) -> None:
+    """Remove a previous run's final file and checkpoint ``names`` from ``out`` (a run started
+    over it with ``--force``), so that a final file in a folder always belongs to its last
+    run, and a checkpoint never to another run."""
+    for name in names if out is not None else ():
+        (Path(out) / name).unlink(missing_ok=True)
+
+
+def replayed(path: str | Path) -> tuple[dict, Settings]:
+    """The config and the :class:`fosmc_jax._search.front.Settings` that redo the work of the
+    front in ``path`` (``fosmc front --replay``; :func:`fosmc_jax._search.front.replay_settings`);
+    ``ConfigError`` naming ``--replay`` for a file that is not such a front."""
+    try:
+        data = json.loads(Path(path).read_text())
+        return _config.as_config(data["config"]), replay_settings(data["stages"])
+    except (KeyError, TypeError, AttributeError):
+        raise _config.ConfigError(f"--replay: {path} is not a fosmc front front.json (no config or stages)") from None
+    except (OSError, ValueError) as e:
+        raise _config.ConfigError(f"--replay: {path}: {str(e).splitlines()[0]}") from None
+
+
 #: Seconds kept at the end of ``fosmc front``'s budget for writing front.json and drawing front.png.
 WRITE_S = 1.5
 
@@ -89,8 +131,14 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     counts from ``started`` (a ``time.perf_counter()`` value: the CLI's process start; None:
     now): the held-out evaluator is compiled first and its cost per point kept out of the
     search's time. Writes ``front.json`` and ``front.png`` (and a checkpoint) to ``out`` when
-    given; returns what ``front.json`` holds."""
+    given; returns what ``front.json`` holds. With ``resume``, a complete run in ``out`` is
+    returned as it is (:func:`finished`); without, a previous run's front.json and checkpoint
+    there are removed first (:func:`start_afresh`)."""
     t0 = time.perf_counter() if started is None else started
+    if resume and (done := finished(out, "front.json", cfg, "front", log)) is not None:
+        return done
+    if not resume:
+        start_afresh(out, "front.json", "checkpoint.npz")
     plain, train, p0 = _config.tuning_problems(cfg)
     plain = Evaluator(plain)  # compiled once: for the references and the search
     refs = references(cfg, settings.chunk, plain)

@@ -66,6 +66,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._io import atomic_write, write_text
 from .._plants.arm import Arm, ArmParams
 from .._plants.base import derivative_at
 from .._simulator.rollout import _STEPPERS
@@ -80,6 +81,13 @@ SMOOTHING = 10
 MAX_STEP = 0.2
 #: Directions with a standard deviation above WEAK x threshold are fitted last.
 WEAK = 0.1
+#: The delays (samples) :func:`identify` checks the configured one against: 0 to DELAYS (at most SMOOTHING).
+DELAYS = 3
+#: Levenberg-Marquardt steps (states and free parameters) of each other delay's check, from the fit's optimum.
+DELAY_ITERATIONS = 10
+#: Another delay whose cost is below the configured one's by more than this share is said to fit the log better
+#: (:func:`delay_warning`); a right delay's neighbours cost more (measured: docs/identify.md).
+DELAY_MARGIN = 0.05
 #: The fewest windows a bootstrap resamples (with fewer, the standard deviations are Gauss-Newton's only).
 BOOTSTRAP_WINDOWS = 5
 #: The residual RMS, in units of the angles' noise, above which the model does not explain the log
@@ -149,6 +157,22 @@ def read_log(path: str | Path) -> Log:
     else:
         log = _read_csv(path)
     return check_log(log)
+
+
+def write_log(log: Log, path: str | Path) -> None:
+    """Write ``log`` in the layout :func:`read_log` reads (docs/identify.md), atomically: NPZ
+    arrays ``t``, ``theta``, ``u`` (and ``current``) for a ``.npz`` path, else CSV columns ``t,
+    theta1..3, u1..3`` (and ``i1..3``), every number as Python prints it (exact)."""
+    log = check_log(log)
+    path = Path(path)
+    if path.suffix.lower() == ".npz":
+        extra = {} if log.current is None else {"current": log.current}
+        atomic_write(path, lambda tmp: np.savez(tmp, t=log.t, theta=log.theta, u=log.u, **extra))
+        return
+    columns = [log.t[:, None], log.theta, log.u] + ([] if log.current is None else [log.current])
+    rows = np.concatenate(columns, axis=1)
+    header = ",".join(_COLUMNS + (() if log.current is None else _CURRENTS))
+    write_text(path, "\n".join([header, *(",".join(repr(float(x)) for x in row) for row in rows)]) + "\n")
 
 
 def _read_csv(path: Path) -> Log:
@@ -403,9 +427,10 @@ class _Model(NamedTuple):
 
     residuals: Callable  # (x0s (W, 9), z (p,), sigma) -> (W, m)
     jacobians: Callable  # (x0s, z, sigma) -> (r (W, m), Jx (W, m, 9), Jz (W, m, p))
+    compiled: tuple  # the jitted (residuals, jacobians) of any windows' data: another delay's windows reuse them
 
 
-def _model(entries, params, payload, windows: Windows, integrator, substeps) -> _Model:
+def _model(entries, params, payload, windows: Windows, integrator, substeps, compiled: tuple = ()) -> _Model:
     has_current = windows.current is not None
     one = _residual_fn(entries, params, payload, integrator, substeps, has_current)
     data = (windows.u, windows.t, windows.theta, windows.current if has_current else windows.theta)
@@ -417,8 +442,9 @@ def _model(entries, params, payload, windows: Windows, integrator, substeps) -> 
         return r, Jx, Jz
 
     axes = (0, None, 0, 0, 0, 0, None)
-    res, jac = jax.jit(jax.vmap(one, in_axes=axes)), jax.jit(jax.vmap(both, in_axes=axes))
-    return _Model(lambda x0s, z, sigma: res(x0s, z, *data, sigma), lambda x0s, z, sigma: jac(x0s, z, *data, sigma))
+    res, jac = compiled or (jax.jit(jax.vmap(one, in_axes=axes)), jax.jit(jax.vmap(both, in_axes=axes)))
+    return _Model(lambda x0s, z, sigma: res(x0s, z, *data, sigma), lambda x0s, z, sigma: jac(x0s, z, *data, sigma),
+                  (res, jac))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- the normal equations
@@ -666,6 +692,17 @@ def identify(
         costs.append(history[-1])
         iterations += len(history) - 1
 
+    # the delay: each other one from 0 to DELAYS refitted (states and free entries) from this optimum, on the
+    # same windows (delays up to SMOOTHING leave them where they are) and the same compiled model
+    delays = {settings.delay: costs[-1]}
+    for d in range(max(DELAYS, settings.delay) + 1 if settings.delay <= SMOOTHING else 0):
+        if d != settings.delay:
+            other = _model(ents, params, payload, cut(log, settings.window, d), settings.integrator, steps,
+                           model.compiled)  # fmt: skip
+            delays[d] = _fit(other, sigma, x0s, z, free, DELAY_ITERATIONS)[2][-1]
+    delay_note = delay_warning(delays, settings.delay)
+    if delay_note:
+        progress(f"identify: warning: {delay_note}")
     unc = _uncertainty(Jx, Jz, r, free, x0s.size, settings)
     if unc["skipped"]:
         progress(f"identify: bootstrap skipped ({unc['skipped']}): the standard deviations are Gauss-Newton's only")
@@ -683,7 +720,7 @@ def identify(
         "poorly_identified": [row["name"] for row in rows if row["status"] == "poorly identified"],
         "params": {f: np.asarray(getattr(p_fit, f)) for f in ArmParams._fields},
         "payload": float(m_fit),
-        "warnings": [warning] if warning else [],
+        "warnings": [w for w in (warning, delay_note) if w],
         "fit": {
             "cost_start": pre[0],
             "cost_states_only": pre[-1],
@@ -713,8 +750,24 @@ def identify(
             "period": period,
             "currents": log.current is not None,
             "delay": settings.delay,
+            "delay_costs": {str(d): c for d, c in sorted(delays.items())},
         },  # fmt: skip
     }
+
+
+def delay_warning(costs: dict[int, float], delay: int, margin: float = DELAY_MARGIN) -> str | None:
+    """A warning when some other delay's ``costs`` (each delay's fit cost, half the sum of
+    squared residuals in units of the noise, :func:`identify`'s delay check) are below the
+    configured ``delay``'s by more than ``margin`` of it: a drive logs its voltages either as it
+    writes them (the loop's delay) or as they act (0), and a wrong delay biases the estimates by
+    more than their standard deviations (measured: docs/identify.md); else None."""
+    best = min(costs, key=costs.get)
+    if best == delay or not costs[best] < (1 - margin) * costs[delay]:
+        return None
+    return (f"--delay {delay}: the log fits --delay {best} better (cost {costs[best]:.4g} against "
+            f"{costs[delay]:.4g}, in units of the noise): each logged voltage reaches the motor {best} sample(s) "
+            f"later, not {delay}, and the estimates are biased by the wrong delay: fit again with "
+            f"--delay {best}")  # fmt: skip
 
 
 def _floors(log: Log, resolution) -> np.ndarray:

@@ -30,18 +30,29 @@ training metrics are the plain ones; with one, only the plain metrics of stage 4
 With sizes from the budget (``candidates`` or ``steps`` not given) every stage runs until its
 share of the search time is spent: one chunk is timed first (compiled, then warm; its
 candidates join the global stage), which sizes the global stage; CMA-ES, the local rounds and
-the plain rounds then run until their deadlines, their steps shrinking with the stage's time
-spent, and the last stage ends where the final evaluations of the front it has found (the
-plain re-evaluation, the caller's held-out evaluation) still fit before the run's deadline.
-The deadlines are stored in the checkpoint as offsets from the run's start, and a resumed run
-sets its start back by the time already spent, so it ends when the uninterrupted run would
-have. With given sizes (``candidates`` and ``steps``; no CMA-ES or plain rounds unless
-``cma``, ``polish``) nothing depends on time: a resumed run ends where an uninterrupted one
-does (a run killed inside the CMA-ES stage resumes at its start).
+the plain rounds then run until their deadlines, and the last stage ends where the final
+evaluations of the front it has found (the plain re-evaluation, the caller's held-out
+evaluation) still fit before the run's deadline. A local or plain round's step shrinks with
+the rounds run, over a horizon of rounds estimated from the timed chunk (not with the clock),
+so that the work done is a list of counts: ``stages["replay"]`` records it (:class:`Plan`), and
+:func:`replay_settings` turns it into settings that redo it without a clock, bit for bit on the
+same machine and device count (``fosmc front --replay``). A budgeted run itself depends on the
+machine's speed and load: the same seed gives another front when the stages get more or fewer
+chunks done.
+
+The checkpoint is written after every ``checkpoint_every`` units of work (chunks of the global
+stage, CMA-ES generations, whose runs' state is pickled whole, local or plain rounds; with a
+budget at most every 10 s); a resumed run continues from it, so it ends where an
+uninterrupted run of the same recorded work ends. The deadlines are stored as offsets from the
+run's start, and a resumed run sets its start back by the time already spent, so it ends when
+the uninterrupted run would have. With given sizes (``candidates`` and ``steps``; no CMA-ES or
+plain rounds unless ``cma``, ``polish``) nothing depends on time: a resumed run ends where an
+uninterrupted one does.
 """
 
 from __future__ import annotations
 
+import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -63,6 +74,23 @@ AXES = ("rms_error", "chattering_hf")
 _FOSMC = T.SPACES["fosmc"]
 #: Number of the FOSMC's log factors: delta, gamma, poles, one per joint each (a kind's: its Space's dim).
 DIM = _FOSMC.dim
+
+
+class Plan(NamedTuple):
+    """The work of a front run, all that its sizes from the budget decided (front.json's
+    ``stages.replay``, with the seed and sizes): global candidates ``drawn`` (the size
+    :func:`global_factors` was called with: its grid follows it) and ``evaluated`` (their
+    first ones), whether the ``probe``'s chunk joined them, CMA-ES generations, local and plain
+    rounds, and the ``horizon`` in rounds over which each stage's sigma shrinks."""
+
+    drawn: int
+    evaluated: int
+    probe: bool
+    cma_generations: int
+    local_rounds: int
+    local_horizon: int
+    plain_rounds: int
+    plain_horizon: int
 
 
 class Settings(NamedTuple):
@@ -90,6 +118,7 @@ class Settings(NamedTuple):
     polish: int = 0
     polish_share: float = 0.25
     polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
+    plan: Plan | None = None  # the work to redo (a replay, replay_settings): no clock, sizes and rounds as recorded
 
 
 def bounds(space: T.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
@@ -199,11 +228,13 @@ class Evaluator:
         return self._run
 
     def __call__(self, params: T.Params, chunk: int, log: Callable[[str], None] = print, what: str = "evaluating",
-                 deadline: float | None = None, command: str = "front") -> dict[str, np.ndarray]:  # fmt: skip
+                 deadline: float | None = None, command: str = "front",
+                 each: Callable[[int, dict], None] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
         """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
         {metric: (n, 3)} and ``diverged`` (n,) counts, in chunks of ``chunk``; with a
         ``deadline`` (a ``time.perf_counter()`` value) only the first chunks evaluated before it
-        passes (one at least). Progress lines ``{command}: {what} i/n`` go to ``log``."""
+        passes (one at least). Progress lines ``{command}: {what} i/n`` go to ``log``; after each
+        chunk ``each(k, metrics of the first k)`` (a checkpoint's hook)."""
         n = jax.tree.leaves(params)[0].shape[0]
         run, devices = self.compiled(), self.devices
         padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
@@ -216,6 +247,8 @@ class Evaluator:
             if size < padded:  # pad to the compiled size
                 part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
             parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
+            if each is not None:
+                each(min(i + chunk, n), {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
             now = time.perf_counter()
             if now - shown > 1.0 or i + chunk >= n:  # progress about once a second
                 log(f"{command}: {what} {min(i + chunk, n)}/{n}  {now - start:7.1f} s")
@@ -229,11 +262,11 @@ def evaluator(problem: T.Problem | Evaluator) -> Evaluator:
 
 
 def evaluate_many(problem: T.Problem | Evaluator, params: T.Params, chunk: int, log: Callable[[str], None] = print,
-                  what: str = "evaluating", deadline: float | None = None, command: str = "front"
-                  ) -> dict[str, np.ndarray]:  # fmt: skip
+                  what: str = "evaluating", deadline: float | None = None, command: str = "front",
+                  each: Callable[[int, dict], None] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """:class:`Evaluator`'s call: a problem is compiled afresh for this call, an evaluator reuses
     its compilation."""
-    return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline, command=command)
+    return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline, command=command, each=each)
 
 
 def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
@@ -262,6 +295,11 @@ def axes(m: dict) -> tuple[np.ndarray, np.ndarray]:
     return (e, c) if bad.all() else (np.where(bad, np.nan, e), np.where(bad, np.nan, c))
 
 
+def front_size(m: dict) -> int:
+    """The number of non-dominated points among evaluated metrics m."""
+    return int(nondominated(*axes(m)).sum())
+
+
 def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``k`` non-dominated points spread evenly by rank along the front, and the
     front's slope -d log E / d log C at each (weights of the log objective there)."""
@@ -279,26 +317,36 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cma_stage(problem: T.Problem | Evaluator, p0: T.Params, z: np.ndarray, m: dict, settings: Settings,
-              generations: int, deadline: float | None, log: Callable[[str], None]
+              generations: int, deadline: float | None, log: Callable[[str], None], *, resumed: bytes | None = None,
+              start: int = 0, save: Callable[[int, np.ndarray, dict, bytes], None] | None = None
               ) -> tuple[np.ndarray, dict, int]:  # fmt: skip
     """``settings.cma_starts`` runs of pycma's CMA-ES (the reference implementation) from points
     spread along the front of the evaluated (z, m) (:func:`pick_starts`), run k minimising
     log E + w_k log C at the front's slope w_k there (the objective of the CMA-ES baseline,
     :func:`fosmc_jax._search.peers.cma_front`), steps ``cma_sigma`` of each range, within the box;
-    each generation of every run is one vmapped evaluation. Returns (z, m) with every point
-    evaluated appended and the generations run (fewer than ``generations`` when the
-    ``deadline`` passes or every run has stopped)."""
+    each generation of every run is one vmapped evaluation. The runs draw from one random stream
+    of their own (not NumPy's global one), so that their state is whole in a pickle: every
+    ``settings.checkpoint_every`` generations (with a ``deadline``, at most every 10 s)
+    ``save(g, z, m, state)`` gets the generations run, the evaluations so far and that pickle,
+    and ``resumed`` (such a state, with ``start`` = its g and (z, m) as saved) continues from it
+    as if never stopped. Returns (z, m) with every point evaluated appended and the generations
+    run (fewer than ``generations`` when the ``deadline`` passes or every run has stopped)."""
     problem = evaluator(problem)  # compiled once for every generation
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
     space = T.space_of(p0)
     lo, hi = space.bounds()
-    starts, slopes = pick_starts(m, settings.cma_starts)
-    opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1, "verbose": -9,
-                      "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo)}  # fmt: skip
-    runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
-    t0 = shown = time.perf_counter()
-    for g in range(generations):
+    if resumed is not None:
+        runs, slopes = pickle.loads(resumed)
+    else:
+        starts, slopes = pick_starts(m, settings.cma_starts)
+        rng = np.random.RandomState(settings.seed * 1_000_003 + 700_000)
+        opts = lambda k: {"popsize": settings.chunk, "seed": settings.seed * 1_000_003 + 700_000 + k + 1,
+                          "verbose": -9, "bounds": [list(lo), list(hi)], "CMA_stds": list(hi - lo),
+                          "randn": rng.randn}  # fmt: skip
+        runs = [cma.CMAEvolutionStrategy(z[i], settings.cma_sigma, opts(k)) for k, i in enumerate(starts)]
+    t0 = shown = saved = time.perf_counter()
+    for g in range(start, generations):
         live = [k for k, es in enumerate(runs) if not es.stop()]
         if not live or (deadline is not None and time.perf_counter() > deadline):
             why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
@@ -314,9 +362,14 @@ def cma_stage(problem: T.Problem | Evaluator, p0: T.Params, z: np.ndarray, m: di
         z, m = np.concatenate([z, *X]), {k: np.concatenate([m[k], mr[k]]) for k in m}
         if deadline is None or time.perf_counter() - shown > 1.0:  # with a deadline, about once a second
             shown = time.perf_counter()
-            total = f"/{generations}" if deadline is None else f" ({deadline - shown:.1f} s left)"
+            total = f"/{generations}" if deadline is None else f" ({max(0.0, deadline - shown):.1f} s left)"
             log(f"front: CMA-ES generation {g + 1}{total}  best {np.round(f.min(axis=1), 3).tolist()}  "
                 f"{int(nondominated(*axes(m)).sum())} non-dominated  {time.perf_counter() - t0:7.1f} s")  # fmt: skip
+        every = settings.checkpoint_every
+        due = save is not None and every and (g + 1) % every == 0
+        if due and (deadline is None or time.perf_counter() - saved > 10):
+            save(g + 1, z, m, pickle.dumps((runs, slopes)))
+            saved = time.perf_counter()
     return z, m, generations
 
 
@@ -335,6 +388,10 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
+#: Seconds of search below which :func:`run` says that its budget is short (and names one that gives them).
+MIN_SEARCH_S = 30.0
+
+
 def run(
     train: T.Problem | Evaluator,
     plain: T.Problem | Evaluator,
@@ -348,119 +405,170 @@ def run(
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Find the front (see module docstring). With sizes from the budget (``settings.candidates``
-    or ``settings.steps`` 0) the run returns by ``deadline`` (a ``time.perf_counter()`` value;
-    None: ``settings.budget`` from now), leaving ``reserve_per_point`` seconds per front point
-    for what follows (the caller's held-out evaluation). Returns {"fosmc_jax": versions, "axes",
-    "points": [...], "stages": {...}} (``fosmc_jax._io.stamped``: front.json's head) with every
-    point's parameters, plain mean metrics and diverged count; non-dominated only, sorted by
-    chattering. The search space is that of ``p0``'s controller kind
-    (:func:`fosmc_jax._search.tune.space_of`)."""
+    or ``settings.steps`` 0, no ``settings.plan``) the run returns by ``deadline`` (a
+    ``time.perf_counter()`` value; None: ``settings.budget`` from now), leaving
+    ``reserve_per_point`` seconds per front point for what follows (the caller's held-out
+    evaluation). Returns {"fosmc_jax": versions, "axes", "points": [...], "stages": {...}}
+    (``fosmc_jax._io.stamped``: front.json's head) with every point's parameters, plain mean
+    metrics and diverged count; non-dominated only, sorted by chattering; ``stages["replay"]``
+    holds the work done (:func:`replay_settings` makes the settings that redo it, bit for bit).
+    The search space is that of ``p0``'s controller kind (:func:`fosmc_jax._search.tune.space_of`).
+
+    ``checkpoint``: written after every ``settings.checkpoint_every`` units of work (chunks of
+    the global stage, CMA-ES generations, local or plain rounds; with a budget, at most every
+    10 s); ``resume`` continues from it where it was written (a fresh run otherwise)."""
     t0 = time.perf_counter()
     space = T.space_of(p0)
     state: dict[str, Any] = {}
+    ckpt: dict[str, np.ndarray] = {}
     if resume and checkpoint is not None and checkpoint.exists():
         state, ckpt = T._load(checkpoint)
-        log(f"front: resumed from {checkpoint} ({state['stage']}, round {state['round']})")
+        where = {
+            "global": f"{len(ckpt['z'])} global candidates",
+            "cma": f"CMA-ES generation {state.get('cma_round')}",
+            "local": f"local round {state.get('round')}",
+            "polish": f"plain round {state.get('polish_round')}",
+        }
+        log(f"front: resumed from {checkpoint} at {where[state['stage']]}")  # fmt: skip
     train, plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
     surrogate = not _same_simulation(train.problem, plain.problem)
-    timed = not (settings.candidates and settings.steps)
-    n_cand = state.get("candidates", settings.candidates)
-    rounds, polish = state.get("steps", settings.steps), state.get("polish", settings.polish if surrogate else 0)
-    generations = state.get("cma_generations", settings.cma)
+    plan = settings.plan
+    timed = plan is None and not (settings.candidates and settings.steps)
+    n_cand = state.get("candidates", plan.drawn if plan else settings.candidates)
+    rounds = state.get("steps", plan.local_rounds if plan else settings.steps)
+    polish = state.get("polish", plan.plain_rounds if plan else settings.polish if surrogate else 0)
+    generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
+    horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
+    probe = state.get("probe", plan.probe if plan else timed)
+    costs = state.get("costs", {})  # s per chunk of the training and plain evaluations (the budget's plan)
     clock = _Clock(t0 - state.get("elapsed", 0.0), state.get("ends"))
-    plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
-    z0 = np.zeros((0, space.dim))
-    m0: dict[str, np.ndarray] = {}
-    if timed and not state:  # the stages' deadlines: time one chunk (compiled, then warm), kept as candidates
+    stage = state.get("stage", "global")
+    keys = state.get("keys", ())
+    z0, m0 = ckpt.get("probe.z", np.zeros((0, space.dim))), {k: ckpt[f"probe.m.{k}"] for k in keys if "probe.z" in ckpt}
+    if probe and not state:  # the probe: one chunk (timed with a budget: compiled, then warm), kept as candidates
         z0 = global_factors(settings.chunk, settings.seed + 1, space=space)
         t = time.perf_counter()
-        evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+        m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
+    if timed and not state:  # the stages' deadlines
         compile_s = time.perf_counter() - t
         t = time.perf_counter()
         m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-        chunk_s = time.perf_counter() - t
+        costs["train"] = time.perf_counter() - t
+        plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
         if surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
             for _ in range(2):
                 t = time.perf_counter()
                 evaluate_many(plain, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-            plain_point_s = (time.perf_counter() - t) / settings.chunk
+            costs["plain"] = time.perf_counter() - t
+            plain_point_s = costs["plain"] / settings.chunk
         end = settings.budget if deadline is None else deadline - t0
         # the search's time, less the final evaluations of a front of a few hundred points
         now = clock.elapsed()  # once: the stages' ends must not pass the run's (local = now + search <= end)
-        search = max(0.0, end - now - 300 * (reserve_per_point + plain_point_s))
+        final = 300 * (reserve_per_point + plain_point_s)
+        search = max(0.0, end - now - final)
         ends = {"global": now + settings.global_share * search}
         ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
         ends["local"] = now + (1 - (settings.polish_share if surrogate else 0.0)) * search
         ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
         clock = _Clock(clock.start, ends)
-        n_cand = n_cand or max(1, int(settings.global_share * search / chunk_s)) * settings.chunk
+        n_cand = n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
         generations = generations or 10**9
         rounds, polish = rounds or 10**9, polish or (10**9 if surrogate else 0)
-        log(f"front: one chunk of {settings.chunk} costs {chunk_s:.3f} s (compilation {compile_s - chunk_s:.1f} s): "
-            f"{search:.0f} s of search: {n_cand} global candidates, then CMA-ES, local rounds"
-            f"{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
+        log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
+            f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {n_cand} global candidates, then CMA-ES, "
+            f"local rounds{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
+        if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
+            serve = settings.budget - end + now + final + MIN_SEARCH_S
+            log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
+                f"{settings.budget - end + now:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for the "
+                f"final evaluations: each stage runs one chunk at least, so the run may end late; a budget of "
+                f"{np.ceil(serve):.0f} s or more leaves {MIN_SEARCH_S:.0f} s")  # fmt: skip
 
     def finish_by(stage: str, n_points: int) -> float | None:
         """The deadline of the last stage: the run's end less the final evaluations of its front."""
         end = clock.end(stage)
         return None if end is None else end - n_points * reserve_per_point
 
-    if "round" in state:
-        z, m = ckpt["z"], {k: ckpt[f"m.{k}"] for k in state["keys"]}
-        r0 = state["round"]
-    else:
-        zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
-        mg = evaluate_many(train, from_factors(p0, zg), settings.chunk, log=log, what="global stage",
-                           deadline=None if settings.candidates else clock.end("global"))  # fmt: skip
-        zg = zg[: len(mg["diverged"])]
-        z, m = np.concatenate([zg, z0]), {k: np.concatenate([mg[k], m0[k]]) if m0 else mg[k] for k in mg}
-        r0 = 0
-    n_global = state.get("global_end", len(z))  # the global stage's evaluations (the probe's among them)
+    def rounds_horizon(which: str, n: int, end: float | None) -> int:
+        """The rounds over which a stage's sigma shrinks: its rounds less one with given sizes;
+        with a budget, the rounds its time holds at the probe's cost per chunk (a count, not
+        the clock, so that a replay or a resumed run steps as the first run did)."""
+        if which not in horizon:
+            cost = costs.get("train" if which == "local" else "plain", 0.0)
+            guess = (end - time.perf_counter()) / cost if end is not None and cost > 0 else n - 1
+            horizon[which] = int(max(1, min(guess, n - 1)))
+        return horizon[which]
 
-    def save(r: int, z: np.ndarray, m: dict, plain_state: tuple = ()) -> None:
+    n_global = state.get("global_end", 0)  # the global stage's evaluations (the probe's among them)
+    n_cma = state.get("cma_end", 0)  # evaluations up to the end of the CMA-ES stage
+    join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in b} if a else dict(b)
+
+    def save(stage: str, z: np.ndarray, m: dict, extra: dict | None = None, arrays: dict | None = None) -> None:
         if checkpoint is not None:
-            stage = "polish" if plain_state else "local" if r else "cma" if cma_done else "global"
-            header = {"stage": stage, "round": r, "elapsed": clock.elapsed(), "ends": clock.ends,
-                      "candidates": n_cand, "global_end": n_global, "steps": rounds, "polish": polish, "keys": list(m),
-                      "cma_generations": generations, "cma_done": cma_done, "cma_end": n_cma}  # fmt: skip
-            if plain_state:
-                header["polish_round"] = plain_state[0]
-            arrays = {"z": z, **{f"m.{k}": v for k, v in m.items()}}  # the evaluated factors and their metrics
-            if plain_state:  # the plain rounds' own
-                arrays.update({"plain.z": plain_state[1], **{f"plain.m.{k}": v for k, v in plain_state[2].items()}})
-            T._save(checkpoint, header, arrays)
+            header = {"stage": stage, "elapsed": clock.elapsed(), "ends": clock.ends, "candidates": n_cand,
+                      "global_end": n_global, "cma_end": n_cma, "steps": rounds, "polish": polish, "keys": list(m),
+                      "cma_generations": generations, "horizon": horizon, "probe": probe, "costs": costs,
+                      **(extra or {})}  # fmt: skip
+            stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
+            if stage == "global" and m0:  # the probe's, which join the global stage at its end
+                stored.update({"probe.z": z0, **{f"probe.m.{k}": v for k, v in m0.items()}})
+            T._save(checkpoint, header, stored)
 
-    cma_done = state.get("cma_done", False)
-    n_cma = state.get("cma_end", n_global)  # evaluations up to the end of the CMA-ES stage
-    if r0 == 0:
-        if not cma_done:
-            save(0, z, m)
-            log(f"front: global stage done, {int(nondominated(*axes(m)).sum())} non-dominated of {len(z)}")
-        if generations and not cma_done:  # a kill inside this stage resumes at its start
-            z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log)
-            cma_done, n_cma = True, len(z)
-            save(0, z, m)
+    z = ckpt.get("z", np.zeros((0, space.dim)))
+    m = {k: ckpt[f"m.{k}"] for k in keys}
+    evaluated = state.get("global_evaluated", 0)  # the global stage's own candidates evaluated (the probe's not)
+    if stage == "global":
+        zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
+        limit, done = (plan.evaluated if plan else n_cand), len(z)
+        end = None if plan or settings.candidates else clock.end("global")
+        saved = [time.perf_counter(), 0]
 
-    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at):
+        def partial(k: int, mk: dict) -> None:  # a checkpoint every checkpoint_every chunks (timed: 10 s at least)
+            chunks = -(-k // settings.chunk)
+            every = settings.checkpoint_every
+            if every and chunks - saved[1] >= every and (end is None or time.perf_counter() - saved[0] > 10):
+                save("global", np.concatenate([z, zg[done : done + k]]), join(m, mk))
+                saved[:] = [time.perf_counter(), chunks]
+
+        if done < limit and not (done and end is not None and time.perf_counter() > end):
+            mg = evaluate_many(train, from_factors(p0, zg[done:limit]), settings.chunk, log=log, what="global stage",
+                               deadline=end, each=partial)  # fmt: skip
+            z, m = np.concatenate([z, zg[done : done + len(mg["diverged"])]]), join(m, mg)
+        evaluated = len(z)
+        z, m = np.concatenate([z, z0]), join(m, m0) if m0 else m
+        n_global = len(z)
+        stage = "cma"
+        save("cma", z, m, {"cma_round": 0, "global_evaluated": evaluated})
+        log(f"front: global stage done, {int(nondominated(*axes(m)).sum())} non-dominated of {len(z)}")
+    if stage == "cma":
+        g0 = state.get("cma_round", 0) if state.get("stage") == "cma" else 0
+        blob = bytes(ckpt["cma.state"]) if g0 and "cma.state" in ckpt else None
+        if generations:
+            save_cma = lambda g, z, m, b: save("cma", z, m, {"cma_round": g, "global_evaluated": evaluated},
+                                               {"cma.state": np.frombuffer(b, np.uint8)})  # fmt: skip
+            z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log,
+                                          resumed=blob, start=g0, save=save_cma)  # fmt: skip
+        n_cma, stage = len(z), "local"
+        save("local", z, m, {"round": 0, "global_evaluated": evaluated})
+
+    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at, horizon):
         """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
-        (None: no deadline) passes, sigma from sigma[0] to sigma[1] over the rounds or, with a
-        deadline, over the stage's time; returns (z, m, rounds run). Parents are drawn from the
+        (None: no deadline) passes, sigma from sigma[0] at round 0 to sigma[1] at round
+        ``horizon`` and after; returns (z, m, rounds run). Parents are drawn from the
         front, kept as the rounds go (the non-dominated set of the old front and the round's
         children: a dominated point stays dominated). With a deadline, checkpoints are written
         at most every 10 s (a round can cost less than writing the archive)."""
-        (s0, s1), begin, shown, saved = sigma, time.perf_counter(), -np.inf, time.perf_counter()
+        (s0, s1), shown, saved = sigma, -np.inf, time.perf_counter()
         keep = nondominated(*axes(m))
         fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
         zs, ms = [z], [m]
-        join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in a}
         for r in range(r0, n):
             now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
             if end is not None and now > end:
                 log(f"front: {what} rounds: {r} run, the stage's time is spent")
                 n = r
                 break
-            progress = r / max(1, n - 1) if end is None else (now - begin) / max(end - begin, 1e-9)
-            sig = s0 * (s1 / s0) ** min(progress, 1.0)
+            sig = s0 * (s1 / s0) ** min(r / horizon, 1.0)
             zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, space)
             mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
             zs.append(zr)
@@ -470,7 +578,7 @@ def run(
             fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
             if end is None or time.perf_counter() - shown > 1.0:
                 shown = time.perf_counter()
-                total = f"/{n}" if end is None else f" ({end - shown:.1f} s left)"
+                total = f"/{n}" if end is None else f" ({max(0.0, end - shown):.1f} s left)"
                 log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(fz)} non-dominated  "
                     f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
             due = settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n)
@@ -482,30 +590,41 @@ def run(
         return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
 
     seed = settings.seed * 1_000_003
-    if state.get("stage") != "polish":
+    at = {"global_evaluated": evaluated}
+    if stage == "local":
+        r0 = state.get("round", 0) if state.get("stage") == "local" else 0
         local_end = None if clock.ends is None else (
             (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n)))  # fmt: skip
-        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local", save)
+        h = rounds_horizon("local", rounds, None if local_end is None else local_end(front_size(m)))
+        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local",
+                                 lambda r, z_, m_: save("local", z_, m_, {"round": r, **at}), h)  # fmt: skip
     n_train = len(z)
     idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
     zp, mp, p_run = z, m, 0
     if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx = np.flatnonzero(nondominated(*axes(m)))
-        if state.get("stage") == "polish":
+        plain_state = lambda r, z_, m_: ({"polish_round": r, **at},
+                                         {"plain.z": z_, **{f"plain.m.{k}": v for k, v in m_.items()}})  # fmt: skip
+        if stage == "polish":
             p_run, zp = state["polish_round"], ckpt["plain.z"]
-            mp = {k: ckpt[f"plain.m.{k}"] for k in state["keys"]}
+            mp = {k: ckpt[f"plain.m.{k}"] for k in keys}
         else:
             zp = z[idx]
             mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
-            save(rounds, z, m, (0, zp, mp))
-        save_plain = lambda r, z_, m_: save(rounds, z, m, (r, z_, m_))
+            save("polish", z, m, *plain_state(0, zp, mp))
         plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n))
-        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000,
-                                   plain_end, "plain", save_plain)  # fmt: skip
+        h = rounds_horizon("plain", polish, None if plain_end is None else plain_end(front_size(mp)))
+        save_plain = lambda r, z_, m_: save("polish", z, m, *plain_state(r, z_, m_))
+        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000, plain_end,
+                                   "plain", save_plain, h)  # fmt: skip
         idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
     if clock.ends is not None:
-        log(f"front: the search ends {clock.end('end') - time.perf_counter():.1f} s before the run's deadline, "
-            f"kept for the final evaluations ({reserve_per_point * 1e3:.1f} ms per point)")  # fmt: skip
+        left = clock.end("end") - time.perf_counter()
+        log(f"front: the search ends {left:.1f} s before the run's deadline, kept for the final evaluations "
+            f"({reserve_per_point * 1e3:.1f} ms per point)" if left >= 0 else
+            f"front: the search ends {-left:.1f} s after the run's deadline: "
+            + ("the budget is shorter than compilation and one chunk of each stage"
+               if clock.ends["local"] == clock.ends["global"] else "its last round ran past it"))  # fmt: skip
     if generations >= 10**9:  # the CMA-ES stage never started (a spent budget)
         generations = 0
     e, c = axes(mp)
@@ -513,14 +632,35 @@ def run(
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
     params = from_factors(p0, zp[keep])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
+    work = Plan(drawn=n_cand, evaluated=evaluated, probe=bool(probe), cma_generations=generations,
+                local_rounds=rounds, local_horizon=horizon.get("local", 1), plain_rounds=polish,
+                plain_horizon=horizon.get("plain", 1))  # fmt: skip
     stages = {"candidates": n_global, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
               "cma_generations": generations,
               "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
               "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
-              "from_plain_rounds": int(np.sum(idx[keep] < 0))}  # fmt: skip
+              "from_plain_rounds": int(np.sum(idx[keep] < 0)),
+              "replay": {"seed": settings.seed, "points": settings.points, "chunk": settings.chunk,
+                         **work._asdict()}}  # fmt: skip
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
+
+
+def replay_settings(stages: dict[str, Any]) -> Settings:
+    """The settings that redo the work recorded in a front's ``stages`` (front.json's; its
+    ``replay``): the same draws, stage sizes, rounds and steps, with no clock, so that
+    :func:`run` on the same problems ends at the same front bit for bit (on the same machine
+    and device count). A ``ValueError`` names what is missing from a front written before
+    the work was recorded."""
+    rec = stages.get("replay") if isinstance(stages, dict) else None
+    if not isinstance(rec, dict) or set(Plan._fields) - set(rec):
+        raise ValueError("stages.replay: this front.json does not record its work (written by a fosmc_jax before "
+                         "--replay existed): it cannot be replayed")  # fmt: skip
+    plan = Plan(**{k: bool(rec[k]) if k == "probe" else int(rec[k]) for k in Plan._fields})
+    return Settings(points=int(rec["points"]), chunk=int(rec["chunk"]), seed=int(rec["seed"]),
+                    candidates=plan.drawn, steps=plan.local_rounds, cma=plan.cma_generations,
+                    polish=plan.plain_rounds, plan=plan)  # fmt: skip
 
 
 def _same_simulation(a: T.Problem, b: T.Problem) -> bool:

@@ -255,6 +255,12 @@ def _load(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         return json.loads(bytes(z["header"]).decode()), {k: z[k] for k in z.files if k != "header"}
 
 
+def checkpoint_extra(path: Path) -> dict | None:
+    """The ``extra`` JSON a :func:`run` wrote into its checkpoint ``path`` (None: none, or no
+    checkpoint)."""
+    return _load(path)[0].get("extra") if Path(path).exists() else None
+
+
 def _named(tree) -> dict[str, Any]:
     """A pytree's leaves by their paths (``jax.tree_util.keystr``), in leaf order."""
     return {jax.tree_util.keystr(path): x for path, x in jax.tree_util.tree_flatten_with_path(tree)[0]}
@@ -278,6 +284,7 @@ def run(
     checkpoint: Path | None = None,
     resume: bool = False,
     terms: tuple[str, str] = ("error", "chattering"),
+    extra: dict | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
@@ -290,7 +297,9 @@ def run(
     and the history (per step: loss, error, chattering, gradient norm, skipped, internal
     params; ``best_step``: the index of the returned parameters, ``steps`` for the last update).
     Every line of ``log`` starts with ``tune:``; ``terms`` names the loss's two parts in its step
-    lines (``fosmc tune``: the objective's metrics, e.g. ``rms_error term``).
+    lines (``fosmc tune``: the objective's metrics, e.g. ``rms_error term``). ``extra``: JSON
+    the caller keeps in the checkpoint (:func:`checkpoint_extra` reads it back; a resumed run
+    keeps the first run's).
     """
     free = u0._fields if settings.free is None else settings.free
     labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
@@ -306,6 +315,7 @@ def run(
             jax.tree.structure((u, state)), [jnp.asarray(arrays[k]) for k in _named((u, state))]
         )
         history, start_step, mode = header["history"], header["step"], header["mode"]
+        extra = header.get("extra", extra)
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
@@ -349,7 +359,7 @@ def run(
             and settings.checkpoint_every
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
-            _save(checkpoint, {"step": done, "mode": mode, "history": history}, _named((u, state)))
+            _save(checkpoint, {"step": done, "mode": mode, "history": history, "extra": extra}, _named((u, state)))
     # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
     # cost) rather than a jit of the loss alone, which would compile a second program
     (last, _), _ = step_fn(u)
