@@ -10,8 +10,9 @@ benchmarks/arm_gradient.py builds them); ``digital``, the same batch in the ``re
 preset's 1 kHz digital loop (dt 0.1 ms: m = 10, encoder, delay, voltage limit); ``euler32``,
 1,024 rollouts (32 payloads x 32 offsets) x 1,000 Euler float32 steps of arm_ideal_set2.
 
-For each, timed after compilation (the compile time recorded), the median of ``--rounds``
-rounds of ``--round-s`` seconds at least:
+For each, timed after compilation (the compile time recorded), in ``--rounds`` rounds that time
+each function in turn for ``--round-s`` seconds at least (interleaved, so that the machine's load
+reaches both alike; the ratio is the median of the rounds' ratios):
 - ``forward``: ``problem.simulate(p)`` (the default path: the arm's native kernel), jitted;
 - ``value_and_grad``: ``jax.value_and_grad`` of the loss mean(rms_error) + 1e-3 mean(chattering)
   over ``problem.simulate(p)`` in the FOSMC's 15 parameters (delta, gamma, the poles): the
@@ -66,24 +67,36 @@ def build(shape: str, steps: int | None):
     return problem, steps
 
 
-def timed(fn, args, rounds: int, round_s: float) -> dict:
+def compiled(fn, args) -> tuple:
+    """``jax.jit(fn)`` compiled for ``args``, its compile time and one warm call's time."""
     import jax
 
     t0 = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
+    run = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    out = jax.block_until_ready(compiled(*args))
-    warm = time.perf_counter() - t0
-    calls = max(1, int(round_s / max(warm, 1e-6)))
-    per_call, loads = [], []
+    out = jax.block_until_ready(run(*args))
+    return run, compile_s, time.perf_counter() - t0, out
+
+
+def interleaved(runs: dict, args, rounds: int, round_s: float) -> dict:
+    """``rounds`` rounds, each timing every compiled function in turn for ``round_s`` seconds at
+    least (interleaved: a change of the machine's load reaches all of them alike): per function
+    the median seconds per call, every round's, and the loads."""
+    import jax
+
+    out = {name: {"all_s": [], "loads": []} for name in runs}
     for _ in range(rounds):
-        t0 = time.perf_counter()
-        for _ in range(calls):
-            out = jax.block_until_ready(compiled(*args))
-        per_call.append((time.perf_counter() - t0) / calls)
-        loads.append(load())
-    return {"s": statistics.median(per_call), "all_s": per_call, "compile_s": compile_s, "loads": loads, "out": out}
+        for name, (run, _, warm, _) in runs.items():
+            calls = max(1, int(round_s / max(warm, 1e-6)))
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                jax.block_until_ready(run(*args))
+            out[name]["all_s"].append((time.perf_counter() - t0) / calls)
+            out[name]["loads"].append(load())
+    for name, (_, compile_s, _, _) in runs.items():
+        out[name].update(s=statistics.median(out[name]["all_s"]), compile_s=compile_s)
+    return out
 
 
 def main(argv=None):
@@ -113,22 +126,31 @@ def main(argv=None):
             return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering)
 
         row = {"rollouts": problem.rollouts, "steps": steps}
-        fwd = timed(lambda p: loss(p), (p0,), args.rounds, args.round_s)
-        vg = timed(jax.value_and_grad(loss), (p0,), args.rounds, args.round_s)
-        row["forward"] = {k: v for k, v in fwd.items() if k != "out"}
-        row["value_and_grad"] = {k: v for k, v in vg.items() if k != "out"}
-        row["ratio"] = vg["s"] / fwd["s"]
-        row["value_match"] = float(abs(vg["out"][0] - fwd["out"]) / abs(fwd["out"]))
+        runs = {
+            "forward": compiled(lambda p: loss(p), (p0,)),
+            "value_and_grad": compiled(jax.value_and_grad(loss), (p0,)),
+        }
+        times = interleaved(runs, (p0,), args.rounds, args.round_s)
+        fwd, vg = times["forward"], times["value_and_grad"]
+        row.update(times)
+        ratios = [b / a for a, b in zip(fwd["all_s"], vg["all_s"])]
+        row["ratio"] = statistics.median(ratios)
+        row["ratios"] = ratios
+        v_out = runs["value_and_grad"][3]
+        row["value_match"] = float(abs(v_out[0] - runs["forward"][3]) / abs(runs["forward"][3]))
         line = (f"{shape}: {problem.rollouts} x {steps}: forward {fwd['s'] * 1e3:.1f} ms, value and gradient "
-                f"{vg['s'] * 1e3:.1f} ms = {row['ratio']:.2f}x (compile {fwd['compile_s']:.1f} / "
-                f"{vg['compile_s']:.1f} s), load {vg['loads']}")  # fmt: skip
+                f"{vg['s'] * 1e3:.1f} ms = {row['ratio']:.2f}x (rounds {min(ratios):.2f}-{max(ratios):.2f}x; "
+                f"compile {fwd['compile_s']:.1f} / {vg['compile_s']:.1f} s), load {vg['loads']}")  # fmt: skip
         if args.vmap:
-            vm = timed(jax.value_and_grad(lambda p: loss(p, fast=False)), (p0,), 1, 0.0)
-            row["vmap_value_and_grad"] = {k: v for k, v in vm.items() if k != "out"}
+            vm = compiled(jax.value_and_grad(lambda p: loss(p, fast=False)), (p0,))
+            t0 = time.perf_counter()
+            jax.block_until_ready(vm[0](p0))
+            row["vmap_value_and_grad"] = {"s": time.perf_counter() - t0, "compile_s": vm[1], "load": load()}
             diffs = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))),
-                                 vg["out"][1], vm["out"][1])  # fmt: skip
+                                 v_out[1], vm[3][1])  # fmt: skip
             row["grad_rel_diff_vs_vmap"] = max(jax.tree.leaves(diffs))
-            line += (f"; vmap path {vm['s'] * 1e3:.0f} ms = {vm['s'] / fwd['s']:.0f}x, gradients within "
+            vs = row["vmap_value_and_grad"]["s"]
+            line += (f"; vmap path {vs * 1e3:.0f} ms = {vs / fwd['s']:.0f}x, gradients within "
                      f"{row['grad_rel_diff_vs_vmap']:.1e} relative")  # fmt: skip
         print(line, flush=True)
         info["shapes"][shape] = row
