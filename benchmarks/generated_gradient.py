@@ -17,6 +17,8 @@ reaches both alike; the ratio is the median of the rounds' ratios):
 - ``value_and_grad``: ``jax.value_and_grad`` of the loss mean(rms_error) + 1e-3 mean(chattering)
   over ``problem.simulate(p)`` in the FOSMC's 15 parameters (delta, gamma, the poles): the
   generated adjoint kernel;
+- ``generated_forward``: the same loss through the generated kernel's forward (white-box), against
+  the hand-written kernel it is to replace;
 - ``vmap_value_and_grad`` (``--vmap``): the same through ``simulate(p, fast=False)`` (the
   ``vmap`` path, what a gradient cost before; slow: off by default).
 The gradients of the two paths are compared (max relative difference) where both run. The
@@ -65,6 +67,25 @@ def build(shape: str, steps: int | None):
     problem = fj.build(cfg)
     assert problem.rollouts == payloads * offsets, (problem.rollouts, payloads * offsets)
     return problem, steps
+
+
+def generated_loss(problem, p):
+    """The loss through the generated kernel's forward (white-box: the default path runs the
+    hand-written kernel forward, the generated one under differentiation)."""
+    import jax
+    import jax.numpy as jnp
+
+    from fosmc_jax._plants.arm import without_idle_terms
+    from fosmc_jax._simulator import generated
+
+    dtype = problem.X0s.dtype
+    args = (without_idle_terms(problem.plants), problem.controller(p), problem.reference, problem.X0s,
+            jnp.asarray(problem.dt, dtype), jax.random.PRNGKey(0)[None], jnp.asarray(1e6, dtype),
+            jnp.asarray(10.0, dtype))  # fmt: skip
+    res = generated.simulate_batch(args, n_steps=problem.options["n_steps"], integrator=problem.options["integrator"],
+                                   paired=False)  # fmt: skip
+    m = res.mean()
+    return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering)
 
 
 def compiled(fn, args) -> tuple:
@@ -129,6 +150,7 @@ def main(argv=None):
         runs = {
             "forward": compiled(lambda p: loss(p), (p0,)),
             "value_and_grad": compiled(jax.value_and_grad(loss), (p0,)),
+            "generated_forward": compiled(lambda p: generated_loss(problem, p), (p0,)),
         }
         times = interleaved(runs, (p0,), args.rounds, args.round_s)
         fwd, vg = times["forward"], times["value_and_grad"]
@@ -138,7 +160,10 @@ def main(argv=None):
         row["ratios"] = ratios
         v_out = runs["value_and_grad"][3]
         row["value_match"] = float(abs(v_out[0] - runs["forward"][3]) / abs(runs["forward"][3]))
-        line = (f"{shape}: {problem.rollouts} x {steps}: forward {fwd['s'] * 1e3:.1f} ms, value and gradient "
+        gen = times["generated_forward"]
+        row["generated_over_hand"] = statistics.median([b / a for a, b in zip(fwd["all_s"], gen["all_s"])])
+        line = (f"{shape}: {problem.rollouts} x {steps}: forward {fwd['s'] * 1e3:.1f} ms (generated forward "
+                f"{row['generated_over_hand']:.2f}x it), value and gradient "
                 f"{vg['s'] * 1e3:.1f} ms = {row['ratio']:.2f}x (rounds {min(ratios):.2f}-{max(ratios):.2f}x; "
                 f"compile {fwd['compile_s']:.1f} / {vg['compile_s']:.1f} s), load {vg['loads']}")  # fmt: skip
         if args.vmap:
