@@ -191,7 +191,7 @@ OPTIONS: dict[str, Field] = {
     "truncate_every": _count(0, "a non-negative integer (steps; 0: the full horizon)"),
     "switching": _one_of(SWITCHING),
     "law": _one_of(LAWS),
-    "divergence_bound": Field((), _positive, "a positive number"),
+    "divergence_bound": Field((), _positive_or_inf, "a positive number (inf: no bound)"),
     "chattering_cutoff": Field((), _positive, "a positive frequency (Hz)"),
     "fast": _FLAG,
     "native": _FLAG,
