@@ -56,10 +56,45 @@ def _rel(a, b):
     return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300)))
 
 
-@pytest.fixture(scope="module")
-def linear_loop():
-    """A small model (the linear plant under SMC in a digital loop, Euler, 60 steps): its value
-    and gradient in the gains and the plants, both paths, one build shared by the module."""
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["K", "a_rows", "b_rows"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class TanhPD:
+    """A user's law: feedforward (10) plus pole placement (16) through a tanh limit of 24 V."""
+
+    K: jax.Array
+    a_rows: jax.Array
+    b_rows: jax.Array
+
+    def init(self, X0, r0, key=None):
+        return ()
+
+    def update(self, state, Y, r, t):
+        U = fj.feedforward(self.a_rows, self.b_rows, r) + self.K @ (Y - fj.desired_state(r))
+        return 24.0 * jnp.tanh(U / 24.0), state
+
+
+def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients():
+    """The default tier's one build (a small model: the linear plant, a user's law, Euler, 60
+    steps): values and gradients in the law's gains and in the plants."""
+    plants, ref, X0s, dt = _linear()
+    K0 = -jnp.kron(jnp.eye(3), jnp.array([[60.0, 12.0, 0.5]]))
+
+    def loss(K, a_rows, path):
+        gen, vm = _both((plants._replace(a_rows=a_rows), TanhPD(K, plants.a_rows[0], plants.b_rows[0]), ref, X0s,
+                         dt), 60, "euler")  # fmt: skip
+        return _loss(gen if path == "gen" else vm)
+
+    v, g = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "gen"), argnums=(0, 1)))(K0, plants.a_rows)
+    w, h = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "vmap"), argnums=(0, 1)))(K0, plants.a_rows)
+    assert np.isfinite(v) and v > 0 and _rel(v, w) < 1e-12
+    assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
+    assert np.any(np.asarray(g[0]) != 0) and np.any(np.asarray(g[1]) != 0)
+
+
+@pytest.mark.slow
+def test_a_digital_smc_loop_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients():
+    """SMC (its solve with CB becomes a product with the hoisted inverse), sampled every 2 steps,
+    differenced rates, a delay, the limit: values and gradients in the gains and the plants."""
     plants, ref, X0s, dt = _linear()
     k0 = jnp.array([20.0, 25.0, 30.0])
 
@@ -70,11 +105,7 @@ def linear_loop():
 
         return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(k0, plants.a_rows)
 
-    return run("gen"), run("vmap")
-
-
-def test_a_digital_smc_loop_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients(linear_loop):
-    (v_gen, g_gen), (v_vm, g_vm) = linear_loop
+    (v_gen, g_gen), (v_vm, g_vm) = run("gen"), run("vmap")
     assert np.isfinite(v_gen) and v_gen > 0
     assert _rel(v_gen, v_vm) < 1e-12
     # the kernel's SMC multiplies by the hoisted (CB)^-1 where the law solves with CB: rounding
