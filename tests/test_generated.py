@@ -275,3 +275,16 @@ def test_a_users_law_with_a_state_of_its_own_runs_on_the_arm_kernel_in_float32()
     v, g = jax.value_and_grad(lambda k: loss(k, "gen"))(law.Ki)
     w, h = jax.value_and_grad(lambda k: loss(k, "vmap"))(law.Ki)
     assert _rel(v, w) < 1e-4 and _rel(g, h) < 1e-3  # float32: to rounding over 200 steps
+
+
+@pytest.mark.slow
+def test_jacfwd_and_vmap_of_grad_run_through_the_arms_default_path():
+    """Forward mode and vmapped gradients (a front's many points) through the generated kernel's
+    linear_call: both equal to the vmap path's."""
+    problem = _arm("tuning/configs/arm_ideal_set2.toml", 50, integrator="rk4")
+    d = problem.params()["delta"]
+    loss = lambda d, fast: jnp.mean(problem.simulate({"delta": d}, fast=fast).mean().rms_error)
+    assert _rel(jax.jacfwd(lambda d: loss(d, True))(d), jax.jacfwd(lambda d: loss(d, False))(d)) < 1e-9
+    ds = jnp.stack([d, 1.1 * d])
+    g = jax.vmap(jax.grad(lambda d: loss(d, True)))(ds)
+    assert _rel(g, jax.vmap(jax.grad(lambda d: loss(d, False)))(ds)) < 1e-9

@@ -39,6 +39,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+# linear_call's primitive and the table of batching rules (jax.interpreters.batching's is a
+# write-only proxy): JAX has no batching rule for linear_call, generated.py adds one
+from jax._src.custom_derivatives import linear_call_p as _LINEAR_CALL
+from jax._src.interpreters import batching
 from jax.custom_derivatives import SymbolicZero, linear_call
 
 from . import codegen
@@ -383,6 +387,18 @@ def _pad(x: Array, W: int) -> Array:
     return jnp.pad(x, ((0, 0), (0, (-x.shape[1]) % W)), mode="edge")
 
 
+def _linear_call_batched(args, dims, **params):
+    """A batching rule for ``linear_call`` (JAX has none): the batch mapped one element after
+    another (``lax.map``), as the kernels' FFI calls are (``vmap_method="sequential"``); its
+    transpose is the map's, each element's the adjoint kernel. ``jax.jacfwd`` and ``vmap`` of a
+    gradient need it."""
+    size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
+    lead = [jnp.broadcast_to(x, (size, *x.shape)) if d is None else jnp.moveaxis(x, d, 0)
+            for x, d in zip(args, dims)]  # fmt: skip
+    out = jax.lax.map(lambda xs: _LINEAR_CALL.bind(*xs, **params), lead)
+    return out, [0] * len(out)
+
+
 def advance(model: Model, x0: Array, lanes: Array, table: Array, truncate: int = 0) -> Array:
     """The state rows (n_state, N) after the table's L steps from ``x0`` (n_state, N), with the
     rollouts' ``lanes`` (n_lane, N): the generated kernel, differentiable in ``x0`` and ``lanes``
@@ -478,6 +494,10 @@ def jvp_perturbed(fn, primals: tuple, tangents: tuple):
         return fn(*jax.tree.unflatten(treedef, ls))
 
     return jax.jvp(f, tuple(leaves[i] for i in moving), tuple(t_leaves[i] for i in moving))
+
+
+if _LINEAR_CALL not in batching.fancy_primitive_batchers:  # a later JAX may bring its own
+    batching.primitive_batchers[_LINEAR_CALL] = _linear_call_batched
 
 
 def warn_unsupported(reason: Exception) -> None:
