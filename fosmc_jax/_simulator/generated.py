@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+
 # linear_call's primitive and the table of batching rules (jax.interpreters.batching's is a
 # write-only proxy): JAX has no batching rule for linear_call, generated.py adds one
 from jax._src.custom_derivatives import linear_call_p as _LINEAR_CALL
