@@ -259,7 +259,7 @@ def start_batch(plants, ctrl, reference, X0s: Array, key, divergence_bound, pair
     if paired:
         return jax.vmap(one)(plants, X0s)
     carry = jax.vmap(jax.vmap(one, (None, 0)), (0, None))(plants, X0s)
-    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), carry)
+    return jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), carry)  # -1 fails on size 0
 
 
 _STATIC = ("n_steps", "integrator", "switching", "law", "save_every", "checkpoint_every", "truncate_every")
