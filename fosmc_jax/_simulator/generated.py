@@ -31,6 +31,7 @@ import functools
 import hashlib
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -340,8 +341,6 @@ def _merge(lv, diff_values, diff):
 
 
 def _renumber_glv(text: str, lv, diff) -> str:
-    import re
-
     rows, at = [], 0
     for a, ok in zip(lv, diff):
         n = math.prod(a.shape)
