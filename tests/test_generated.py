@@ -73,9 +73,10 @@ class TanhPD:
         return 24.0 * jnp.tanh(U / 24.0), state
 
 
-def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients():
+def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients(monkeypatch):
     """The default tier's one build (a small model: the linear plant, a user's law, Euler, 60
-    steps): values and gradients in the law's gains and in the plants."""
+    steps): values and gradients in the law's gains and in the plants; the same gradients where
+    the checkpoints' budget admits only every K-th carry (the adjoint recomputes each block)."""
     plants, ref, X0s, dt = _linear()
     K0 = -jnp.kron(jnp.eye(3), jnp.array([[60.0, 12.0, 0.5]]))
 
@@ -89,6 +90,9 @@ def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients
     assert np.isfinite(v) and v > 0 and _rel(v, w) < 1e-12
     assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
     assert np.any(np.asarray(g[0]) != 0) and np.any(np.asarray(g[1]) != 0)
+    monkeypatch.setattr(generated, "CHECKPOINT_BYTES", 4096)  # 60 steps of 64-byte rows: K >= 2
+    _, g_k = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "gen"), argnums=(0, 1)))(K0, plants.a_rows)
+    assert _rel(g_k[0], g[0]) < 1e-12 and _rel(g_k[1], g[1]) < 1e-12
 
 
 @pytest.mark.slow

@@ -10,7 +10,8 @@
 //   table  (L, kTimeHeld + kTimeSampled)  per step k, what depends on time only (computed by JAX)
 //   carry  (kState, N)  the rollout's state, flat
 //   ckpt   (ceil(L / K), kState, N)  the carry at steps 0, K, 2K, ... (the forward stores them
-//          for the adjoint, which recomputes each block's states from them)
+//          for the adjoint, which recomputes each block's states from them); with K = 1,
+//          (L, kSaved, N): only the rows kSavedRows that the vector-Jacobian products read
 // Step k (from t_k to t_{k+1}, k counted from the call's k0) ends with a controller sample when
 // (k0 + k + 1) % kM == 0: Model::Sampled, else Model::Held (kM = 1: the ideal loop).
 #pragma once
@@ -91,7 +92,10 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
   V *x = a, *y = b;
   for (int64_t k = 0; k < s.L; k++) {
-    if (ckpt && k % s.K == 0)
+    if (ckpt && s.K == 1)
+      for (int i = 0; i < Mo::kSaved; i++)
+        fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * s.N + c, x[Mo::kSavedRows[i]]);
+    else if (ckpt && k % s.K == 0)
       for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * s.N + c, x[r]);
     Step<Mo>(s.k0 + k + 1, x, lv, table + k * nt, y);
     std::swap(x, y);
@@ -114,7 +118,11 @@ void Adjoint(const Shape& s, int64_t truncate, const T* lanes, const T* table, c
   for (int64_t j = (s.L + s.K - 1) / s.K - 1; j >= 0; j--) {
     const int64_t k1 = j * s.K, k2 = std::min(s.L, k1 + s.K);
     V* st = states.data();
-    for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * s.N + c);
+    if (s.K == 1)  // the rows the VJP reads (the others stay zero, unread)
+      for (int i = 0; i < Mo::kSaved; i++)
+        st[Mo::kSavedRows[i]] = fosmc::Simd<T>::Load(ckpt + (j * Mo::kSaved + i) * s.N + c);
+    else
+      for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * s.N + c);
     for (int64_t k = k1; k + 1 < k2; k++)
       Step<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, st + (k - k1 + 1) * n);
     for (int64_t k = k2 - 1; k >= k1; k--) {
@@ -162,7 +170,7 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
   Shape s;
   if (auto e = Check<Mo>(lanes, table, ct_out, &s, K); e.failure()) return e;
   s.k0 = k0;
-  if (ckpt.element_count() != ((s.L + K - 1) / K) * Mo::kState * s.N)
+  if (ckpt.element_count() != ((s.L + K - 1) / K) * (K == 1 ? Mo::kSaved : Mo::kState) * s.N)
     return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoints do not match the horizon");
   const T *lp = lanes.typed_data<T>(), *tp = table.typed_data<T>(), *cp = ckpt.typed_data<T>(),
           *gp = ct_out.typed_data<T>();
