@@ -237,7 +237,8 @@ def cmd_reproduce(args) -> int:
 def cmd_tune(args) -> int:
     """The objective's two metrics with their units, initial and final, then the chattering
     measure the objective does not use (total variation or ``chattering_hf``), labelled so."""
-    r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force, log=_log)
+    r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force,
+                   budget=args.budget, started=process_start(), log=_log)  # fmt: skip
     optimised = (r["objective"]["error_metric"], r["objective"]["chattering_metric"])
     rows = [(name, C.metric_label(name)) for name in optimised]
     rows += [(name, C.metric_label(name) + ", not in the objective")
@@ -466,6 +467,8 @@ def parser() -> argparse.ArgumentParser:
     t = sub.add_parser("tune", help="gradient-based tuning of the controller kind's parameters (optax)")
     t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
     t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
+    t.add_argument("--budget", type=float, help="wall time, s, from the process's start (compilation included): "
+                   "the global stage and as many gradient steps as fit (tune.steps at most)")  # fmt: skip
     t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")
     t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")

@@ -449,6 +449,8 @@ def run_tune(
     out: str | Path | None = None,
     resume: bool = False,
     force: bool = False,
+    budget: float | None = None,
+    started: float | None = None,
     log: Log = _quiet,
 ) -> dict[str, Any]:
     """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` of the config's
@@ -460,7 +462,11 @@ def run_tune(
     (``tune.keep_gamma_bound``); initial and final parameters evaluated on the plain
     ``[sim]`` simulation.
 
-    ``steps`` overrides ``tune.steps``. ``out``: folder for ``result.json``, ``tuning.png``
+    ``steps`` overrides ``tune.steps``. ``budget``: seconds of wall time from ``started`` (a
+    ``time.perf_counter()`` value; the CLI passes its process's start; None: this call's), which
+    the global stage (30% of what is left after the start's evaluations) and the gradient steps
+    (as many as fit, ``tune.steps`` at most) share, the final and held-out evaluations' time kept
+    back (estimated from the first evaluation's). ``out``: folder for ``result.json``, ``tuning.png``
     and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
     parameters); ``resume`` continues from its checkpoint. Returns what
     ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
@@ -476,8 +482,11 @@ def run_tune(
     from .._search import tune as T
     from . import study
 
+    started = time.perf_counter() if started is None else started
     if resume and force:
         raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
+    if budget is not None and not (_is_real(budget) and math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"--budget: expected a positive, finite number of seconds, got {budget}")
     cfg = config_of(config)
     tcfg = cfg["tune"]
     if steps is not None:
@@ -509,7 +518,10 @@ def run_tune(
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
     m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    t0 = time.perf_counter()
     initial = T.evaluate(plain, p0)
+    # kept back for the final evaluation (compiled) and the held-out one (a program like this one)
+    deadline = None if budget is None else started + budget - 1.5 * (time.perf_counter() - t0) - 2.0
     obj = T.objective_of(tcfg, m)
     log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
@@ -524,10 +536,12 @@ def run_tune(
     if tcfg["global_candidates"] and floor is None and not resuming:
         from .._search.front import global_stage
 
+        share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
         start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
-                                           log=log, command="tune")  # fmt: skip
-        log(f"tune: global stage: the best of {tcfg['global_candidates']} candidates scores {score:.4f} "
-            "(the config's parameters score about 0 with the log scale)")  # fmt: skip
+                                           log=log, command="tune", deadline=share)  # fmt: skip
+        which = "the best candidate" if share else f"the best of {tcfg['global_candidates']} candidates"
+        log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log "
+            "scale)")  # fmt: skip
     try:
         u0 = T.to_internal(start_params, plain.base, floor)
     except ValueError as e:
@@ -539,8 +553,10 @@ def run_tune(
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
     keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
+    if deadline is not None and time.perf_counter() > deadline:
+        log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
     u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                       terms=terms, extra=keep, log=log)  # fmt: skip
+                       terms=terms, extra=keep, deadline=deadline, log=log)  # fmt: skip
     final_params = T.to_physical(u, plain.base, floor)
     final = T.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)

@@ -270,16 +270,17 @@ def evaluate_many(problem: T.Problem | Evaluator, params: T.Params, chunk: int, 
 
 
 def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
-                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print, command: str = "tune"
-                 ) -> tuple[T.Params, float]:  # fmt: skip
+                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print, command: str = "tune",
+                 deadline: float | None = None) -> tuple[T.Params, float]:  # fmt: skip
     """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
     (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
     by ``obj`` on their batch-mean metrics; returns the best and its score. Its progress lines
-    start with ``command``."""
+    start with ``command``. With a ``deadline`` (a ``time.perf_counter()`` value), only the
+    candidates evaluated before it (one chunk at least)."""
     cands = sample_candidates(p0, n, seed)
     free = p0._fields if free is None else free
     cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
-    m = evaluate_many(problem, cands, chunk, log=log, what="global stage", command=command)
+    m = evaluate_many(problem, cands, chunk, log=log, what="global stage", command=command, deadline=deadline)
     means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
     J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
     best = int(np.nanargmin(J))

@@ -36,6 +36,7 @@ reported result is re-evaluated with the plain simulator (:func:`evaluate`).
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -185,7 +186,7 @@ def make_loss(problem: Problem, obj: Objective, floor: GammaFloor | None):
     """loss(u) -> (loss, (mean error part, mean chattering part)) in unconstrained coordinates."""
 
     def loss(u: Params):
-        r = problem.simulate(to_physical(u, problem.base, floor), split=True, fast=False)
+        r = problem.simulate(to_physical(u, problem.base, floor), split=True)
         J, e, c = rollout_costs(r.metrics, r.diverged, obj)
         return aggregate(J, obj), (jnp.mean(e), jnp.mean(c))
 
@@ -241,6 +242,15 @@ def value_and_grad(loss, mode: str):
     return jax.jit(fwd)
 
 
+def _on_adjoint_kernel(loss, u) -> bool:
+    """Whether ``loss``'s reverse mode runs the generated adjoint kernel (traced, not compiled).
+    Then ``auto`` need not time forward mode: with 15 parameters a gradient costs a few forwards
+    there, while forward mode runs 15 tangents through a ``lax.scan`` whose compilation alone took
+    over a minute on the realistic preset."""
+    program = str(jax.make_jaxpr(jax.grad(lambda v: loss(v)[0]))(u))
+    return re.search(r"fosmc_gen_\w+_adj", program) is not None
+
+
 def _save(path: Path, header: dict, arrays: dict[str, Any]) -> None:
     """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``."""
     if "header" in arrays:
@@ -285,6 +295,7 @@ def run(
     resume: bool = False,
     terms: tuple[str, str] = ("error", "chattering"),
     extra: dict | None = None,
+    deadline: float | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
@@ -299,7 +310,9 @@ def run(
     Every line of ``log`` starts with ``tune:``; ``terms`` names the loss's two parts in its step
     lines (``fosmc tune``: the objective's metrics, e.g. ``rms_error term``). ``extra``: JSON
     the caller keeps in the checkpoint (:func:`checkpoint_extra` reads it back; a resumed run
-    keeps the first run's).
+    keeps the first run's). ``deadline`` (a ``time.perf_counter()`` value): the steps are as many
+    as fit before it at the compiled step's measured time (``settings.steps`` at most; the
+    schedule spans them; a resumed run keeps the first run's count), and the loop stops at it.
     """
     free = u0._fields if settings.free is None else settings.free
     labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
@@ -315,10 +328,15 @@ def run(
             jax.tree.structure((u, state)), [jnp.asarray(arrays[k]) for k in _named((u, state))]
         )
         history, start_step, mode = header["history"], header["step"], header["mode"]
+        settings = settings._replace(steps=header.get("steps", settings.steps))
+        opt = make_optimizer(settings, labels)  # the schedule of the first run's steps
         extra = header.get("extra", extra)
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
+    if mode == "auto" and _on_adjoint_kernel(loss, u):
+        mode = "reverse"
+        log("tune: gradient mode reverse (the generated adjoint kernel)")
     candidates = ("reverse", "forward") if mode == "auto" else (mode,)
     compiled = {m: value_and_grad(loss, m) for m in candidates}
     if mode == "auto":
@@ -332,6 +350,17 @@ def run(
         log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
             f"forward {timings['forward']:.3f} s)")  # fmt: skip
     step_fn = compiled[mode]  # the timed function itself: no second compilation
+    if deadline is not None and start_step == 0:
+        jax.block_until_ready(step_fn(u))  # compiled (where auto did not)
+        t0 = time.perf_counter()
+        jax.block_until_ready(step_fn(u))
+        per_step = time.perf_counter() - t0
+        # one evaluation more after the steps: the last update's loss
+        fit = max(1, int((deadline - time.perf_counter()) / per_step) - 1)
+        if fit < settings.steps:
+            settings = settings._replace(steps=fit)
+            opt = make_optimizer(settings, labels)  # the schedule over the steps that fit; the same state
+        log(f"tune: budget: {settings.steps} gradient steps ({per_step:.3f} s each) before the deadline")
 
     @jax.jit
     def update(u, state, grad):
@@ -340,6 +369,9 @@ def run(
 
     t_start = time.perf_counter()
     for step in range(start_step, settings.steps):
+        if deadline is not None and step > start_step and time.perf_counter() > deadline:  # one step at least
+            log(f"tune: the budget's deadline passed: {step} of {settings.steps} steps done")
+            break
         (value, (err, chat)), grad = step_fn(u)
         gnorm = _norm(grad)
         finite = bool(np.isfinite(float(value))) and np.isfinite(gnorm)
@@ -359,7 +391,8 @@ def run(
             and settings.checkpoint_every
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
-            _save(checkpoint, {"step": done, "mode": mode, "history": history, "extra": extra}, _named((u, state)))
+            header = {"step": done, "mode": mode, "steps": settings.steps, "history": history, "extra": extra}
+            _save(checkpoint, header, _named((u, state)))
     # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
     # cost) rather than a jit of the loss alone, which would compile a second program
     (last, _), _ = step_fn(u)
