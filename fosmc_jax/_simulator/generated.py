@@ -160,10 +160,13 @@ class Split(NamedTuple):
     time_avals: list
 
 
-def split(step, x_aval, lane_avals, glob_avals) -> Split:
-    """Traces ``step(x, lane_leaves, glob_leaves, k) -> x'`` and splits it."""
-    k_aval = jax.ShapeDtypeStruct((), jnp.int32)
-    closed = jax.make_jaxpr(step)(x_aval, lane_avals, glob_avals, k_aval)
+def _trace(step, x_aval, lane_avals, glob_avals):
+    return jax.make_jaxpr(step)(x_aval, lane_avals, glob_avals, jax.ShapeDtypeStruct((), jnp.int32))
+
+
+def split(step, x_aval, lane_avals, glob_avals, closed=None) -> Split:
+    """Traces ``step(x, lane_leaves, glob_leaves, k) -> x'`` (or takes its ``closed`` jaxpr) and splits it."""
+    closed = _trace(step, x_aval, lane_avals, glob_avals) if closed is None else closed
     n_lane, n_glob = len(lane_avals), len(glob_avals)
     tape: list[_Entry] = []
     values: dict = {}
@@ -401,13 +404,39 @@ _LIBRARIES: list = []  # the loaded libraries stay loaded while their targets ar
 
 def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic) -> Model:
     """The model of ``step_of(sample) -> step(x, lane_leaves, glob_leaves, k) -> x'``, printed,
-    compiled (cached) and registered. Raises :class:`codegen.Unsupported` or OSError."""
+    compiled (cached) and registered. Raises :class:`codegen.Unsupported` or OSError. A model
+    traced again (the same jaxprs and constants: a second trace of the same loss) is the one
+    already printed: printing the arm's takes tens of seconds."""
+    closed = [_trace(step_of(sample), state_aval, lane_avals, glob_avals) for sample in (True, False)[: 1 + (m > 1)]]
+    key = _model_key(closed, m, dynamic)
+    if key is not None and key in _MODELS:
+        return _MODELS[key]
     dtype = state_aval.dtype
-    sampled = split(step_of(True), state_aval, lane_avals, glob_avals)
-    held = split(step_of(False), state_aval, lane_avals, glob_avals) if m > 1 else None
+    sampled = split(None, state_aval, lane_avals, glob_avals, closed[0])
+    held = split(None, state_aval, lane_avals, glob_avals, closed[1]) if m > 1 else None
     source, saved = _print_model(held, sampled, state_aval.shape[0], m, dtype, dynamic)
     n = state_aval.shape[0]
-    return Model(held, sampled, n, m, dtype, _load(tuple(source)), np.asarray(dynamic, bool), saved)
+    model = Model(held, sampled, n, m, dtype, _load(tuple(source)), np.asarray(dynamic, bool), saved)
+    if key is not None:
+        _MODELS[key] = model
+    return model
+
+
+_MODELS: dict = {}  # printed models by _model_key, for this process
+
+
+def _model_key(closed: list, m: int, dynamic) -> tuple | None:
+    """What a printed model depends on: its steps' jaxprs (their text, which names constants but
+    does not show them) and the constants' values; None where a constant is not concrete."""
+    parts = [m, np.asarray(dynamic, bool).tobytes()]
+    for c in closed:
+        parts.append(str(c.jaxpr))
+        for x in c.consts:
+            if isinstance(x, jax.core.Tracer):
+                return None
+            a = np.asarray(x)
+            parts.append((a.dtype.str, a.shape, hashlib.sha256(a.tobytes()).hexdigest()))
+    return tuple(parts)
 
 
 # ----------------------------------------------------------------------------- in JAX
