@@ -7,6 +7,9 @@ A batch's rollouts are flattened plant, offset, realization (paired: pair, reali
 make itself: a slice of the outermost axis whose inner axes fit, one element of each axis outside
 it (:func:`blocks`). So each chunk is a batch of the same kind as the whole (cross or paired,
 one key or several), which the simulator runs down the same path.
+
+A run given a checkpoint folder writes each finished chunk there, atomically, and a run resumed
+there reads the chunks it finds instead of running them: the chunk is the unit of resume.
 """
 
 from __future__ import annotations
@@ -14,11 +17,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
 import numpy as np
 
+from .._io import atomic_write
 from .._simulator.metrics import METRIC_NAMES
 
 
@@ -81,36 +86,83 @@ def inputs(plants, X0s, keys, block: Block, paired: bool) -> tuple[Any, Any, Any
             None if keys is None else part(keys, last))  # fmt: skip
 
 
-def run(simulate: Callable, plants, X0s, keys, paired: bool, chunk: int,
-        log: Callable[[str], None], every: float = 10.0) -> dict[str, np.ndarray]:  # fmt: skip
+def chunk_path(checkpoint: Path, i: int) -> Path:
+    """The file of chunk ``i`` in a checkpoint folder."""
+    return Path(checkpoint) / f"chunk_{i:06d}.npz"
+
+
+def _save(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    def write(tmp):
+        with open(tmp, "wb") as f:  # a file object: np.savez would add ".npz" to a name
+            np.savez(f, **arrays)
+
+    atomic_write(path, write)
+
+
+def _load(path: Path, block: Block) -> dict[str, np.ndarray]:
+    """A finished chunk's arrays; ValueError where the file is not that chunk's."""
+    with np.load(path) as z:
+        got = {k: z[k] for k in z.files}
+    if set(got) != set(OUTPUTS) or any(len(x) != block.size for x in got.values()):
+        raise ValueError(f"{path} is not a chunk of {block.size} rollouts of this run")
+    return got
+
+
+#: The most rollouts per chunk of a run with a checkpoint (each chunk a file, the unit a killed
+#: run resumes from; 16 MB of float64 metrics): few enough that a kill loses little, enough
+#: that each chunk's overhead (its dispatch, its file) stays small beside its work
+CHECKPOINT_CHUNK = 65_536
+#: The arrays of each rollout that a chunk gives
+OUTPUTS = (*METRIC_NAMES, "diverged", "diverged_at")
+
+
+def run(simulate: Callable, plants, X0s, keys, paired: bool, chunk: int, log: Callable[[str], None],
+        every: float = 10.0, checkpoint: Path | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """Every rollout of the batch (``plants``, ``X0s``, ``keys``; ``paired`` or crossed) run in
     chunks of at most ``chunk`` rollouts by ``simulate(plants, X0s, keys) -> Result``, each
     chunk's metrics copied into arrays of the whole batch: {metric name: (N, 3), "diverged":
-    (N,), "diverged_at": (N,)}. ``log`` gets a line after the first chunk (its time counts
-    the compilation) and then at most one per ``every`` seconds, with the time left."""
+    (N,), "diverged_at": (N,)}. With a ``checkpoint`` folder each finished chunk is written
+    there (:func:`chunk_path`, atomically: a killed run leaves whole files), and a chunk whose
+    file is there already is read instead of run (a resumed run). ``log`` gets a line after
+    the first chunk run (its time counts the compilation) and then at most one per ``every``
+    seconds, with the time left."""
     n_keys = 1 if keys is None else keys.shape[0]
     sizes = axes(jax.tree.leaves(plants)[0].shape[0], X0s.shape[0], n_keys, paired)
     todo, total = blocks(sizes, chunk), math.prod(sizes)
+    kept = [checkpoint is not None and chunk_path(checkpoint, i).exists() for i in range(len(todo))]
+    if any(kept):
+        log(f"fosmc: {sum(kept)} of {len(todo)} chunks are in {checkpoint}"
+            + (": nothing to run" if all(kept) else f": running the other {len(todo) - sum(kept)}"))  # fmt: skip
     out: dict[str, np.ndarray] = {}
     start = last = time.perf_counter()
-    done = first = 0
+    done = ran = 0  # rollouts in the arrays; rollouts run since the compilation's chunk
+    compiled = None  # when the first chunk run (with the compilation) ended
     for i, block in enumerate(todo):
-        result = simulate(*inputs(plants, X0s, keys, block, paired))
-        got = {name: getattr(result.metrics, name) for name in METRIC_NAMES}
-        got.update(diverged=result.diverged, diverged_at=result.diverged_at)
+        if kept[i]:
+            got = _load(chunk_path(checkpoint, i), block)
+        else:
+            result = simulate(*inputs(plants, X0s, keys, block, paired))
+            got = {name: getattr(result.metrics, name) for name in METRIC_NAMES}
+            got.update(diverged=result.diverged, diverged_at=result.diverged_at)
+            got = {name: np.asarray(x)[: block.size] for name, x in got.items()}
+            if checkpoint is not None:
+                _save(chunk_path(checkpoint, i), got)
         for name, x in got.items():
-            x = np.asarray(x)[: block.size]
             if name not in out:
                 out[name] = np.empty((total,) + x.shape[1:], x.dtype)
             out[name][block.start : block.start + block.size] = x
         done += block.size
+        if kept[i]:
+            continue
         now = time.perf_counter()
-        if i == 0:  # the compilation's chunk: the rate comes from the others
-            log(f"fosmc: chunk 1 of {len(todo)}: {done} of {total} rollouts in {now - start:.1f} s (compilation "
-                "included)")  # fmt: skip
-            first, last, compiled = done, now, now
-        elif now - last >= every or i == len(todo) - 1:
-            left = (now - compiled) / (done - first) * (total - done)
+        if compiled is None:  # the compilation's chunk: the rate comes from the others
+            log(f"fosmc: chunk {i + 1} of {len(todo)}: {done} of {total} rollouts in {now - start:.1f} s "
+                "(compilation included)")  # fmt: skip
+            last = compiled = now
+            continue
+        ran += block.size
+        if now - last >= every or i == len(todo) - 1:
+            left = (now - compiled) / ran * (total - done)
             log(f"fosmc: chunk {i + 1} of {len(todo)}: {done} of {total} rollouts in {now - start:.1f} s"
                 + (f", about {left:.0f} s left" if i < len(todo) - 1 else ""))  # fmt: skip
             last = now

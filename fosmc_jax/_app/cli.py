@@ -69,7 +69,7 @@ def cmd_simulate(args) -> int:
             C.writable(path, option)
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
                        keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
-                       log=_log)  # fmt: skip
+                       chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log)  # fmt: skip
     cfg, summary, index = r["config"], r["summary"], r["arrays"]
     n = len(index["plant_index"])
     title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
@@ -427,6 +427,20 @@ def parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
     s.add_argument(
+        "--chunk",
+        type=int,
+        metavar="N",
+        help="run the batch in chunks of at most N rollouts (default: as many as memory holds)",
+    )
+    s.add_argument(
+        "--checkpoint",
+        metavar="DIR",
+        help="write each finished chunk (at most 65536 rollouts) to DIR, a new or empty folder",
+    )
+    s.add_argument(
+        "--resume", action="store_true", help="with --checkpoint: continue the run in DIR from its last finished chunk"
+    )
+    s.add_argument(
         "--devices",
         type=int,
         help="split the batch over N devices (default: every core, or the count set in "
@@ -595,6 +609,10 @@ def _interrupted(args, argv: list[str], started: float) -> str:
     does; ``started``: this process's start (``time.time()``), to tell this run's checkpoint
     from an earlier run's that ``--force`` was about to replace."""
     out = getattr(args, "out", None)
+    if args.command == "simulate" and args.checkpoint and any(Path(args.checkpoint).glob("chunk_*.npz")):
+        again = argv + ([] if args.resume else ["--resume"])
+        return (f"fosmc: interrupted; {args.checkpoint} keeps the chunks done so far: resume with "
+                f"`fosmc {shlex.join(again)}`")  # fmt: skip
     if args.command not in ("tune", "front") or out is None:
         return "fosmc: interrupted"
     checkpoint = Path(out) / "checkpoint.npz"

@@ -116,6 +116,8 @@ def run_simulate(
     records: bool = True,
     draws: bool = True,
     chunk: int | None = None,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
     log: Log = _quiet,
 ) -> dict[str, Any]:
     """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
@@ -148,7 +150,20 @@ def run_simulate(
     and then every 10 s says how far it is. One whose draws and outputs cannot fit, chunked or
     not, is refused (:class:`ConfigError` naming the key to lower, with the estimate and the
     limit) before anything is drawn.
+
+    ``checkpoint``: a folder (empty or new) where each finished chunk is written as it ends
+    (chunks of at most :data:`fosmc_jax._app.chunks.CHECKPOINT_CHUNK` rollouts then, whatever
+    the memory), so that ``resume`` continues a killed run from its last finished chunk, with
+    the same results as a run not killed; the folder's ``plan.json`` (config, chunk size,
+    devices, versions) must be the run's.
     """
+    if resume and checkpoint is None:
+        raise ConfigError("--resume: needs --checkpoint DIR, the folder of the run's chunks")
+    if checkpoint is not None:
+        checkpoint = writable(checkpoint, "--checkpoint", folder=True)
+        if not resume and checkpoint.exists() and any(checkpoint.iterdir()):
+            raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
+                              "there; or give another folder)")  # fmt: skip
     cfg = config_of(config)
     devices = jax.local_device_count() if devices is None else devices
     if params:
@@ -160,16 +175,18 @@ def run_simulate(
         m = _config.sample_steps(cfg)
         cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
     if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
-        raise ConfigError(f"chunk: expected a positive integer (rollouts), got {chunk!r}")
+        raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
     size, too_large = memory.plan(cfg, records=records, draws=draws)  # before anything is drawn
     if too_large is not None:
         raise ConfigError(too_large)
+    if checkpoint is not None:
+        size = _checkpoint_chunk(checkpoint, cfg, devices, size, chunk, resume)
     size = size if chunk is None else min(size, chunk)
     problem = _config.problem_of(cfg)
     n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
     paired = cfg["sim"]["pairing"] == "paired"
     per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
-    in_chunks = size < n_rollouts
+    in_chunks = size < n_rollouts or checkpoint is not None
     log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
         f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s)"
         f"{f' in chunks of at most {size} rollouts' if in_chunks else ''}: compiling and running ...")  # fmt: skip
@@ -183,7 +200,10 @@ def run_simulate(
     if in_chunks:
         plants, ctrl, reference, X0s, dt = problem.args
         simulate = lambda plants, X0s, keys: run(plants, ctrl, reference, X0s, dt, keys=keys, **problem.options)
-        arrays = chunks.run(simulate, plants, X0s, problem.keys, paired, size, log)
+        try:
+            arrays = chunks.run(simulate, plants, X0s, problem.keys, paired, size, log, checkpoint=checkpoint)
+        except ValueError as e:  # a chunk file that is not this run's
+            raise ConfigError(f"--resume: {e}") from None
     else:
         result = jax.block_until_ready(run(*problem.args, keys=problem.keys, **problem.options))
         # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
@@ -209,6 +229,40 @@ def run_simulate(
     body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
     out = stamped({**body, "summary": summary, **extra, "config": cfg})
     return dict(out, trace=result.trace) if keep_trace else out
+
+
+def _checkpoint_chunk(folder: Path, cfg: dict, devices: int, size: int, chunk: int | None, resume: bool) -> int:
+    """The rollouts per chunk of a run with a checkpoint ``folder``: a new run's (at most
+    :data:`fosmc_jax._app.chunks.CHECKPOINT_CHUNK`, ``size`` where memory holds fewer, ``chunk``
+    where given), recorded in the folder's ``plan.json`` with the config, the devices and the
+    versions; a resumed run's, read from it, which must record this run (a :class:`ConfigError`
+    naming what differs otherwise: another config's chunks, or another device count's, which
+    differ to rounding, would not be this run's results)."""
+    plan_path = folder / "plan.json"
+    meta = stamped({"config": json.loads(json.dumps(jsonable(cfg))), "devices": devices})
+    if not (resume and plan_path.exists()):
+        chunk = min(size, chunks.CHECKPOINT_CHUNK, chunk or size)
+        write_text(plan_path, json.dumps(jsonable({**meta, "chunk": chunk}), indent=1))
+        return chunk
+    try:
+        kept = json.loads(plan_path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"--resume: cannot read {plan_path}: {e}") from None
+    differs = {
+        "config": "of another config's run: give its config",
+        "devices": f"run on {kept.get('devices')} device(s) (results that differ from {devices}'s to rounding): "
+        f"give --devices {kept.get('devices')}",
+        "fosmc_jax": f"run by fosmc_jax {kept.get('fosmc_jax')}: resume with that version",
+    }
+    for key, what in differs.items():
+        if kept.get(key) != meta[key]:
+            raise ConfigError(f"--resume: {folder} holds chunks {what}, or give another folder")
+    if chunk is not None and chunk != kept["chunk"]:
+        raise ConfigError(f"--chunk: {folder} holds chunks of {kept['chunk']} rollouts: give that, or leave it out")
+    if kept["chunk"] > size:
+        raise ConfigError(f"--resume: {folder} holds chunks of {kept['chunk']} rollouts, more than the {size} this "
+                          "process may hold at once now")  # fmt: skip
+    return kept["chunk"]
 
 
 def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
