@@ -15,6 +15,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -314,3 +315,119 @@ def test_a_batch_the_whole_run_could_not_fit_runs_in_chunks_under_an_address_spa
     with np.load(npz) as a:
         assert a["rms_error"].shape == (2_000_000, 3) and np.isfinite(a["rms_error"]).all()
         assert (a["offset_index"] == np.arange(2_000_000)).all()
+
+
+# ---------------------------------------------------------------------------- resume (item 4: a chunk is the unit)
+
+
+def test_a_run_cut_short_resumes_from_its_last_finished_chunk(tmp_path):
+    """With a checkpoint folder each finished chunk is a file; a run stopped in its fifth chunk
+    and run again there runs only the chunks not in the folder, and ends with the arrays of a
+    run not stopped (the stand-in simulator: no compiling)."""
+    plants, X0s = Plants(np.arange(7) + 100.0), np.repeat((np.arange(3) + 10.0)[:, None], 9, axis=1)
+    whole = chunks.run(lambda p, x, k: _fake(p, x, k, False), plants, X0s, None, False, 3, log=lambda _: None)
+    calls = []
+
+    def stopped(p, x, k):
+        if len(calls) == 4:
+            raise KeyboardInterrupt  # in the fifth chunk, as a kill would
+        calls.append(p.id[0])
+        return _fake(p, x, k, False)
+
+    with pytest.raises(KeyboardInterrupt):
+        chunks.run(stopped, plants, X0s, None, False, 3, log=lambda _: None, checkpoint=tmp_path)
+    assert sorted(f.name for f in tmp_path.iterdir()) == [f"chunk_{i:06d}.npz" for i in range(4)]
+    calls.clear()
+    lines = []
+    again = chunks.run(lambda p, x, k: calls.append(p.id[0]) or _fake(p, x, k, False), plants, X0s, None, False, 3,
+                       log=lines.append, checkpoint=tmp_path)  # fmt: skip
+    assert calls == [104.0, 105.0, 106.0]  # the plants of chunks 5 to 7 only
+    assert lines[0] == f"fosmc: 4 of 7 chunks are in {tmp_path}: running the other 3"
+    for name, x in whole.items():
+        assert np.array_equal(again[name], x), name
+    calls.clear()
+    chunks.run(lambda p, x, k: calls.append(p.id[0]), plants, X0s, None, False, 3, log=lines.append,
+               checkpoint=tmp_path)  # fmt: skip
+    assert calls == [] and lines[-1] == f"fosmc: 7 of 7 chunks are in {tmp_path}: nothing to run"
+
+
+def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_path):
+    """``--resume`` needs ``--checkpoint``; a new run needs an empty folder; a folder of another
+    config's run, another device count's or another chunk size's is refused, in one line
+    naming the option, before anything is drawn or compiled."""
+    config, folder = tmp_path / "mc.toml", tmp_path / "ck"
+    config.write_text(_toml(MC))
+    cfg = _config.load(str(config))
+    run = lambda *argv: (main(["simulate", "--config", str(config), *map(str, argv)]), capsys.readouterr()[1])
+    code, err = run("--resume")
+    assert code == 2 and err == "fosmc: error: --resume: needs --checkpoint DIR, the folder of the run's chunks\n"
+    folder.mkdir()
+    (folder / "x").write_text("")
+    code, err = run("--checkpoint", folder)
+    assert code == 2 and err.startswith(f"fosmc: error: --checkpoint: {folder} exists and is not empty (--resume")
+    C._checkpoint_chunk(folder, cfg, 1, 1000, 70, resume=False)  # the plan.json a run of chunks of 70 writes
+    code, err = run("--checkpoint", folder, "--resume", "--devices", 1, "--chunk", 50)
+    assert code == 2 and err.startswith(f"fosmc: error: --chunk: {folder} holds chunks of 70 rollouts") and err.count(
+        "\n") == 1  # fmt: skip
+    code, err = run("--checkpoint", folder, "--resume", "--devices", 1, "--chunk", 0)
+    assert code == 2 and err.startswith("fosmc: error: --chunk: expected a positive integer (rollouts), got 0")
+    other = dict(cfg, sim={**cfg["sim"], "t_final": 0.02})
+    with pytest.raises(_config.ConfigError, match=rf"^--resume: {folder} holds chunks of another config's run"):
+        C._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
+    with pytest.raises(_config.ConfigError, match=r"run on 1 device\(s\) .*: give --devices 1, or give another"):
+        C._checkpoint_chunk(folder, cfg, 2, 1000, None, resume=True)
+    with pytest.raises(_config.ConfigError, match=r"chunks of 70 rollouts, more than the 60 this process may hold"):
+        C._checkpoint_chunk(folder, cfg, 1, 60, None, resume=True)
+    assert C._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
+
+
+def test_ctrl_c_with_a_checkpoint_says_how_to_resume(capsys, tmp_path, monkeypatch):
+    """Ctrl-C in a run with ``--checkpoint`` whose folder holds chunks: exit status 130 and one
+    line with the command that resumes (the same arguments and ``--resume``)."""
+    folder = tmp_path / "ck"
+
+    def interrupted(*args, **kwargs):
+        folder.mkdir()
+        (folder / "chunk_000000.npz").write_bytes(b"")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(C, "run_simulate", interrupted)
+    assert main(["simulate", "--checkpoint", str(folder), "--chunk", "10"]) == 130
+    assert capsys.readouterr()[1] == (f"fosmc: interrupted; {folder} keeps the chunks done so far: resume with "
+                                      f"`fosmc simulate --checkpoint {folder} --chunk 10 --resume`\n")  # fmt: skip
+
+
+#: Runs MC's batch with a checkpoint, in chunks of 10 (15 chunks)
+RESUMED = ["--chunk", "10", "--devices", "1"]
+
+
+@pytest.mark.slow
+def test_a_run_killed_at_random_moments_resumes_to_the_run_not_killed(tmp_path):
+    """``fosmc simulate --checkpoint DIR`` killed (SIGKILL) at three random moments after its
+    n-th chunk file, each time resumed with ``--resume``, ends with the --npz of a run not
+    killed, bit for bit; ``--resume`` on the finished folder runs nothing and writes the same."""
+    config = tmp_path / "mc.toml"
+    config.write_text(_toml({**MC, "sim": {"t_final": 0.3, "dt": 1e-3}}))
+    fosmc = [sys.executable, "-m", "fosmc_jax", "simulate", "--config", str(config), *RESUMED]
+    whole = tmp_path / "whole.npz"
+    subprocess.run([*fosmc, "--npz", whole], env=ENV, check=True, capture_output=True, timeout=600)
+    rng = np.random.default_rng(0)
+    folder, out = tmp_path / "ck", tmp_path / "resumed.npz"
+    cmd = [*fosmc, "--checkpoint", folder, "--npz", out]
+    for after in sorted(rng.choice(np.arange(1, 14), 3, replace=False)):
+        proc = subprocess.Popen(cmd + (["--resume"] if folder.exists() else []), env=ENV,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        while len(list(folder.glob("chunk_*.npz"))) < after and proc.poll() is None:
+            time.sleep(0.005)
+        time.sleep(rng.uniform(0, 0.02))
+        proc.kill()  # SIGKILL: no handler runs
+        proc.wait()
+        assert not out.exists()
+    done = subprocess.run(cmd + ["--resume"], env=ENV, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0 and " chunks are in " in done.stderr, done.stderr
+    with np.load(whole) as a, np.load(out) as b:
+        assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "fosmc_jax")
+    again = subprocess.run(cmd + ["--resume"], env=ENV, capture_output=True, text=True, timeout=600)
+    assert "15 of 15 chunks are in" in again.stderr and ": nothing to run" in again.stderr
+    with np.load(whole) as a, np.load(out) as b:
+        assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "fosmc_jax")
