@@ -8,8 +8,8 @@ trace where ``[sim] save_every`` keeps one), not XLA's temporaries or the comman
 records. A batch refused here would certainly not fit; one that passes may still be too large.
 
 ``fosmc simulate`` runs a batch in chunks instead (:func:`plan`): what the whole run holds
-(the drawn plants and initial states, every rollout's metrics, their records) must fit with the
-runtime's reserve and one chunk; the chunk is as many rollouts as the rest holds, each counted
+(the drawn plants and initial states, every rollout's metrics, their records) must fit with one
+chunk; the chunk is as many rollouts as fit beside it and the runtime's reserve, each counted
 at :data:`WORK_FACTOR` times its working set, so that XLA's temporaries fit too.
 """
 
@@ -185,11 +185,13 @@ def held(cfg: dict, *, records: bool = False, draws: bool = False) -> float:
 def plan(cfg: dict, *, records: bool = False, draws: bool = False,
          available: tuple[int | None, str] | None = None) -> tuple[int, str | None]:  # fmt: skip
     """(rollouts per chunk, None) for ``fosmc simulate`` on a resolved config: the whole batch
-    where it fits in :func:`limit` (or ``available``) with :data:`RESERVE` and what it
-    :func:`held`, else as many rollouts as the rest holds at :data:`WORK_FACTOR` times their
-    working set; (0, the one-line refusal) where not even :data:`MIN_CHUNK` rollouts fit
-    beside what the run holds. A batch that keeps a trace (``[sim] save_every``) is not chunked
-    (the trace is an output): :func:`refusal`'s check. Nothing is drawn."""
+    where it fits in :func:`limit` (or ``available``) less :data:`RESERVE` and what the run
+    :func:`held`, else as many rollouts as that room holds at :data:`WORK_FACTOR` times their
+    working set (:data:`MIN_CHUNK` at least); (0, the one-line refusal) where what the run
+    holds and :data:`MIN_CHUNK` rollouts exceed the limit (the reserve, an estimate, left out:
+    a batch is refused only where it cannot fit). A batch that keeps a trace (``[sim]
+    save_every``) is not chunked (the trace is an output): :func:`refusal`'s check. Nothing is
+    drawn."""
     b = batch(cfg)
     room, what = limit() if available is None else available
     if b.trace:
@@ -199,13 +201,13 @@ def plan(cfg: dict, *, records: bool = False, draws: bool = False,
         return int(b.rollouts), None
     keep = held(cfg, records=records, draws=draws)
     work = WORK_FACTOR * (WORK_FLOATS + b.entries) * b.item
-    fewest = min(MIN_CHUNK, b.rollouts) * work
-    if keep + RESERVE + fewest > room:
+    fewest = min(MIN_CHUNK, b.rollouts)
+    if keep + fewest * work > room:
         advice = ADVICE.get(b.key, f"lower {b.key}")
-        return 0, (f"{b.key}: the batch needs at least {_gb(keep + RESERVE + fewest)} ({b.words}; its draws and "
-                   f"outputs, kept whole however it is chunked, and the runtime's {_gb(RESERVE)}), more than the "
-                   f"{_gb(room)} this process may use ({what}): {advice}")  # fmt: skip
-    return int(min(b.rollouts, (room - RESERVE - keep) // work)), None
+        return 0, (f"{b.key}: the batch needs at least {_gb(keep + fewest * work)} ({b.words}; its draws and "
+                   f"outputs, kept whole however it is chunked), more than the {_gb(room)} this process may use "
+                   f"({what}): {advice}")  # fmt: skip
+    return int(min(b.rollouts, max(fewest, (room - RESERVE - keep) // work))), None
 
 
 def _meminfo(field: str) -> int | None:
