@@ -384,6 +384,17 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
     assert C._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
 
 
+@pytest.mark.parametrize("option", ["--chunk", "--checkpoint"])
+def test_a_batch_that_keeps_a_trace_is_not_run_in_chunks(capsys, tmp_path, option):
+    """``--chunk`` or ``--checkpoint`` with a trace (``--plot`` of a batch without a
+    ``[sample]`` table) is refused in one line before the work: a trace is kept whole."""
+    value = tmp_path / "ck" if option == "--checkpoint" else 10
+    code = main(["simulate", "--plot", str(tmp_path / "x.png"), option, str(value)])
+    err = capsys.readouterr()[1]
+    assert code == 2 and err == (f"fosmc: error: {option}: a batch that keeps a trace ([sim] save_every, or --plot "
+                                 "without a [sample] table) runs whole, not in chunks\n")  # fmt: skip
+
+
 def test_ctrl_c_with_a_checkpoint_says_how_to_resume(capsys, tmp_path, monkeypatch):
     """Ctrl-C in a run with ``--checkpoint`` whose folder holds chunks: exit status 130 and one
     line with the command that resumes (the same arguments and ``--resume``)."""

@@ -145,12 +145,14 @@ def run(simulate: Callable, plants, X0s, keys, paired: bool, chunk: int, log: Ca
             got = {name: getattr(result.metrics, name) for name in METRIC_NAMES}
             got.update(diverged=result.diverged, diverged_at=result.diverged_at)
             got = {name: np.asarray(x)[: block.size] for name, x in got.items()}
+            del result
             if checkpoint is not None:
                 _save(chunk_path(checkpoint, i), got)
         for name, x in got.items():
             if name not in out:
                 out[name] = np.empty((total,) + x.shape[1:], x.dtype)
             out[name][block.start : block.start + block.size] = x
+        del got  # the chunk's buffers freed before the next chunk runs
         done += block.size
         if kept[i]:
             continue

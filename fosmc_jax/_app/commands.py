@@ -176,6 +176,10 @@ def run_simulate(
         cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
     if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
         raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
+    if cfg["sim"]["save_every"] and (chunk is not None or checkpoint is not None):
+        option = "--checkpoint" if checkpoint is not None else "--chunk"
+        raise ConfigError(f"{option}: a batch that keeps a trace ([sim] save_every, or --plot without a [sample] "
+                          "table) runs whole, not in chunks")  # fmt: skip
     size, too_large = memory.plan(cfg, records=records, draws=draws)  # before anything is drawn
     if too_large is not None:
         raise ConfigError(too_large)
