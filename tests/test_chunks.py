@@ -64,6 +64,11 @@ def test_blocks_cover_the_batch_once_in_order(sizes, chunk):
         assert b.size <= padded <= max(chunk, 2 * math.prod(sizes[b.axis + 1 :]))
     if chunk >= math.prod(sizes):
         assert len(todo) == 1
+    # as few chunks as at most chunk rollouts take, evened out: the last padded by fewer elements than there are chunks
+    whole = max(chunk // math.prod(sizes[todo[0].axis + 1 :]), 2 if todo[0].axis == len(sizes) - 1 else 1)
+    n = sizes[todo[0].axis]
+    assert len(todo) == math.prod(sizes[: todo[0].axis]) * -(-n // whole)
+    assert todo[0].length * -(-n // todo[0].length) - n < -(-n // todo[0].length)
 
 
 class Plants(NamedTuple):
@@ -165,7 +170,7 @@ def test_cli_runs_a_batch_too_large_for_its_memory_in_chunks(capsys, tmp_path, m
     out, err = capsys.readouterr()
     lines = err.splitlines()
     assert "in chunks of at most 70 rollouts" in lines[0] and len(lines) == 4, err
-    assert lines[1].startswith("fosmc: chunk 1 of 3: 70 of 150 rollouts in ")
+    assert lines[1].startswith("fosmc: chunk 1 of 3: 50 of 150 rollouts in ")  # three chunks, evened out
     assert lines[1].endswith("(compilation included)")
     assert lines[2].startswith("fosmc: chunk 3 of 3: 150 of 150 rollouts in ")
     rollouts = json.loads(out)["rollouts"]
