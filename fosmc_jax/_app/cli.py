@@ -12,6 +12,7 @@ import shlex
 import sys
 import time
 import warnings
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import jax
@@ -52,7 +53,9 @@ def _log(msg: str) -> None:
 def cmd_simulate(args) -> int:
     """Per-rollout metrics and the batch's summary; for a Monte-Carlo batch (a ``[sample]``
     table) the summary with percentiles, and ``--plot`` draws histograms instead of traces.
-    ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation."""
+    ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation.
+    The rollouts are printed from their arrays as they are formatted (no Python object per
+    rollout held: a batch run in chunks prints as much as memory holds)."""
     sampled = C.config_of(args.config)["sample"]["count"] > 0
     if args.plot:
         from .plots import check_figure_path
@@ -65,12 +68,9 @@ def cmd_simulate(args) -> int:
         if path:
             C.writable(path, option)
     r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
-                       keep_trace=bool(args.plot) and not sampled, records=not (args.json or args.npz or sampled),
-                       log=_log)  # fmt: skip
-    cfg, summary = r["config"], r["summary"]
-    index = (
-        r["arrays"] if "arrays" in r else {k: [x[k] for x in r["rollouts"]] for k in ("plant_index", "offset_index")}
-    )
+                       keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
+                       chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log)  # fmt: skip
+    cfg, summary, index = r["config"], r["summary"], r["arrays"]
     n = len(index["plant_index"])
     title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
              f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
@@ -97,10 +97,12 @@ def cmd_simulate(args) -> int:
         atomic_write(args.npz, write)
         _log(f"fosmc: wrote {args.npz}")
     if args.json:
-        print(_simulate_json(r))
+        for part in _simulate_json_parts(r):
+            sys.stdout.write(part)
+        sys.stdout.write("\n")
     else:
         if not (args.npz or sampled):
-            _print_rollouts(r["rollouts"])
+            _print_rollouts(C.rollout_records(r["arrays"]))
         if n > 1 or args.npz:  # with --npz (or a sample) the summary is all that is printed
             print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
@@ -111,23 +113,34 @@ def cmd_simulate(args) -> int:
 
 
 def _simulate_json(r: dict) -> str:
-    """``fosmc simulate --json`` from ``run_simulate(records=False)``: its records
-    (``rollout_records``), one per line, written by json's C encoder from one ``tolist``
-    per array (records of NumPy rows through ``jsonable`` and an indented dump cost 1 s at
-    16,384 rollouts, more than the simulation; BENCHMARKS.md, issue 13). Non-finite numbers
-    become null, as ``jsonable`` makes them (the records hold only numbers and booleans, so the
-    tokens cannot be in a string). The versions (``"fosmc_jax"``, from ``run_simulate``) come
-    first, the rollouts next."""
-    records = C.rollout_records({k: v.tolist() for k, v in r["arrays"].items()})
-    rows = ",\n  ".join(json.dumps(x) for x in records)
-    if "NaN" in rows or "Infinity" in rows:
-        rows = re.sub(r"-?Infinity|NaN", "null", rows)
+    """``fosmc simulate --json`` from ``run_simulate(records=False)``, as one string
+    (:func:`_simulate_json_parts`, joined)."""
+    return "".join(_simulate_json_parts(r))
+
+
+def _simulate_json_parts(r: dict, block: int = 10_000) -> Iterator[str]:
+    """``fosmc simulate --json`` from ``run_simulate(records=False)``, in parts to write one
+    after the other: its records (``rollout_records``), one per line, ``block`` rollouts per
+    part (so that a batch of 10^7 never holds its text at once), written by json's C encoder
+    from one ``tolist`` per array and block (records of NumPy rows through ``jsonable`` and an
+    indented dump cost 1 s at 16,384 rollouts, more than the simulation; BENCHMARKS.md, issue
+    13). Non-finite numbers become null, as ``jsonable`` makes them (the records hold only
+    numbers and booleans, so the tokens cannot be in a string). The versions (``"fosmc_jax"``,
+    from ``run_simulate``) come first, the rollouts next."""
     head = f' "{VERSIONS_KEY}": {json.dumps(r[VERSIONS_KEY])},\n' if VERSIONS_KEY in r else ""
+    yield "{\n" + head + ' "rollouts": [\n  '
+    arrays = r["arrays"]
+    for start in range(0, len(arrays["diverged"]), block):
+        records = C.rollout_records({k: v[start : start + block].tolist() for k, v in arrays.items()})
+        rows = ",\n  ".join(json.dumps(x) for x in records)
+        if "NaN" in rows or "Infinity" in rows:
+            rows = re.sub(r"-?Infinity|NaN", "null", rows)
+        yield rows if start == 0 else ",\n  " + rows
     rest = json.dumps(jsonable({k: v for k, v in r.items() if k not in ("arrays", "trace", VERSIONS_KEY)}), indent=1)
-    return "{\n" + head + ' "rollouts": [\n  ' + rows + "\n ]," + rest[1:]
+    yield "\n ]," + rest[1:]
 
 
-def _print_rollouts(rollouts: list[dict]) -> None:
+def _print_rollouts(rollouts: Iterable[dict]) -> None:
     head = f"{'rollout':>7} {'plant':>5} {'offset':>6} {'diverged':>8}  {'metric':<16} " + " ".join(
         f"{j:>11}" for j in ("joint 1", "joint 2", "joint 3")
     )
@@ -415,6 +428,20 @@ def parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--point", type=int, help="with a front.json: the point to re-run (index)")
     s.add_argument(
+        "--chunk",
+        type=int,
+        metavar="N",
+        help="run the batch in chunks of at most N rollouts (default: as many as memory holds)",
+    )
+    s.add_argument(
+        "--checkpoint",
+        metavar="DIR",
+        help="write each finished chunk (at most 65536 rollouts) to DIR, a new or empty folder",
+    )
+    s.add_argument(
+        "--resume", action="store_true", help="with --checkpoint: continue the run in DIR from its last finished chunk"
+    )
+    s.add_argument(
         "--devices",
         type=int,
         help="split the batch over N devices (default: every core, or the count set in "
@@ -585,6 +612,10 @@ def _interrupted(args, argv: list[str], started: float) -> str:
     does; ``started``: this process's start (``time.time()``), to tell this run's checkpoint
     from an earlier run's that ``--force`` was about to replace."""
     out = getattr(args, "out", None)
+    if args.command == "simulate" and args.checkpoint and any(Path(args.checkpoint).glob("chunk_*.npz")):
+        again = argv + ([] if args.resume else ["--resume"])
+        return (f"fosmc: interrupted; {args.checkpoint} keeps the chunks done so far: resume with "
+                f"`fosmc {shlex.join(again)}`")  # fmt: skip
     if args.command not in ("tune", "front") or out is None:
         return "fosmc: interrupted"
     checkpoint = Path(out) / "checkpoint.npz"

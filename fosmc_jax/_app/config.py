@@ -972,6 +972,13 @@ def build(config: str | Path | dict | None = None) -> Problem:
     too_large = memory.refusal(cfg)  # before anything is drawn
     if too_large is not None:
         raise ConfigError(too_large)
+    return problem_of(cfg)
+
+
+def problem_of(cfg: dict) -> Problem:
+    """:func:`build` of a resolved config without its memory check, for a caller that holds
+    the batch against memory itself (``fosmc simulate`` runs it in chunks:
+    :func:`fosmc_jax._app.memory.plan`)."""
     if cfg["sim"]["precision"] == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError('sim.precision: "float64" needs JAX\'s 64-bit mode: call jax.config.update('
                           '"jax_enable_x64", True) before building, or set [sim] precision = "float32"')  # fmt: skip

@@ -6,6 +6,11 @@ The estimate is a lower bound: it counts the arrays a run certainly holds (the d
 float64 and in the run's precision, each rollout's state, metric accumulators and metrics, a
 trace where ``[sim] save_every`` keeps one), not XLA's temporaries or the command line's
 records. A batch refused here would certainly not fit; one that passes may still be too large.
+
+``fosmc simulate`` runs a batch in chunks instead (:func:`plan`): what the whole run holds
+(the drawn plants and initial states, every rollout's metrics, their records) must fit with one
+chunk; the chunk is as many rollouts as fit beside it and the runtime's reserve, each counted
+at :data:`WORK_FACTOR` times its working set, so that XLA's temporaries fit too.
 """
 
 from __future__ import annotations
@@ -27,6 +32,32 @@ ROLLOUT_FLOATS = 9 + 3 * len(METRIC_NAMES) + 2 * (3 * len(METRIC_NAMES) + 2)
 TRACE_FLOATS = 1 + 9 + 9 + 3 + 3
 #: Entries of one linear plant: rows 3, 6, 9 of A (3 x 9) and of B (3 x 3).
 LINEAR_ENTRIES = 27 + 9
+
+# What fosmc simulate holds, run in chunks (plan)
+#: Bytes of one rollout's outputs (beside its floats in the run's precision: 3 per metric and
+#: ``diverged_at``) kept for the whole run however it is chunked: ``diverged`` and six int64
+#: arrays (plant, offset, realization and arm indices, and the temporaries that make them).
+OUTPUT_EXTRA_BYTES = 1 + 6 * 8
+#: Floats of one rollout while its chunk runs: its plant state (9), metric accumulators (3 per
+#: metric), the device's metrics and ``diverged_at``, and its initial state (9).
+WORK_FLOATS = 9 + 3 * len(METRIC_NAMES) + 3 * len(METRIC_NAMES) + 1 + 9
+#: How many times :data:`WORK_FLOATS` (with a plant's entries) a chunk is sized at: XLA's
+#: temporaries. Measured: peak RSS grew 1.0-1.5 x :func:`estimate` per rollout between 50,000
+#: and 400,000 rollouts (linear native path, a noisy digital loop, ``[sample]`` offsets, sampled arms).
+WORK_FACTOR = 2
+#: Bytes of one rollout's record (``run_simulate(records=True)``: a dict of ints and of metric
+#: rows): 1.6 KB measured (tracemalloc, 20,000 records).
+RECORD_BYTES = 1700
+#: Bytes per number of the draws ``run_simulate`` returns as lists (``sampled``; 39 B measured),
+#: and per sampled arm (``arms``: a dict of lists, 3.1 KB measured for the arm's 52 entries),
+#: each doubled for ``--json``'s copy and text.
+SAMPLED_BYTES, ARM_RECORD_BYTES = 80, 6400
+#: What compiling and running take beyond the process that plans (its JAX backend started: 1.8
+#: GB of address space, 0.3 GB resident): measured up to 0.3 GB more address space and 0.4 GB
+#: more resident, an arm's noisy digital loop compiled afresh (a linear batch: 0.05 and 0.08).
+RESERVE = 0.75e9
+#: The fewest rollouts worth a chunk.
+MIN_CHUNK = 64
 
 
 class Estimate(NamedTuple):
@@ -68,12 +99,32 @@ def _arms(cfg: dict) -> tuple[int, str]:
     return unc["samples"], "arm.uncertainty.samples"
 
 
-def estimate(cfg: dict) -> Estimate:
-    """The memory a resolved config's batch needs at least (see the module's docstring), from
-    its plants (P), initial states (O), noise realizations (R), horizon and trace."""
+class Batch(NamedTuple):
+    """A resolved config's batch in counts: ``rollouts``, ``plants``, initial states
+    (``offsets``), ``arms`` sampled by ``[arm.uncertainty]`` (0: none), numbers ``sampled`` by
+    ``[sample]``, floats per rollout of a ``trace`` (0: none), ``entries`` per plant, the
+    run's float size ``item``, the bytes of the float64 arm draws (``drawn``), the key whose
+    count dominates (``key``) and the batch in words (``words``)."""
+
+    rollouts: float
+    plants: float
+    offsets: float
+    arms: float
+    sampled: float
+    trace: int
+    entries: int
+    item: int
+    drawn: float
+    key: str
+    words: str
+
+
+def batch(cfg: dict) -> Batch:
+    """:class:`Batch` of a resolved config (counts only: nothing is drawn)."""
     item = np.dtype(cfg["sim"]["precision"]).itemsize
     plant, sample, sim = cfg["plant"], cfg["sample"], cfg["sim"]
     plant_factors: dict[str, float] = {}  # key -> the count of plants it sets
+    arms = 0
     if plant["kind"] == "arm":
         entries = sum(int(np.size(cfg["arm"][k])) for k in ArmParams._fields)
         arms, arm_key = _arms(cfg)
@@ -101,13 +152,62 @@ def estimate(cfg: dict) -> Estimate:
                "sensors.realizations": realizations}  # fmt: skip
     n_steps = max(1, round(sim["t_final"] / sim["dt"]))
     trace = TRACE_FLOATS * (n_steps // sim["save_every"] + 1) if sim["save_every"] else 0
-    total = drawn + plants * entries * (8 + item) + rollouts * (ROLLOUT_FLOATS + trace) * item
     key = max(factors, key=lambda k: factors[k])
     if trace and rollouts * trace > rollouts * ROLLOUT_FLOATS + plants * entries:
         key = "sim.save_every"
-    batch = f"{rollouts:.4g} rollout(s) of {plants:.4g} plant(s)" + (f", a trace of {trace // TRACE_FLOATS} samples"
+    words = f"{rollouts:.4g} rollout(s) of {plants:.4g} plant(s)" + (f", a trace of {trace // TRACE_FLOATS} samples"
                                                                        if trace else "")  # fmt: skip
-    return Estimate(int(min(total, 2**62)), batch, key)
+    sampled = sample["count"] * ((1 if sample["payloads"] else 0) + (9 if any(sample["offsets"]) else 0))
+    return Batch(rollouts, plants, offsets, arms, sampled, trace, entries, item, drawn, key, words)
+
+
+def estimate(cfg: dict) -> Estimate:
+    """The memory a resolved config's batch needs at least (see the module's docstring), from
+    its plants (P), initial states (O), noise realizations (R), horizon and trace."""
+    b = batch(cfg)
+    total = b.drawn + b.plants * b.entries * (8 + b.item) + b.rollouts * (ROLLOUT_FLOATS + b.trace) * b.item
+    return Estimate(int(min(total, 2**62)), b.words, b.key)
+
+
+def held(cfg: dict, *, records: bool = False, draws: bool = False) -> float:
+    """Bytes ``fosmc simulate`` holds for a resolved config's whole batch, however it is run in
+    chunks: the drawn arms, plants and initial states (float64 and the run's precision), every
+    rollout's outputs, and with ``records`` their records, with ``draws`` the draws as lists
+    (``run_simulate``'s ``rollouts``, ``sampled`` and ``arms``)."""
+    b = batch(cfg)
+    total = b.drawn + b.plants * b.entries * (8 + b.item) + b.offsets * 9 * (8 + 2 * b.item)
+    total += b.rollouts * ((3 * len(METRIC_NAMES) + 1) * b.item + OUTPUT_EXTRA_BYTES + (RECORD_BYTES if records else 0))
+    if draws:  # drawn again for the lists
+        total += b.sampled * (8 + SAMPLED_BYTES) + b.arms * (2 * b.entries * 8 + ARM_RECORD_BYTES)
+    return total
+
+
+def plan(cfg: dict, *, records: bool = False, draws: bool = False,
+         available: tuple[int | None, str] | None = None) -> tuple[int, str | None]:  # fmt: skip
+    """(rollouts per chunk, None) for ``fosmc simulate`` on a resolved config: the whole batch
+    where it fits in :func:`limit` (or ``available``) less :data:`RESERVE` and what the run
+    :func:`held`, else as many rollouts as that room holds at :data:`WORK_FACTOR` times their
+    working set (:data:`MIN_CHUNK` at least); (0, the one-line refusal) where what the run
+    holds and :data:`MIN_CHUNK` rollouts exceed the limit (the reserve, an estimate, left out:
+    a batch is refused only where it cannot fit). A batch that keeps a trace (``[sim]
+    save_every``) is not chunked (the trace is an output): :func:`refusal`'s check. Nothing is
+    drawn."""
+    b = batch(cfg)
+    room, what = limit() if available is None else available
+    if b.trace:
+        too_large = refusal(cfg, (room, what))
+        return (0, too_large) if too_large else (int(b.rollouts), None)
+    if room is None:
+        return int(b.rollouts), None
+    keep = held(cfg, records=records, draws=draws)
+    work = WORK_FACTOR * (WORK_FLOATS + b.entries) * b.item
+    fewest = min(MIN_CHUNK, b.rollouts)
+    if keep + fewest * work > room:
+        advice = ADVICE.get(b.key, f"lower {b.key}")
+        return 0, (f"{b.key}: the batch needs at least {_gb(keep + fewest * work)} ({b.words}; its draws and "
+                   f"outputs, kept whole however it is chunked), more than the {_gb(room)} this process may use "
+                   f"({what}): {advice}")  # fmt: skip
+    return int(min(b.rollouts, max(fewest, (room - RESERVE - keep) // work))), None
 
 
 def _meminfo(field: str) -> int | None:
