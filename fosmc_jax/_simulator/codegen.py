@@ -88,6 +88,48 @@ _INTEGER = {"add", "sub", "mul", "neg", "div", "rem", "max", "min", "abs", "sign
 _INDEX_OPERANDS = {"gather": lambda n: (1,), "scatter": lambda n: (1,), "dynamic_slice": lambda n: range(1, n),
                    "dynamic_update_slice": lambda n: range(2, n)}  # fmt: skip
 _IDENTITY = {"stop_gradient", "optimization_barrier", "reduce_precision"}
+
+
+def _broadcast(x, shape, broadcast_dimensions, **_):
+    expanded = np.reshape(x, [x.shape[broadcast_dimensions.index(d)] if d in broadcast_dimensions else 1
+                              for d in range(len(shape))])  # fmt: skip
+    return np.broadcast_to(expanded, shape)
+
+
+# The common moves in NumPy: run by JAX eagerly, each new shape would compile an XLA program
+_NUMPY = {
+    "reshape": lambda x, new_sizes, dimensions=None, **_: np.reshape(x, new_sizes) if dimensions is None else None,
+    "broadcast_in_dim": _broadcast,
+    "transpose": lambda x, permutation: np.transpose(x, permutation),
+    "squeeze": lambda x, dimensions: np.squeeze(x, tuple(dimensions)),
+    "expand_dims": lambda x, dimensions: np.expand_dims(x, tuple(dimensions)),
+    "rev": lambda x, dimensions: np.flip(x, tuple(dimensions)),
+    "slice": lambda x, start_indices, limit_indices, strides=None: x[
+        tuple(map(slice, start_indices, limit_indices, strides or [1] * x.ndim))
+    ],
+    "concatenate": lambda *xs, dimension: np.concatenate(xs, dimension),
+    "pad": lambda x, value, padding_config: (
+        None
+        if any(lo < 0 or hi < 0 or inner for lo, hi, inner in padding_config)
+        else np.pad(x, [(lo, hi) for lo, hi, _ in padding_config], constant_values=value.item())
+    ),
+    "stack": lambda *xs, axis: np.stack(xs, axis),
+    "unstack": lambda x, axis: [np.take(x, i, axis) for i in range(x.shape[axis])],
+    "split": lambda x, sizes, axis: np.split(x, np.cumsum(sizes)[:-1], axis),
+}
+
+
+def _numpy_move(eqn, vals):
+    """``eqn``'s move in NumPy where it is a common one with the parameters known here, else None."""
+    f = _NUMPY.get(eqn.primitive.name)
+    if f is None:
+        return None
+    try:
+        return f(*vals, **eqn.params)
+    except TypeError:  # a parameter this JAX version adds: JAX runs it
+        return None
+
+
 _INLINE = {"jit": "jaxpr", "pjit": "jaxpr", "closed_call": "call_jaxpr", "core_call": "call_jaxpr",
            "remat2": "jaxpr", "checkpoint": "jaxpr", "custom_jvp_call": "call_jaxpr",
            "custom_vjp_call": "call_jaxpr", "custom_vjp_call_jaxpr": "fun_jaxpr"}  # fmt: skip
@@ -362,9 +404,11 @@ class Printer:
             ids = np.arange(len(table), len(table) + len(atoms), dtype=_ID_dtype()) + 1
             table.extend(atoms)
             vals.append(ids.reshape(aval.shape))
-        params = eqn.primitive.get_bind_params(eqn.params)
-        with jax.ensure_compile_time_eval():
-            outs = eqn.primitive.bind(*vals, **params)
+        outs = _numpy_move(eqn, vals)
+        if outs is None:
+            params = eqn.primitive.get_bind_params(eqn.params)
+            with jax.ensure_compile_time_eval():
+                outs = eqn.primitive.bind(*vals, **params)
         outs = [np.ravel(np.asarray(o)) for o in (outs if eqn.primitive.multiple_results else [outs])]
         for out in outs:
             if np.any(out != np.round(out)) or np.any(out < 1):
