@@ -294,3 +294,31 @@ def test_jacfwd_and_vmap_of_grad_run_through_the_arms_default_path():
     ds = jnp.stack([d, 1.1 * d])
     g = jax.vmap(jax.grad(lambda d: loss(d, True)))(ds)
     assert _rel(g, jax.vmap(jax.grad(lambda d: loss(d, False)))(ds)) < 1e-9
+
+
+def test_the_printers_numpy_moves_equal_jaxs():
+    """Each data move the printer runs in NumPy on element ids gives JAX's own result."""
+    x = jnp.arange(1.0, 25.0).reshape(2, 3, 4)
+    moves = [
+        lambda x: x.reshape(6, 4), lambda x: jnp.broadcast_to(x[:, :1, :], (5, 2, 3, 4)),
+        lambda x: x.transpose(2, 0, 1), lambda x: x[:1].squeeze(0), lambda x: x[None], lambda x: x[::-1],
+        lambda x: x[:, 1:3, ::2], lambda x: jnp.concatenate([x, x[:, :1]], 1),
+        lambda x: jax.lax.pad(x, 0.0, ((1, 0, 0), (0, 2, 0), (0, 0, 0))),
+        lambda x: jnp.stack([x, x], 1), lambda x: jnp.split(x, [1, 3], axis=2), lambda x: list(x),
+    ]  # fmt: skip
+    seen = set()
+    for f in moves:
+        for eqn in jax.make_jaxpr(f)(x).eqns:
+            vals = [np.asarray(v.val) if hasattr(v, "val") else np.arange(1.0, 1.0 + np.prod(v.aval.shape))
+                    .reshape(v.aval.shape) for v in eqn.invars]  # fmt: skip
+            ours = codegen._numpy_move(eqn, vals)
+            if ours is None:
+                continue
+            with jax.ensure_compile_time_eval():
+                theirs = eqn.primitive.bind(*vals, **eqn.primitive.get_bind_params(eqn.params))
+            ours, theirs = (ours, theirs) if eqn.primitive.multiple_results else ([ours], [theirs])
+            assert len(ours) == len(theirs)
+            for a, b in zip(ours, theirs):
+                assert np.shape(a) == np.shape(b) and np.array_equal(a, b), eqn
+            seen.add(eqn.primitive.name)
+    assert {"reshape", "broadcast_in_dim", "transpose", "squeeze", "slice", "concatenate", "pad", "rev"} <= seen

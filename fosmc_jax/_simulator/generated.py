@@ -432,9 +432,10 @@ def _model_key(closed: list, m: int, dynamic) -> tuple | None:
     for c in closed:
         parts.append(str(c.jaxpr))
         for x in c.consts:
-            if isinstance(x, jax.core.Tracer):
+            try:
+                a = np.asarray(x)
+            except (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError):
                 return None
-            a = np.asarray(x)
             parts.append((a.dtype.str, a.shape, hashlib.sha256(a.tobytes()).hexdigest()))
     return tuple(parts)
 
