@@ -149,9 +149,8 @@ __all__ = [
     "switch",
     "uncertain_plants",
 ]
-__version__ = "0.1.0"
-
 from . import config, io, search  # noqa: E402  (the public namespaces, after the names they build on)
+from ._io import __version__ as __version__  # noqa: E402  (the installed distribution's metadata)
 
 #: Old public names, kept for one release: name -> (new name, what it is now).
 _DEPRECATED = {

@@ -3,6 +3,7 @@ carries the versions that produced it (:func:`versions`)."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import math
 import os
@@ -12,6 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+try:  # the installed distribution's, as pyproject.toml gives it (the package's face re-exports it)
+    __version__ = importlib.metadata.version("fosmc_jax")
+except importlib.metadata.PackageNotFoundError:  # a source tree on the path, never installed
+    __version__ = "0+unknown"
 
 #: Version of the metric definitions in ``fosmc_jax/_simulator/metrics.py`` and docs/metrics.md,
 #: raised with every change to what a metric means (CHANGELOG.md): 1, before issue 22: ``chattering_hf``
@@ -27,8 +33,6 @@ def versions() -> dict[str, Any]:
     """``{"version": fosmc_jax.__version__, "metrics_version": METRICS_VERSION}``: what every
     file the package writes carries under :data:`VERSIONS_KEY` (:func:`stamped`,
     :func:`stamped_arrays`)."""
-    from fosmc_jax import __version__  # the package's face defines it; loaded before any result exists
-
     return {"version": __version__, "metrics_version": METRICS_VERSION}
 
 

@@ -39,6 +39,8 @@ def _imports(path: pathlib.Path):
                 base = list(rel[:-1])[: len(rel) - node.level]
                 target = base + (node.module.split(".") if node.module else [])
                 names = [target + [a.name] for a in node.names] if not node.module else [target]
+            elif node.module == "fosmc_jax":  # from the package's face: each name is what it imports
+                names = [[a.name] for a in node.names]
             elif node.module and node.module.split(".")[0] == "fosmc_jax":
                 names = [node.module.split(".")[1:]]
             else:
