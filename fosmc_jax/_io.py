@@ -20,10 +20,8 @@ except importlib.metadata.PackageNotFoundError:  # a source tree on the path, ne
     __version__ = "0+unknown"
 
 #: Version of the metric definitions in ``fosmc_jax/_simulator/metrics.py`` and docs/metrics.md,
-#: raised with every change to what a metric means (CHANGELOG.md): 1, before issue 22: ``chattering_hf``
-#: from the held samples (it lost about 1 - exp(-2 pi f_c dt) of each jump); 2, issue 22:
-#: ``chattering_hf`` the exact integral of the held control through the low-pass; 3, issue 24: a
-#: diverged rollout's metrics are NaN (null in JSON). Files without it predate versioning (1 or 2).
+#: raised with every change to what a metric means (each version's meaning: CHANGELOG.md). Files
+#: without it predate versioning (1 or 2).
 METRICS_VERSION = 3
 #: The key under which every result file holds :func:`versions`.
 VERSIONS_KEY = "fosmc_jax"

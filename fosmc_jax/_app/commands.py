@@ -211,7 +211,7 @@ def run_simulate(
     else:
         result = jax.block_until_ready(run(*problem.args, keys=problem.keys, **problem.options))
         # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
-        # rollouts: BENCHMARKS.md, issue 13)
+        # rollouts: BENCHMARKS.md)
         arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
         arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at))
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")

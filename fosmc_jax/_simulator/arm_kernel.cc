@@ -1,5 +1,5 @@
 // The arm's closed loop as one XLA FFI kernel for the CPU (fosmc_jax/_simulator/native.py builds it with
-// the host's C++ compiler, fosmc_jax/_simulator/arm_native.py calls it; issue 21).
+// the host's C++ compiler, fosmc_jax/_simulator/arm_native.py calls it).
 //
 // It advances L steps of fosmc_jax._simulator.rollout.simulate for N independent rollouts ("lanes") of
 // the 3-DOF arm (fosmc_jax._plants.arm: the closed form M, C q', G of ``_inertia`` / ``_coriolis``,

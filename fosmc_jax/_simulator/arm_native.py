@@ -4,7 +4,7 @@ its time loop in one compiled kernel (``arm_kernel.cc``, built by :mod:`fosmc_ja
 XLA:CPU copies the arm's closed form into every fusion that uses it (an RK4 step of the vmapped
 ``simulate`` held about 217 sin/cos pairs where 10 are needed) and runs each of its ~100 fusions
 per step as one more pass over the batch; the arm ran 24-90x below a hand-written C kernel of
-the same loop (issue 21). The kernel runs the loop of :func:`fosmc_jax.simulate` for the two
+the same loop. The kernel runs the loop of :func:`fosmc_jax.simulate` for the two
 controllers the tuner and the presets use:
 
 - :class:`fosmc_jax.FOSMC`, the ideal loop, every switching function and law;

@@ -1,5 +1,5 @@
 // The fast path's time loop as one XLA FFI kernel for the CPU (fosmc_jax/_simulator/native.py builds it
-// with the host's C++ compiler and registers it; issue 13).
+// with the host's C++ compiler and registers it).
 //
 // It advances L steps of the ideal-loop FOSMC ((14), (23) or the equivalent law, switching
 // (28), sign, sat or tanh) on linear plants (3), exactly the operations of

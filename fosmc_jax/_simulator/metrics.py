@@ -21,9 +21,9 @@ state at t_k (the last one, u_n, included) and e_k = theta(t_k) - theta_d(t_k). 
 above the content of the reference (30) and below a sampled loop's switching) leaves out:
 the switching part of the control. A smooth u of slope u' leaves about u' / (2 pi f_c).
 Because it is the exact integral of the held control, a run with the control held over m
-steps of dt / m gives the same ``chattering_hf`` as one step of dt (issue 22: the earlier
-sample form, sqrt(mean_k (u_k - ubar_k)^2) with ubar updated by each new sample first, lost
-about a = 1 - exp(-2 pi f_c dt) of every jump: 2.8% between dt = 1 ms and 0.1 ms).
+steps of dt / m gives the same ``chattering_hf`` as one step of dt (a sample form,
+sqrt(mean_k (u_k - ubar_k)^2) with ubar updated by each new sample first, would lose about
+a = 1 - exp(-2 pi f_c dt) of every jump: 2.8% between dt = 1 ms and 0.1 ms).
 
 No trajectory is stored: the accumulator is O(1) in the number of steps.
 """

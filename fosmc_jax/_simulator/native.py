@@ -3,10 +3,10 @@ the arm, called by :mod:`fosmc_jax._simulator.arm_native`; both on ``kernel.h``)
 
 XLA:CPU runs every step of a ``lax.scan`` as a few dozen separate kernels, each a pass over the
 batch in memory; the loop body of :func:`fosmc_jax._simulator.rollout._linear_batch` costs about 0.7 us
-per kernel, which held the package at 3-7% of the hand-written SIMD anchor (BENCHMARKS.md,
-issue 13). ``kernel.cc`` is that body written once in C++ with the time loop inside, the
-rollouts in SIMD lanes and the batch spread over XLA's intra-op thread pool (every core, with
-or without sharding), registered as an XLA FFI target (``jax.ffi``).
+per kernel, which holds a scan far below a hand-written SIMD loop (BENCHMARKS.md). ``kernel.cc``
+is that body written once in C++ with the time loop inside, the rollouts in SIMD lanes and the
+batch spread over XLA's intra-op thread pool (every core, with or without sharding), registered
+as an XLA FFI target (``jax.ffi``).
 
 It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
 headers come with jaxlib) for this CPU (``-march=native``) and cached under

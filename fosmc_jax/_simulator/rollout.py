@@ -463,7 +463,7 @@ def _linear_batch(
     C, S, CB_inv, K = (_rows(m, 2) for m in (controller.C, derived.S, derived.CB_inv, derived.K))
     # Every batch vector has the shape ``lanes``, (P, O), or (P,) when O = 1: a trailing axis
     # of length 1 leaves XLA:CPU a loop it does not vectorise (2.7x slower at P = 4,096,
-    # O = 1, the CLI's ``uncertainty = "sample"`` batch; issue 13).
+    # O = 1, the CLI's ``uncertainty = "sample"`` batch).
     lanes = (P, O) if O > 1 else (P,)
     col = (lambda a: a[..., None]) if O > 1 else (lambda a: a)
     A = _rows(col(jnp.moveaxis(plants.a_rows, 0, -1)), 2)  # entries (P, 1), or (P,)
@@ -517,9 +517,8 @@ def _linear_batch(
         )
         return _Batch(k, *kept, diverged, diverged_at), None
 
-    # Two steps per loop trip: 1.02-1.09x at batch 1,024-4,096 (benchmarks/loop_variants.py,
-    # BENCHMARKS.md, issue 13); a packed carry, more unrolling, no ``once`` or blocks of the
-    # batch were slower or no faster.
+    # Two steps per loop trip: a little faster than one (benchmarks/loop_variants.py); a packed
+    # carry, more unrolling, no ``once`` or blocks of the batch were slower or no faster.
     advance = functools.partial(_scan_steps, body, unroll=2)
 
     x = tuple(jnp.broadcast_to(X0s[:, i], lanes) for i in range(9))
