@@ -1,4 +1,4 @@
-"""The arm's physical parameters identified from a log of an experiment (issue 26, part 2).
+"""The arm's physical parameters identified from a log of an experiment.
 
 A log (:class:`Log`, read by :func:`read_log`; layouts in docs/identify.md) holds the sample
 times t_j, the encoder angles theta_j (3,), the voltages u_j (3,) the drive wrote and, where
