@@ -322,3 +322,45 @@ def test_the_printers_numpy_moves_equal_jaxs():
                 assert np.shape(a) == np.shape(b) and np.array_equal(a, b), eqn
             seen.add(eqn.primitive.name)
     assert {"reshape", "broadcast_in_dim", "transpose", "squeeze", "slice", "concatenate", "pad", "rev"} <= seen
+
+
+@functools.partial(jax.tree_util.register_dataclass, data_fields=["inner", "tau"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class LaggedPlant:
+    """A user's plant with a state of its own (12 rows): the linear plant driven through a
+    first-order actuator lag of time constant tau (s) per plant."""
+
+    inner: fj.LinearPlant
+    tau: jax.Array
+
+    def init(self, X0):
+        return self.inner.init(X0), jnp.zeros(3, X0.dtype)
+
+    def observe(self, state):
+        return self.inner.observe(state[0])
+
+    def derivative(self, state, U):
+        x, v = state
+        return self.inner.derivative(x, v), (U - v) / self.tau
+
+
+@pytest.mark.slow
+def test_a_users_plant_with_a_state_of_its_own_runs_on_the_kernel():
+    """A user's plant (an actuator lag: 12 state rows) under a user's law, RK4: values and
+    gradients in the lag's time constants and the law's gains, against the vmap path."""
+    plants, ref, X0s, dt = _linear()
+    K0 = -jnp.kron(jnp.eye(3), jnp.array([[60.0, 12.0, 0.5]]))
+    tau0 = jnp.array([0.01, 0.02])
+
+    def run(path):
+        def loss(K, tau):
+            args = (LaggedPlant(plants, tau), TanhPD(K, plants.a_rows[0], plants.b_rows[0]), ref, X0s, dt)
+            gen, vm = _both(args, 80, "rk4")
+            return _loss(gen if path == "gen" else vm)
+
+        return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(K0, tau0)
+
+    (v, g), (w, h) = run("gen"), run("vmap")
+    assert np.isfinite(v) and v > 0 and _rel(v, w) < 1e-12
+    assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
+    assert np.all(np.asarray(g[1]) != 0)
