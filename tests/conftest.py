@@ -1,5 +1,7 @@
 """Shared test setup: float64 for the numerics tests (float32 is tested explicitly, with
-float32 inputs, in test_simulator.py), and one compilation cache for the whole session.
+float32 inputs, in test_simulator.py), one compilation cache for the whole session, and, in a run
+with pytest-xdist workers (`make test`), the long files scheduled first and the native kernel
+built once (at the bottom).
 
 The cache: several code paths jit a fresh closure on every call (the front's and the tuner's
 update steps, a CLI run), and some tests start a second Python process (a killed tuning run,
@@ -30,3 +32,55 @@ os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.2"
 jax.config.update("jax_compilation_cache_dir", _CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+
+
+# ------------------------------------------------------------------ pytest-xdist (`make test`)
+
+#: The files that take longest in the default tier, longest first (compilation time per file
+#: measured with jax.monitoring over a whole `make test` run on the 2-core machine; most of a
+#: file's time is XLA compilation). Under `-n N --dist loadfile` whole files go to the workers in
+#: this order, then the rest in collection order, so that no long file starts last while the other
+#: workers idle: xdist's own order (the files with the most tests first) sent the long files with
+#: few tests, test_arm_native.py's 4 for one, last. A file missing here only runs later.
+LONG_FILES = (
+    "test_simulator.py",
+    "test_tuning_kinds.py",
+    "test_arm_native.py",
+    "test_front.py",
+    "test_arm_disturbances.py",
+    "test_digital_loop.py",
+    "test_smc.py",
+    "test_generated.py",
+    "test_build.py",
+    "test_arm.py",
+    "test_performance_paths.py",
+    "test_certify.py",
+    "test_cli.py",
+    "test_tuning.py",
+    "test_export.py",
+    "test_paper_results.py",
+    "test_design_from_arm.py",
+    "test_checks.py",
+    "test_readme.py",
+    "test_design.py",
+    "test_robust_arms.py",
+    "test_api.py",
+)
+
+
+def pytest_configure(config):
+    if getattr(config, "workerinput", None) is not None or not getattr(config.option, "numprocesses", None):
+        return  # a worker, or a run without workers
+    # The controller of a run with workers: schedule in LONG_FILES' order (not by test count) ...
+    config.option.loadscopereorder = False
+    # ... and build the native kernel (fosmc_jax/_simulator/native.py, ~50 CPU seconds with an
+    # empty cache) once, before the workers start: each worker would otherwise build it at its
+    # first kernel call, all at once, into the same cache.
+    from fosmc_jax._simulator import native
+
+    native.available()
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's order kept

@@ -67,14 +67,17 @@ def test_fast_batch_equals_vmap_of_simulate(integrator, switching, law):
 def test_fast_batch_one_offset_or_one_plant(P, O):
     # O = 1 runs on (P,) vectors instead of (P, 1) (the CLI's sampled plants)
     plants, ctrl, ref, X0s = setup(P, O)
-    opts = dict(n_steps=300, integrator="euler")
+    # the default bound, passed (an argument, not a constant): the divergence test's programs
+    opts = dict(n_steps=300, integrator="euler", divergence_bound=1e6)
     fast = fj.simulate_batch(plants, ctrl, ref, X0s, 1e-3, **opts)
     assert fast.metrics.rms_error.shape == (P * O, 3)
     assert_close(fast, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
 
 
 def test_fast_batch_freezes_diverged_rollouts_like_simulate():
-    plants, ctrl, ref, X0s = setup(gamma=[5e4, 5e4, 5e4])  # far too stiff for dt: blows up
+    # far too stiff for dt: blows up. The shapes and options of test_fast_batch_one_offset_or_one_plant's
+    # default case (5 plants, 1 initial state): its two programs, compiled once
+    plants, ctrl, ref, X0s = setup(5, 1, gamma=[5e4, 5e4, 5e4])
     opts = dict(n_steps=300, integrator="euler", divergence_bound=50.0)
     fast = fj.simulate_batch(plants, ctrl, ref, X0s, 2e-2, **opts)
     slow = reference_path(plants, ctrl, ref, X0s, 2e-2, **opts)

@@ -163,7 +163,7 @@ def X_start(offset=OFFSET):
 
 
 def unbatch(plants, i):
-    return fj.LinearPlant(plants.a_rows[i], plants.b_rows[i])
+    return fj.LinearPlant(*(jnp.asarray(np.asarray(x)[i]) for x in (plants.a_rows, plants.b_rows)))
 
 
 def assert_metrics_close(got, want, rtol, atol=0.0):
@@ -172,8 +172,8 @@ def assert_metrics_close(got, want, rtol, atol=0.0):
 
 
 def take(tree, i):
-    """Rollout i of a batched result."""
-    return jax.tree.map(lambda x: x[i], tree)
+    """Rollout i of a batched result, in NumPy (indexing the device arrays compiles a program per shape)."""
+    return jax.tree.map(lambda x: np.asarray(x)[i], tree)
 
 
 def assert_results_equal(a, b, rtol=1e-12, atol=1e-14):
@@ -209,6 +209,7 @@ def test_matches_numpy_closed_loop(plant_kind, switching, law, integrator, n):
         switching=switching,
         law=law,
         save_every=save_every,
+        divergence_bound=1e6,  # the default, passed (an argument, not a constant): huge-step test's program
     )
     X, X_d, U, s, bad, metrics = np_simulate(
         plant.a_rows, plant.b_rows, ctrl, np_ref(), X_start(), dt, n, integrator, switching, law
@@ -317,7 +318,8 @@ def test_convergence_order(integrator, dts, order):
 
 # ------------------------------------------------------------------ (3) batching
 
-OPTS = dict(n_steps=150, integrator="rk4", switching="ratio", law="paper")
+# 400 steps: the divergence test below diverges after 205 and shares these tests' programs
+OPTS = dict(n_steps=400, integrator="rk4", switching="ratio", law="paper")
 
 
 def test_simulate_batch_equals_one_by_one():
@@ -326,28 +328,33 @@ def test_simulate_batch_equals_one_by_one():
     ctrl, ref = controller(), cycloid()
     batch = fj.simulate_batch(plants, ctrl, ref, X0s, 1e-3, **OPTS, save_every=50)
     assert batch.metrics.rms_error.shape == (4, 3) and batch.diverged.shape == (4,)
-    assert batch.trace.X.shape == (4, 4, 9)
+    assert batch.trace.X.shape == (4, 9, 9)
     for p in range(2):
         for o in range(2):
             solo = fj.simulate(unbatch(plants, p), ctrl, ref, X0s[o], 1e-3, **OPTS, save_every=50)
             assert_results_equal(take(batch, 2 * p + o), solo)  # plant-major
 
 
-def test_vmap_of_simulate_equals_one_by_one():
-    gammas = jnp.asarray(np.stack([paper.GAMMA, 0.5 * paper.GAMMA, 2 * paper.GAMMA]))
-    deltas = jnp.asarray(paper.DELTA_SETS)
-    base = controller()
-    run = lambda g, d: fj.simulate(
+def run_gains(gamma, delta, divergence_bound=1e6):
+    """A rollout of the nominal plant with these gains (OPTS): the programs of the vmap test and
+    of the divergence test (section 6) are the same ones."""
+    return fj.simulate(
         nominal_plant(),
-        base._replace(gamma=g, delta=d),
+        controller()._replace(gamma=gamma, delta=delta),
         cycloid(),
         jnp.asarray(X_start()),
         1e-3,
         **OPTS,
+        divergence_bound=divergence_bound,
     )
-    batch = jax.vmap(run)(gammas, deltas)
+
+
+def test_vmap_of_simulate_equals_one_by_one():
+    gammas = jnp.asarray(np.stack([paper.GAMMA, 0.5 * paper.GAMMA, 2 * paper.GAMMA]))
+    deltas = jnp.asarray(paper.DELTA_SETS)
+    batch = jax.vmap(run_gains)(gammas, deltas)
     for i in range(3):
-        assert_results_equal(take(batch, i), run(gammas[i], deltas[i]))
+        assert_results_equal(take(batch, i), run_gains(gammas[i], deltas[i]))
 
 
 # ------------------------------------------------------------------ (4) no recompilation
@@ -462,32 +469,26 @@ def test_float32_run_stays_float32_and_agrees_with_float64():
 
 
 def test_divergence_is_flagged_frozen_and_isolated():
-    n, dt, bound = 400, 1e-3, 1e3
-    gammas = jnp.asarray(np.stack([paper.GAMMA, -paper.GAMMA]))  # negative gains push away from s = 0
-    base = controller()
-    run = lambda g: fj.simulate(
-        nominal_plant(),
-        base._replace(gamma=g),
-        cycloid(),
-        jnp.asarray(X_start()),
-        dt,
-        n_steps=n,
-        integrator="rk4",
-        divergence_bound=bound,
-    )
-    batch = jax.vmap(run)(gammas)
-    good, bad = (take(batch, i) for i in range(2))
-    assert not bool(good.diverged) and np.isinf(float(good.diverged_at))
+    n, dt, bound = OPTS["n_steps"], 1e-3, 1e3
+    # the middle rollout's negative gains push away from s = 0; its neighbours are good
+    gammas = jnp.asarray(np.stack([paper.GAMMA, -paper.GAMMA, 2 * paper.GAMMA]))
+    deltas = jnp.asarray(np.stack([paper.DELTA_SETS[1], SET1, paper.DELTA_SETS[2]]))
+    run = lambda g, d: run_gains(g, d, bound)
+    batch = jax.vmap(run)(gammas, deltas)
+    good, bad, good2 = (take(batch, i) for i in range(3))
+    for g in (good, good2):
+        assert not bool(g.diverged) and np.isinf(float(g.diverged_at))
     assert bool(bad.diverged) and np.isfinite(float(bad.diverged_at))
     for leaf in jax.tree.leaves(bad.metrics):  # a diverged rollout's metrics cannot pass for a good one's
         assert np.all(np.isnan(leaf))
-    assert_results_equal(good, run(gammas[0]))  # the good rollout is unaffected by its neighbour
+    for i, g in ((0, good), (2, good2)):  # the good rollouts are unaffected by their neighbour
+        assert_results_equal(g, run(gammas[i], deltas[i]))
 
     # the flag time matches the NumPy loop stopped at the first bad sample
     X, X_d, U, s, k_bad, _ = np_simulate(
         paper.A_ROWS,
         paper.B_ROWS,
-        base._replace(gamma=gammas[1]),
+        controller()._replace(gamma=gammas[1], delta=deltas[1]),
         np_ref(),
         X_start(),
         dt,
@@ -502,15 +503,18 @@ def test_divergence_is_flagged_frozen_and_isolated():
 
 
 def test_huge_step_diverges_to_nonfinite_and_is_flagged():
+    # the static options of test_matches_numpy_closed_loop's first case: its program, compiled once
     res = fj.simulate(
         nominal_plant(),
         controller(),
         cycloid(),
         jnp.asarray(X_start()),
         0.5,
-        n_steps=400,
+        n_steps=300,
         integrator="euler",
-        save_every=100,
+        switching="ratio",
+        law="paper",
+        save_every=7,
         divergence_bound=np.inf,
     )
     assert bool(res.diverged) and np.isfinite(float(res.diverged_at)) and float(res.diverged_at) > 0
@@ -524,7 +528,7 @@ def test_huge_step_diverges_to_nonfinite_and_is_flagged():
 
 @pytest.mark.parametrize("switching", ["ratio", "sign"])
 def test_metrics_recomputed_from_full_trace(switching):
-    n, dt = 250, 1e-3
+    n, dt = 1600, 1e-3  # the Euler case of test_convergence_order takes 1600 steps too: its program
     res = fj.simulate(
         unbatch(sampled_plants(), 0),
         controller(),
@@ -535,6 +539,7 @@ def test_metrics_recomputed_from_full_trace(switching):
         integrator="euler",
         switching=switching,
         save_every=1,
+        divergence_bound=1e6,  # the default, passed (an argument, not a constant), as there
     )
     tr = res.trace
     assert tr.X.shape == (n + 1, 9)
@@ -546,24 +551,21 @@ def test_metrics_recomputed_from_full_trace(switching):
 # ------------------------------------------------------------------ (8) gradients
 
 
-def loss_fn(n, ref, X0, plant=None):
-    plant = nominal_plant() if plant is None else plant
-    base = controller()
-
-    def loss(delta, gamma, poles):
-        res = fj.simulate(
-            plant,
-            base._replace(delta=delta, gamma=gamma, poles=poles),
-            ref,
-            X0,
-            1e-3,
-            n_steps=n,
-            integrator="rk4",
-            switching="ratio",
-        )
-        return jnp.sum(res.metrics.rms_error) + 1e-3 * jnp.sum(res.metrics.chattering)
-
-    return jax.jit(loss)
+@jax.jit
+def fd_loss(delta, gamma, poles, X0):
+    """200 RK4 steps on the nominal plant along the paper's cycloid from ``X0``: one compilation
+    (and one of its gradient) for every X0."""
+    res = fj.simulate(
+        nominal_plant(),
+        controller()._replace(delta=delta, gamma=gamma, poles=poles),
+        cycloid(),
+        X0,
+        1e-3,
+        n_steps=200,
+        integrator="rk4",
+        switching="ratio",
+    )
+    return jnp.sum(res.metrics.rms_error) + 1e-3 * jnp.sum(res.metrics.chattering)
 
 
 def central_differences(f, args, rel=1e-4):
@@ -590,7 +592,7 @@ def test_gradients_match_finite_differences(offset):
     # absolute rounding from the 200 steps, so components far below the largest one of their
     # group are noise-limited: tolerance rtol 1e-4 plus 1e-4 of the group's largest entry.
     X0 = jnp.asarray(X_start(OFFSET if offset == "offset" else 0 * OFFSET))
-    loss = loss_fn(200, cycloid(), X0)
+    loss = functools.partial(fd_loss, X0=X0)
     args = (jnp.asarray(SET1), jnp.asarray(paper.GAMMA), jnp.asarray(paper.POLES))
     grads = jax.grad(loss, argnums=(0, 1, 2))(*args)
     for g, fd in zip(grads, central_differences(loss, args), strict=True):
@@ -599,16 +601,14 @@ def test_gradients_match_finite_differences(offset):
         np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-4 * np.max(np.abs(fd)))
 
 
-@pytest.mark.parametrize("metric", fj.METRIC_NAMES)
-def test_gradient_is_finite_when_everything_is_zero(metric):
-    # Rest at the origin, X0 = 0: Z, X_d, Omega, s and U are exactly 0 at every step, so all
-    # three norms in (23) sit at 0, and so do the errors and controls the metrics summarise.
-    # Every metric is identically 0 in (delta, gamma, poles): its gradient must be exactly 0.
-    # (rms_error and control_rms take sqrt(0) in _metrics.finish: NaN gradient.)
+@pytest.fixture(scope="module")
+def at_rest():
+    """Every metric's sum at rest at the origin, and its gradient in (delta, gamma, poles): one
+    compiled program (jax.jacrev, a row per metric) for all metrics."""
     zero = np.zeros(3)
     base = controller()
 
-    def loss(delta, gamma, poles):
+    def sums(delta, gamma, poles):
         res = fj.simulate(
             nominal_plant(),
             base._replace(delta=delta, gamma=gamma, poles=poles),
@@ -619,9 +619,22 @@ def test_gradient_is_finite_when_everything_is_zero(metric):
             integrator="rk4",
             switching="ratio",
         )
-        return jnp.sum(getattr(res.metrics, metric))
+        return jnp.stack([jnp.sum(getattr(res.metrics, name)) for name in fj.METRIC_NAMES])
 
     args = (jnp.asarray(SET1), jnp.asarray(paper.GAMMA), jnp.asarray(paper.POLES))
-    assert float(loss(*args)) == 0.0
-    for g in jax.grad(loss, argnums=(0, 1, 2))(*args):
-        np.testing.assert_array_equal(np.asarray(g), 0.0)
+    return np.asarray(sums(*args)), jax.jacrev(sums, argnums=(0, 1, 2))(*args)
+
+
+@pytest.mark.parametrize("metric", fj.METRIC_NAMES)
+def test_gradient_is_finite_when_everything_is_zero(metric, at_rest):
+    # Rest at the origin, X0 = 0: Z, X_d, Omega, s and U are exactly 0 at every step, so all
+    # three norms in (23) sit at 0, and so do the errors and controls the metrics summarise.
+    # Every metric is identically 0 in (delta, gamma, poles): its gradient must be exactly 0.
+    # (rms_error and control_rms take sqrt(0) in _metrics.finish: NaN gradient.) The rows of
+    # jax.jacrev are reverse passes with a cotangent of 1 on this metric and 0 on the others,
+    # so a NaN in any metric's reverse pass (0 * inf) shows in every row.
+    values, jacobians = at_rest
+    i = fj.METRIC_NAMES.index(metric)
+    assert values[i] == 0.0
+    for g in jacobians:
+        np.testing.assert_array_equal(np.asarray(g)[i], 0.0)
