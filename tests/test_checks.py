@@ -7,7 +7,6 @@ Most tests call check_inputs directly; those that simulate share one set of shap
 options (n_steps = 5, euler), so that they compile one program each."""
 
 import dataclasses
-import timeit
 import warnings
 
 import jax
@@ -234,10 +233,19 @@ def test_a_users_controller_passes_unchecked_and_untouched():
         fj.simulate(plant, {"K": 1.0}, ref, X0, dt, **OPTIONS)
 
 
-def test_the_check_costs_well_under_a_millisecond():
-    """The default problem's batch (the CLI's), checked as simulate_batch checks it per call."""
+def test_the_check_computes_the_stable_step_once_per_model(monkeypatch):
+    """The default problem's batch (the CLI's), checked as simulate_batch checks it per call:
+    its one costly part, the stable step (eigenvalues in JAX), runs once for the same rows and
+    poles, then comes from the cache (its cost per call is a benchmark's to measure, not a
+    test's: a timed assertion here failed at load 10)."""
+    from fosmc_jax._simulator import checks as _checks
+
+    calls = []
+    monkeypatch.setattr(_checks, "stable_step", lambda *a: calls.append(a) or 1.0)
+    _checks._stable_step.cache_clear()
     p = fj.build(None)
     args = (p.plants, p.controller(), p.reference, p.X0s, p.dt, True, dict(p.options, keys=p.keys))
-    check_inputs(*args)  # the stable step, computed once
-    per_call = min(timeit.repeat(lambda: check_inputs(*args), number=100, repeat=5)) / 100
-    assert per_call < 1e-3
+    for _ in range(3):
+        check_inputs(*args)
+    assert len(calls) == 1
+    _checks._stable_step.cache_clear()  # the stand-in's 1.0 must not outlive this test
