@@ -16,8 +16,11 @@ import atexit
 import os
 import shutil
 import tempfile
+import threading
+import time
 
 import jax
+import pytest
 
 jax.config.update("jax_enable_x64", True)
 # One CPU device in the test process, whichever test runs first: the command line's default
@@ -49,7 +52,6 @@ LONG_FILES = (
     "test_front.py",
     "test_arm_disturbances.py",
     "test_digital_loop.py",
-    "test_smc.py",
     "test_generated.py",
     "test_build.py",
     "test_arm.py",
@@ -60,6 +62,7 @@ LONG_FILES = (
     "test_export.py",
     "test_paper_results.py",
     "test_design_from_arm.py",
+    "test_smc.py",
     "test_checks.py",
     "test_readme.py",
     "test_design.py",
@@ -68,17 +71,48 @@ LONG_FILES = (
 )
 
 
+#: A file the controller of a run with workers creates once its build of the native kernel ends
+_KERNEL_BUILT = "FOSMC_TEST_KERNEL_BUILT"
+
+
 def pytest_configure(config):
     if getattr(config, "workerinput", None) is not None or not getattr(config.option, "numprocesses", None):
         return  # a worker, or a run without workers
     # The controller of a run with workers: schedule in LONG_FILES' order (not by test count) ...
     config.option.loadscopereorder = False
     # ... and build the native kernel (fosmc_jax/_simulator/native.py, ~50 CPU seconds with an
-    # empty cache) once, before the workers start: each worker would otherwise build it at its
-    # first kernel call, all at once, into the same cache.
+    # empty cache) once, while the workers start and collect: each worker would otherwise build it
+    # at its first kernel call, all at once. The workers (started after this hook, so they inherit
+    # the variable) wait for it before their first test (_kernel_built below).
     from fosmc_jax._simulator import native
 
-    native.available()
+    built = os.path.join(_CACHE, "kernel-built")
+    os.environ[_KERNEL_BUILT] = built
+
+    def build():
+        try:
+            native.available()
+        finally:
+            open(built, "w").close()
+
+    config._fosmc_kernel_build = threading.Thread(target=build, daemon=True)
+    config._fosmc_kernel_build.start()
+
+
+def pytest_unconfigure(config):
+    build = getattr(config, "_fosmc_kernel_build", None)
+    if build is not None:
+        build.join()  # not cut off half-written by the exit (a run that ended first: --collect-only)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _kernel_built(request):
+    """In a worker: wait for the controller's build of the native kernel (see pytest_configure)."""
+    built = os.environ.get(_KERNEL_BUILT)
+    if built and getattr(request.config, "workerinput", None) is not None:
+        deadline = time.monotonic() + 900
+        while not os.path.exists(built) and time.monotonic() < deadline:
+            time.sleep(0.1)
 
 
 def pytest_collection_modifyitems(config, items):

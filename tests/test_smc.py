@@ -88,6 +88,10 @@ def test_smc_holds_s_in_the_boundary_layer_on_the_nominal_plant():
     assert s[i2] / s[i1] == pytest.approx(np.exp(-(t[i2] - t[i1]) / tau), rel=0.02)
 
 
+# slow: 4 compilations per kind (~12 CPU s for both); in the default tier test_tuning_kinds.py runs
+# each kind from its config through the command line and holds its loss's reverse-mode gradient
+# (in the log gains) to central differences
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["smc", "super_twisting"])
 def test_each_kind_runs_from_the_config_alone_and_is_differentiable(kind, capsys, tmp_path):
     path = tmp_path / "c.toml"
