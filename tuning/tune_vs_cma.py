@@ -41,14 +41,22 @@ Float64. Timings are wall times on a shared 2-core machine; each comes with the 
 compilation cache is on, in a fresh folder per run; the generated kernels' C++ libraries come
 from the package's cache (~/.cache/fosmc_jax) as in any run.
 
-    .venv/bin/python tuning/tune_vs_cma.py                 # the study (about 45 min on 2 cores)
-    .venv/bin/python tuning/tune_vs_cma.py --quick         # a smoke run (10 s, 2 configs) to /tmp
+    .venv/bin/python tuning/tune_vs_cma.py                 # the study (53 min on 2 cores at load 5-9)
+    .venv/bin/python tuning/tune_vs_cma.py --quick         # a smoke run (10 s, 2 configs, 4 min) to /tmp
     .venv/bin/python tuning/tune_vs_cma.py --report-only   # the Markdown again from the JSON
     .venv/bin/python tuning/tune_vs_cma.py --configs a,b --merge   # add or redo configs in the JSON
 
-The committed tuning/results/tune_vs_cma.{json,md} came from (the JSON's "runs" holds each):
+The committed tuning/results/tune_vs_cma.{json,md} came from these two commands, one after the
+other (the JSON's "runs" holds each, with its load): the default set (8 configs, the race from
+p0 on its 5 ideal loops), then the other committed configs without the race from p0 (24 min):
 
     PYTHONPATH=. .venv/bin/python tuning/tune_vs_cma.py
+    PYTHONPATH=. .venv/bin/python tuning/tune_vs_cma.py --configs \
+realistic_arm_short_training,realistic_arm_exact_rates,arm_sign_dt,arm_set2_truncated,example --p0 none --merge
+
+tune's N covers the budget, so its cosine schedule spans about 60 s of steps: on a config whose
+``[tune] steps`` is smaller (arm_set2: 60) the learning rate stays high for longer than in a
+plain ``fosmc tune`` run of that config.
 
 Progress lines go to stderr.
 """
@@ -86,7 +94,7 @@ from jax.sharding import PartitionSpec as Spec  # noqa: E402
 from fosmc_jax import config as _config  # noqa: E402
 from fosmc_jax import search as fs  # noqa: E402
 from fosmc_jax import use_compilation_cache  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402
+from fosmc_jax._search import tune as T  # noqa: E402  (learning_rate, _on_adjoint_kernel: run_tune's own choices)
 from fosmc_jax.io import jsonable, write_text  # noqa: E402
 from fosmc_jax.search import cma_es, global_stage  # noqa: E402
 
@@ -231,7 +239,7 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
     baton = Baton(names)
     errors: list[BaseException] = []
     n_steps = max(2, math.ceil(STEP_MARGIN * budget / per_step))
-    settings = T.Settings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0)
+    settings = fs.TuneSettings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0)
     tune_out: dict = {"stamps": [], "n_steps": n_steps}
 
     def tune_worker():
@@ -252,7 +260,7 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
             baton.pause("tune")
 
         try:
-            u, hist = T.run(s["loss"], replicated(unravel(jnp.asarray(u_flat))), settings, log=hook)
+            u, hist = fs.tune(s["loss"], replicated(unravel(jnp.asarray(u_flat))), settings, log=hook)
             tune_out["finished"] = True
             tune_out["end_time"] = baton.now("tune")
             tune_out["returned"] = np.asarray(ravel_pytree(u)[0])
@@ -385,8 +393,8 @@ def study_config(name: str, cfg: dict, args) -> dict:
     if args.quick:
         tcfg["global_candidates"] = min(tcfg["global_candidates"], QUICK_GLOBAL)
     plain, train, p0 = _config.tuning_problems(cfg)  # as run_tune
-    m = T.evaluate(train, p0)["metrics"]
-    obj = T.objective_of(tcfg, m)
+    m = fs.evaluate(train, p0)["metrics"]
+    obj = fs.objective_of(tcfg, m)
     start, score, t_global = p0, None, 0.0
     if tcfg["global_candidates"]:
         t = time.perf_counter()
@@ -395,11 +403,11 @@ def study_config(name: str, cfg: dict, args) -> dict:
         t_global = time.perf_counter() - t
     log(f"{name}: global stage of {tcfg['global_candidates']} candidates: score {score} in {t_global:.1f} s "
         f"(load {load()})")  # fmt: skip
-    u_p0 = T.to_internal(p0, plain.base, None)
+    u_p0 = fs.to_internal(p0, plain.base, None)
     flat_p0, unravel = ravel_pytree(u_p0)
-    flat_start = ravel_pytree(T.to_internal(start, plain.base, None))[0]
+    flat_start = ravel_pytree(fs.to_internal(start, plain.base, None))[0]
     s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], train),
-         "loss": T.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
+         "loss": fs.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
          "plain_eval": Batched(plain, obj, unravel)}  # fmt: skip
     # compile before the races: tune's gradient (to time a step; run's own jit loads it from the
     # persistent cache), the batched training loss (CMA-ES's), the plain one (the read-offs)
@@ -407,7 +415,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     t = time.perf_counter()
     on_kernel = T._on_adjoint_kernel(s["loss"], u0)  # traces the gradient once: the kernels are generated (and built)
     trace_s = time.perf_counter() - t
-    vg = T.value_and_grad(s["loss"], "reverse")
+    vg = fs.value_and_grad(s["loss"], "reverse")
     t = time.perf_counter()
     jax.block_until_ready(vg(u0))
     grad_compile = time.perf_counter() - t
@@ -487,6 +495,17 @@ def _wins(r: dict, tk: str) -> bool | None:
     return t <= min(c)
 
 
+def _loop(c: dict) -> str:
+    """The loop, and what else sets the gradient's kind: a linear plant, the sign law."""
+    extra = [x for x, on in (("linear plant", c["plant"] != "arm"), ("sign law", c["switching"] == "sign")) if on]
+    return ", ".join([c["loop"], *extra])
+
+
+def _gens(g: dict) -> str:
+    """A CMA-ES run's generations, and when pycma's own criteria stopped it before the budget."""
+    return f"{g['generations']}" + (f" (converged, stopped at {g['time_s']:.0f} s)" if g.get("stopped_itself") else "")
+
+
 def race_table(data: dict, label: str) -> str:
     times = [f"{t:g}" for t in data["settings"]["times"]]
     L = ["| config | loop | start | " + " | ".join(f"{t} s: tune / CMA 0.1 / CMA 0.3" for t in times)
@@ -501,17 +520,42 @@ def race_table(data: dict, label: str) -> str:
         gens = [r[f"cma {sg:g}"] for sg in SIGMAS]
         ls = [x[1][0] for x in r["loads"]]
         nm = name + (" (not tuned on)" if c.get("not_tuned_on") else "")
-        L.append(f"| {nm} | {c['loop']} | {f3(r['start_plain_loss'])} | " + " | ".join(_cell(r, t) for t in times)
+        L.append(f"| {nm} | {_loop(c)} | {f3(r['start_plain_loss'])} | " + " | ".join(_cell(r, t) for t in times)
                  + f" | {', '.join(wins)} | {r['tune']['step_s_median']:.3f} ({r['tune']['steps_done']}) | "
-                 f"{np.median([g['gen_s_median'] for g in gens]):.3f} ({', '.join(str(g['generations']) for g in gens)}) | "
+                 f"{np.median([g['gen_s_median'] for g in gens]):.3f} ({', '.join(_gens(g) for g in gens)}) | "
                  f"{np.mean(ls):.1f}, {min(ls):.1f}-{max(ls):.1f} |")  # fmt: skip
     return "\n".join(L) + "\n"
+
+
+def _diverged_from(r: dict, penalty: float) -> int | None:
+    """The first of tune's steps (1-based) from which every step's training loss is the divergence
+    penalty (a diverged rollout: a flat loss, no gradient), None if the run did not end there."""
+    loss = np.asarray(r["tune"]["train_loss"], float)
+    flat = ~np.isfinite(loss) | (loss >= penalty * (1 - 1e-9))
+    if not len(loss) or not flat[-1]:
+        return None
+    i = len(loss) - 1
+    while i > 0 and flat[i - 1]:
+        i -= 1
+    return i + 1
+
+
+def _best_step(r: dict) -> str:
+    """tune's training loss: first step's, lowest within the budget (its step and time), last step's."""
+    tr, tl = r["tune"], f"{max(float(k) for k in r['methods']['tune']):g}"
+    loss = np.asarray(tr["train_loss"], float)
+    at, best = r["methods"]["tune"][tl]["found_at_s"], r["methods"]["tune"][tl]["train_loss"]
+    if not len(loss) or at is None:
+        return "-"
+    i = int(np.nanargmin(np.where(np.isfinite(loss) & (np.arange(len(loss)) < tr["steps_done"]), loss, np.nan)))
+    return f"{loss[0]:.3f} -> {best:.3f} (step {i + 1} of {len(loss)}, {at:.0f} s) -> {loss[-1]:.3f}"
 
 
 def train_table(data: dict, label: str) -> str:
     tl = f"{data['settings']['times'][-1]:g}"
     L = [f"| config | start: train / plain | tune at {tl} s: train / plain | CMA 0.1: train / plain | "
-         "CMA 0.3: train / plain | tune descended | tune skipped steps |", "|---" * 7 + "|"]  # fmt: skip
+         "CMA 0.3: train / plain | tune's training loss: first step -> lowest (step, time) -> last step "
+         "| tune: skipped steps; diverged from step |", "|---" * 8 + "|"]  # fmt: skip
     for name, c in data["configs"].items():
         r = c["races"].get(label)
         if r is None:
@@ -521,16 +565,38 @@ def train_table(data: dict, label: str) -> str:
         L.append(
             f"| {name} | {f3(r['start_train_loss'])} / {f3(r['start_plain_loss'])} | "
             + " | ".join(cells)
-            + f" | {'yes' if r['tune']['descended'] else 'no'} | {r['tune']['skipped']} |"
+            + f" | {_best_step(r)} | {r['tune']['skipped']}; {_diverged_from(r, c['objective']['penalty']) or '-'} |"
         )
     return "\n".join(L) + "\n"
+
+
+def _distance(c: dict) -> float:
+    """max_i |u_start - u_p0| in tune's internal coordinates (log |parameter|)."""
+    p0, st = c["params"]["p0"], c["params"]["start"]
+    return float(max(np.max(np.abs(np.log(np.abs(np.asarray(st[k], float)) / np.abs(np.asarray(p0[k], float)))))
+                     for k in p0))  # fmt: skip
+
+
+def _reach(c: dict, r: dict, budget: float) -> float:
+    """The sum of tune's learning rates over the steps it took within the budget (its schedule over
+    the planned N steps): about the most an Adam step sequence moves one entry of u."""
+    ts = c["tune_settings"]
+    n, N = r["tune"]["steps_done"], r["tune"]["n_steps_planned"]
+    lr = ts["learning_rate"]
+    if ts["schedule"] == "cosine":  # optax.cosine_decay_schedule(lr, N, alpha=0.1)
+        k = np.arange(n)
+        rates = lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * np.minimum(k, N) / N)))
+    else:
+        rates = np.full(n, lr)
+    return float(np.sum(rates))
 
 
 def share_table(data: dict) -> str:
     tl = f"{data['settings']['times'][-1]:g}"
     L = [f"| config | global stage: candidates, time (s) | plain loss p0 -> start -> tune at {tl} s | "
-         f"share of tune's time in gradient steps | share of its plain improvement from gradient steps |",
-         "|---" * 5 + "|"]  # fmt: skip
+         f"share of tune's time in gradient steps | share of its plain improvement from gradient steps | "
+         f"start's distance from p0 in u (largest entry) | tune's reach in {tl} s: sum of its learning rates |",
+         "|---" * 7 + "|"]  # fmt: skip
     for name, c in data["configs"].items():
         r = c["races"]["start"]
         g = c["global_stage"]
@@ -541,7 +607,8 @@ def share_table(data: dict) -> str:
         share_i = (st - end) / total if total > 0 else None
         L.append(
             f"| {name} | {g['candidates']}, {g['time_s']:.1f} | {f3(p0l)} -> {f3(st)} -> {f3(end)} | "
-            f"{'-' if share_t is None else f'{share_t:.0%}'} | {'-' if share_i is None else f'{share_i:.0%}'} |"
+            f"{'-' if share_t is None else f'{share_t:.0%}'} | {'-' if share_i is None else f'{share_i:.0%}'} | "
+            f"{_distance(c):.2f} | {_reach(c, r, data['settings']['budget']):.2f} |"
         )
     return "\n".join(L) + "\n"
 
@@ -576,10 +643,19 @@ def findings(data: dict) -> list[str]:
         out.append(f"{what.capitalize()}: tune's plain loss is at or below both CMA-ES runs' at every read-off on "
                    f"{', '.join(allw) or 'no config'}; at none on {', '.join(none) or 'no config'}"
                    + (f"; at some on {', '.join(some)}" if some else "") + ".")  # fmt: skip
-        nd = [n for n, r in rows.items() if not r["tune"]["descended"]]
+        drop = {n: r["tune"]["train_loss"][0] - r["methods"]["tune"][tl]["train_loss"] for n, r in rows.items()}
+        nd = [f"{n} ({d:.3f})" for n, d in drop.items() if d < 0.05]
         if nd:
-            out.append(f"{what.capitalize()}: tune's training loss never went below its first step's on "
-                       f"{', '.join(nd)} (the gradient does not descend there).")  # fmt: skip
+            out.append(f"{what.capitalize()}: tune's training loss fell by less than 0.05 within {tl} s on "
+                       f"{', '.join(nd)}: the gradient steps do not descend there.")  # fmt: skip
+        dv = {n: _diverged_from(r, data["configs"][n]["objective"]["penalty"]) for n, r in rows.items()}
+        dv = {n: k for n, k in dv.items() if k}
+        if dv:
+            out.append(f"{what.capitalize()}: tune's steps reached parameters where every training rollout diverges "
+                       "and stayed there (the loss is the flat divergence penalty, whose gradient is zero; Adam's "
+                       "momentum carries on, nothing brings it back) on " + ", ".join(
+                           f"{n} (from step {k} of {len(rows[n]['tune']['train_loss'])})" for n, k in dv.items())
+                       + ": the rest of its time is lost; `run` returns its best point.")  # fmt: skip
         over = []
         for n, r in rows.items():
             t = r["methods"]["tune"][tl]
@@ -597,6 +673,13 @@ def findings(data: dict) -> list[str]:
                         f"{n} (sigma {sg:g}: plain {c['plain_loss']:.3f} worse than the start's "
                         f"{r['start_plain_loss']:.3f} while its training loss fell)"
                     )
+        t_over = [f"{n} (training {r['start_train_loss']:.3f} -> {r['methods']['tune'][tl]['train_loss']:.3f}, plain "
+                  f"{r['start_plain_loss']:.3f} -> {r['methods']['tune'][tl]['plain_loss']:.3f})"
+                  for n, r in rows.items() if r["methods"]["tune"][tl]["plain_loss"] > r["start_plain_loss"]
+                  and r["methods"]["tune"][tl]["train_loss"] < r["start_train_loss"]]  # fmt: skip
+        if t_over:
+            out.append(f"{what.capitalize()}, at {tl} s: tune's own best training point is worse than the start on the "
+                       "plain loss while its training loss fell: " + "; ".join(t_over) + ".")  # fmt: skip
         if over:
             out.append(f"{what.capitalize()}, at {tl} s: CMA-ES's best training point is better on the training "
                        "loss and worse on the plain one than tune's, or worse than the start on the plain loss "
@@ -646,13 +729,16 @@ def report(data: dict) -> str:
         A(race_table(data, "p0"))
     A(f"\n## Training loss against plain loss at {st['times'][-1]:g} s\n\nThe training loss each method minimised and "
       "the plain loss of the same point: where they disagree the method exploited the training surrogate (coarser "
-      "step or shorter horizon than `[sim]`). \"descended\": some step's training loss below the first's.\n\n")  # fmt: skip
+      "step or shorter horizon than `[sim]`).\n\n")  # fmt: skip
     for label, what in (("start", "From tune's start"), ("p0", "From p0")):
         if any(label in c["races"] for c in data["configs"].values()):
             A(f"{what}:\n\n" + train_table(data, label) + "\n")
     A("## The global stage's share\n\nWhat `fosmc tune` spends before its gradient steps (its global stage, timed "
       "here with its evaluator's compilation) against the gradient steps' time in the race (compilation excluded), "
-      "and which part of the plain loss's fall from p0 to tune's point at the end the gradient steps made.\n\n")  # fmt: skip
+      "and which part of the plain loss's fall from p0 to tune's point at the end the gradient steps made. Beside "
+      "them, how far the global stage's best lies from p0 in u, and how far Adam's steps can carry one entry of u "
+      "in the race (an Adam step moves each entry by about its learning rate at most, whatever the gradient's "
+      "size).\n\n")  # fmt: skip
     A(share_table(data))
     A("\n## Costs and compilation\n\n")
     A(compile_table(data))
@@ -722,7 +808,7 @@ def main() -> int:
             log(f"{name}: skipped ({e})")
             continue
         kind = cfg["controller"]["kind"]
-        if not set(cfg["tune"]["params"]) <= set(T.SPACES[kind].names) or cfg["tune"]["keep_gamma_bound"]:
+        if not set(cfg["tune"]["params"]) <= set(fs.SPACES[kind].names) or cfg["tune"]["keep_gamma_bound"]:
             data["skipped"][name] = "tune refuses it or keeps the gamma floor (not covered)"
             log(f"{name}: skipped")
             continue
