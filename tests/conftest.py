@@ -20,7 +20,6 @@ import threading
 import time
 
 import jax
-import pytest
 
 jax.config.update("jax_enable_x64", True)
 # One CPU device in the test process, whichever test runs first: the command line's default
@@ -81,9 +80,9 @@ def pytest_configure(config):
     # The controller of a run with workers: schedule in LONG_FILES' order (not by test count) ...
     config.option.loadscopereorder = False
     # ... and build the native kernel (fosmc_jax/_simulator/native.py, ~50 CPU seconds with an
-    # empty cache) once, while the workers start and collect: each worker would otherwise build it
-    # at its first kernel call, all at once. The workers (started after this hook, so they inherit
-    # the variable) wait for it before their first test (_kernel_built below).
+    # empty cache) once, while the workers start: each worker would otherwise build it at its first
+    # kernel call (test_generated.py's on import), all at once. The workers (started after this
+    # hook, so they inherit the variable) wait for it before they collect (pytest_collection below).
     from fosmc_jax._simulator import native
 
     built = os.path.join(_CACHE, "kernel-built")
@@ -105,11 +104,10 @@ def pytest_unconfigure(config):
         build.join()  # not cut off half-written by the exit (a run that ended first: --collect-only)
 
 
-@pytest.fixture(scope="session", autouse=True)
-def _kernel_built(request):
+def pytest_collection(session):
     """In a worker: wait for the controller's build of the native kernel (see pytest_configure)."""
     built = os.environ.get(_KERNEL_BUILT)
-    if built and getattr(request.config, "workerinput", None) is not None:
+    if built and getattr(session.config, "workerinput", None) is not None:
         deadline = time.monotonic() + 900
         while not os.path.exists(built) and time.monotonic() < deadline:
             time.sleep(0.1)
