@@ -3,6 +3,7 @@ carries the versions that produced it (:func:`versions`)."""
 
 from __future__ import annotations
 
+import glob
 import importlib.metadata
 import json
 import math
@@ -49,11 +50,14 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``.
 
     A crash at any moment leaves either the old file or the new one, never a partial one.
-    The file gets the permissions a plain ``open`` would give (0666 less the umask).
+    The file gets the permissions a plain ``open`` would give (0666 less the umask). A process
+    killed mid-write (SIGKILL, power) cannot remove its temporary: the temporary carries the
+    writer's process id, and the next write of ``path`` removes those of processes no longer alive.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    _remove_orphans(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
@@ -64,6 +68,20 @@ def atomic_write(path: str | Path, write: Callable[[str], None]) -> None:
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+def _remove_orphans(path: Path) -> None:
+    """Remove the temporaries of ``path`` left by writers that died (see :func:`atomic_write`)."""
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*"):
+        pid = tmp.name[len(path.name) + 2 :].split(".", 1)[0]
+        if not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)  # signal 0: only asks whether the process exists
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass  # alive, owned by another user
 
 
 def check_writable(path: str | Path, *, folder: bool) -> Path:

@@ -31,7 +31,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._app import memory, study
 from fosmc_jax._app import reproduce as R
 from fosmc_jax._app.cli import main
-from fosmc_jax._io import check_writable
+from fosmc_jax._io import check_writable, write_text
 from fosmc_jax._simulator.checks import check_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,6 +275,23 @@ def test_check_writable_leaves_nothing_and_makes_no_folder(tmp_path):
         check_writable(tmp_path / "d", folder=False)
     assert check_writable(tmp_path / "d", folder=True) == tmp_path / "d"
     assert list((tmp_path / "d").iterdir()) == []
+
+
+def test_a_temporary_left_by_a_killed_writer_goes_with_the_next_write(tmp_path):
+    """A writer SIGKILLed mid-write leaves its temporary (no handler runs); the next write of the
+    same file removes it, and leaves a live writer's temporary alone."""
+    target = tmp_path / "checkpoint.npz"
+    child = (f"import time; from fosmc_jax._io import atomic_write\n"
+             f"atomic_write({str(target)!r}, lambda tmp: (print(tmp, flush=True), time.sleep(60)))")  # fmt: skip
+    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    left = Path(proc.stdout.readline().strip())  # the temporary exists: its writer is mid-write
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    live = tmp_path / f".checkpoint.npz.{os.getpid()}.x.npz"  # this process's, as if mid-write
+    live.write_text("")
+    assert left.exists() and not target.exists()
+    write_text(target, "new")
+    assert target.read_text() == "new" and not left.exists() and live.exists()
 
 
 # ---------------------------------------------------------------------------- the Python API's edges
