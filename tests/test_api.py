@@ -61,6 +61,7 @@ def test_public_names():
         assert name in fj.__all__ and callable(getattr(fj, name))
 
 
+@pytest.mark.slow  # 6 s: the default tier keeps to 4 minutes on 2 cores
 def test_simulate_equals_cli_json_for_path_dict_and_resolved_config(capsys, toml):
     path = toml(SHORT_TOML)
     code, out, _ = cli(capsys, "simulate", "--config", path, "--json")

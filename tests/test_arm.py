@@ -222,6 +222,7 @@ def test_gradient_wrt_payload_matches_finite_differences():
 # ---------------------------------------------------------------------------- closed loop
 
 
+@pytest.mark.slow  # 7 s: the default tier keeps to 4 minutes on 2 cores
 def test_closed_loop_on_arm_at_0_and_10_kg():
     """The FOSMC designed from (29), poles (33), gains (36), Euler dt = 1e-4 s, 4 s, on the arm.
 

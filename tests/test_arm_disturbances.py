@@ -134,6 +134,7 @@ class Constant:
         return self.U, state
 
 
+@pytest.mark.slow  # 6 s: the default tier keeps to 4 minutes on 2 cores
 def test_the_simulator_passes_the_stage_times():
     """fj.simulate's rollout equals a plain RK4 of the same arm written here (the external torque
     and Coulomb friction in NumPy at t_k, t_k + dt/2, t_k + dt, the mechanics from the autodiff
@@ -363,6 +364,7 @@ def test_third_order_rows_hold_the_coulomb_term_and_leave_the_external_torque_ou
         assert np.max(np.abs(model - jerk)) > 1e-3 * np.max(np.abs(jerk))
 
 
+@pytest.mark.slow  # 6 s: the default tier keeps to 4 minutes on 2 cores
 def test_zero_terms_are_left_out_before_compiling_with_the_same_results():
     """The simulator drops the optional terms whose amplitudes are concretely zero (None: not
     evaluated, so the vmap path of the calibrated arm costs what it did), keeps the others and

@@ -60,6 +60,7 @@ def test_params_by_name_are_checked_in_one_line():
         assert "\n" not in str(e.value)
 
 
+@pytest.mark.slow  # 9 s: the default tier keeps to 4 minutes on 2 cores
 def test_the_builders_gradient_in_delta_equals_central_differences():
     """d/d delta of the batch's mean rms error (ideal loop, linear plant, two initial states),
     against central differences with a relative step of 1e-4 (3e-7 apart; at 1e-6 the loss's

@@ -184,6 +184,7 @@ def test_samplers():
     assert np.array_equal(vertex_codes(3, 100, rng), np.arange(8))
 
 
+@pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
 def test_report_and_gamma_verdicts():
     import json
 

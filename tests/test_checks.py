@@ -149,6 +149,7 @@ def test_a_step_above_the_stable_step_warns_in_one_line():
     assert [w.filename for w in caught if "stability limit" in str(w.message)] == [__file__]
 
 
+@pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
 def test_under_jit_and_grad_shapes_are_still_refused_and_traced_values_pass():
     plant, ctrl, ref, X0, dt = inputs()
 

@@ -83,6 +83,7 @@ def test_simulate_json_writes_non_finite_numbers_as_null():
     assert d["summary"] == {"mean": None} and d["config"] == {}
 
 
+@pytest.mark.slow  # 4 s: the default tier keeps to 4 minutes on 2 cores
 def test_simulate_plot_is_written(capsys, tmp_path):
     png = tmp_path / "fig.png"
     code, _, err = run(capsys, tmp_path, SHORT, "simulate", "--plot", str(png))

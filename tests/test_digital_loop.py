@@ -299,6 +299,7 @@ def test_bad_loop_keys_are_refused_in_one_line_and_nothing_is_written(capsys, tm
     assert not plot.exists()
 
 
+@pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
 def test_loop_keys_resolve_and_json_has_saturation_and_realizations(capsys, tmp_path):
     path = tmp_path / "c.toml"
     path.write_text(

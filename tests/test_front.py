@@ -164,6 +164,7 @@ def test_global_stage_holds_the_start_and_the_whole_grid_of_common_factors():
     assert F.grid_size(300, 0.5) == 5 and F.grid_size(8, 1.0) == 0 and F.grid_size(28, 1.0) == 3
 
 
+@pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
 def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
     """Sizes from the budget: the probe's chunk joins the global stage, and the checkpoint
     holds the stage deadlines in order (offsets from the run's start, which a

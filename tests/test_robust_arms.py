@@ -17,6 +17,7 @@ ARMS = {
 }
 
 
+@pytest.mark.slow  # 7 s: the default tier keeps to 4 minutes on 2 cores
 def test_worst_case_forms_run_over_the_sampled_arms():
     """The tuner's loss equals mean(J) + w x (max or CVaR of J) with J per rollout of the whole
     batch, sampled arms included (recomputed here in NumPy from the plain simulation)."""

@@ -587,7 +587,8 @@ def central_differences(f, args, rel=1e-4):
     return grads
 
 
-@pytest.mark.parametrize("offset", ["offset", "on_reference"])
+# "offset" (7 s) in the slow tier: the default tier keeps to 4 minutes on 2 cores
+@pytest.mark.parametrize("offset", [pytest.param("offset", marks=pytest.mark.slow), "on_reference"])
 def test_gradients_match_finite_differences(offset):
     # "on_reference": X0 = X_d(0), so Z = 0 at t = 0 (the safe-norm case).
     # Steps of 1e-4 relative: truncation ~1e-8 relative; the loss (~1e-3) carries ~1e-16

@@ -44,6 +44,7 @@ def convergence_time(t, s, s0, tol=1e-2):
     return t[np.flatnonzero(after)[-1] + 1]
 
 
+@pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
 def test_super_twisting_matches_the_hand_integrated_scalar_system_and_converges_in_finite_time():
     # The simulator holds U (hence U_eq too) over each step: its s follows the scalar system
     # up to a first-order sampling error, which halves with dt.

@@ -20,6 +20,7 @@ def _cfg():
     return {k: dict(v) for k, v in TINY.items()}
 
 
+@pytest.mark.slow  # two tuning runs (15 s): the default tier keeps to 4 minutes on 2 cores
 def test_a_budget_sizes_the_steps_between_one_and_tune_steps():
     """A budget already spent runs one step (and says the deadline passed before the steps); an
     ample one runs every step of ``tune.steps``: the budget only ever shortens the run."""
