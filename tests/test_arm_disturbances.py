@@ -92,8 +92,12 @@ def _hold(arm, U, n, dt=1e-3):
 
 
 @pytest.mark.parametrize(
-    "u1, bias1",  # one case in the default tier (~4 s each)
-    [(4.0, 0.0), pytest.param(-4.0, 1.0, marks=pytest.mark.slow), pytest.param(0.0, 3.2, marks=pytest.mark.slow)],
+    "u1, bias1",  # in the slow tier (~4 s each): the default tier keeps to 4 minutes on 2 cores
+    [
+        pytest.param(4.0, 0.0, marks=pytest.mark.slow),
+        pytest.param(-4.0, 1.0, marks=pytest.mark.slow),
+        pytest.param(0.0, 3.2, marks=pytest.mark.slow),
+    ],
 )
 def test_zero_gravity_steady_speed_of_the_base(u1, bias1):
     """No gravity, no offsets (d2 = d3 = 0: M12 = M13 = 0), links hanging (q2 = q3 = 0), a

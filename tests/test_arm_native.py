@@ -74,7 +74,11 @@ def both(plants, ctrl, ref, X0s, dt, **options):
     "integrator, switching, law",
     # RK4 runs in the default tier through the realistic preset's digital loop below; Euler's vmap
     # path compiles in less than half RK4's time
-    [pytest.param("rk4", "ratio", "paper", marks=pytest.mark.slow), ("euler", "tanh", "equivalent")],
+    # (both in the slow tier: the default tier keeps to 4 minutes on 2 cores)
+    [
+        pytest.param("rk4", "ratio", "paper", marks=pytest.mark.slow),
+        pytest.param("euler", "tanh", "equivalent", marks=pytest.mark.slow),
+    ],
 )
 def test_random_states_arms_and_gains(integrator, switching, law):
     """The kernel's copy of the closed form, the law and the metrics, held to the JAX model at

@@ -136,6 +136,7 @@ def test_sample_and_pairing_errors_name_their_key():
             fj.build(user)
 
 
+@pytest.mark.slow  # 4 s: the default tier keeps to 4 minutes on 2 cores
 def test_simulate_on_a_sample_prints_percentiles_and_plots_histograms(tmp_path, capsys):
     path = tmp_path / "mc.toml"
     path.write_text('[plant]\nkind = "arm"\n[sim]\nt_final = 0.05\ndt = 1e-3\npairing = "paired"\n'

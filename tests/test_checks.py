@@ -114,6 +114,7 @@ def test_a_negative_payload_is_refused_and_the_range_is_the_configs():
     fj.config.resolve({"plant": {"kind": "arm", "payloads": [1.0, 50.0]}, "arm": {"payload_range": [0.0, 60.0]}})
 
 
+@pytest.mark.slow  # 3 s: the default tier keeps to 4 minutes on 2 cores
 def test_a_delta_given_as_a_list_runs_as_the_array():
     plant, ctrl, ref, X0, dt = inputs()
     as_list = dataclasses.replace(ctrl, params=ctrl.params._replace(delta=[200.0, 100.0, 60.0]))

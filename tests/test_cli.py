@@ -50,6 +50,7 @@ seed = 7
     assert d["rollouts"][0]["metrics"]["max_abs_error"][0] < d["rollouts"][1]["metrics"]["max_abs_error"][0]
 
 
+@pytest.mark.slow  # 3 s: the default tier keeps to 4 minutes on 2 cores
 def test_simulate_npz_holds_the_json_values(capsys, tmp_path):
     text = SHORT + 'precision = "float32"\n[plant]\nuncertainty = "sample"\nsamples = 4\n'
     both, alone = tmp_path / "both.npz", tmp_path / "alone.npz"

@@ -225,6 +225,7 @@ def test_printed_K_is_for_A_minus_BK_and_not_stabilising():
     assert np.max(np.linalg.eigvals(A_NOM + B_NOM @ np.round(K, 2)).real) > 0
 
 
+@pytest.mark.slow  # 3 s: the default tier keeps to 4 minutes on 2 cores
 def test_gain_from_poles_is_differentiable():
     a, b = jnp.asarray(paper.A_ROWS), jnp.asarray(paper.B_ROWS)
     check_grads(

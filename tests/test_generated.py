@@ -17,9 +17,17 @@ import fosmc_jax as fj
 from fosmc_jax import paper
 from fosmc_jax._simulator import codegen, generated, native, rollout
 
-# CPU code: on a GPU backend the default path runs the vmap path, and these white-box calls have no handler
-pytestmark = pytest.mark.skipif(not native.available() or jax.default_backend() != "cpu",
-                                reason="no C++ compiler or not the CPU backend: no generated kernels")  # fmt: skip
+
+@pytest.fixture(autouse=True, scope="module")
+def _kernels():
+    """Skip where there are no generated kernels: no C++ compiler, or not the CPU backend (on a
+    GPU the default path runs the vmap path, and these white-box calls have no handler). A
+    fixture, not a ``skipif`` evaluated on import: the collection of a worker of ``make test``
+    would wait for the kernel's build (tests/conftest.py)."""
+    if not native.available() or jax.default_backend() != "cpu":
+        pytest.skip("no C++ compiler or not the CPU backend: no generated kernels")
+
+
 KEY = jax.random.PRNGKey(0)[None]
 
 
@@ -134,6 +142,7 @@ def test_forward_mode_runs_the_split_step_and_equals_the_vmap_path():
     assert _rel(d_gen, d_vm) < 1e-9 and d_vm != 0
 
 
+@pytest.mark.slow  # 4 s: the default tier keeps to 4 minutes on 2 cores
 def test_a_primitive_the_printer_does_not_know_is_named_and_the_batch_runs_the_vmap_path():
     @functools.partial(jax.tree_util.register_dataclass, data_fields=["K"], meta_fields=[])
     @dataclasses.dataclass(frozen=True)

@@ -351,6 +351,7 @@ def run_gains(gamma, delta, divergence_bound=1e6):
     )
 
 
+@pytest.mark.slow  # 4 s: the default tier keeps to 4 minutes on 2 cores
 def test_vmap_of_simulate_equals_one_by_one():
     gammas = jnp.asarray(np.stack([paper.GAMMA, 0.5 * paper.GAMMA, 2 * paper.GAMMA]))
     deltas = jnp.asarray(paper.DELTA_SETS)
