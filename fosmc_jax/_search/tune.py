@@ -207,12 +207,20 @@ def evaluate(problem: Problem, p: Params) -> dict[str, Any]:
 
 class Settings(NamedTuple):
     steps: int = 100
-    learning_rate: float = 0.05
+    learning_rate: float = 0.05  # Adam's (learning_rate, schedule and clip: Adam's only)
     schedule: str = "cosine"  # or "constant"
     clip: float = 1.0  # global-norm clipping of the gradient in internal coordinates
     mode: str = "auto"  # "reverse", "forward" or "auto" (time both, keep the faster)
     free: tuple[str, ...] | None = None  # the parameters tuned (None: all), the rest frozen
     checkpoint_every: int = 10  # optimizer steps between checkpoints (0: none)
+    optimizer: str = "adam"  # or "lbfgs": L-BFGS directions with a backtracking line search
+
+
+OPTIMIZERS = ("adam", "lbfgs")
+#: L-BFGS's line search: Armijo's sufficient decrease, the step's factor after a rejected trial
+#: and after an accepted step, the trials per step, the longest step (2-norm in u: a factor e on
+#: one parameter) and the curvature pairs kept
+ARMIJO, SHRINK, GROW, TRIALS, MAX_STEP, MEMORY = 1e-4, 0.3, 2.0, 10, 1.0, 10
 
 
 def learning_rate(rate: float, problem: Problem) -> float:
@@ -286,6 +294,50 @@ def _norm(tree) -> float:
     return float(scale * np.linalg.norm(g / scale))
 
 
+class _LineSearch:
+    """One L-BFGS step (``optax.scale_by_lbfgs``'s direction) with a backtracking line search on
+    Armijo's condition: the first trial is ``GROW`` times the last accepted step length (1 at
+    most: the direction's own scale, at most ``MAX_STEP`` long), each rejected one ``SHRINK``
+    times shorter. A trial is one evaluation of the compiled value and gradient, so the accepted
+    one brings the next step's gradient. A trial whose loss is not finite, or is the diverged
+    rollouts' flat penalty above the current loss, is rejected like any increase."""
+
+    def __init__(self, step_fn, opt, mask, deadline):
+        self.step_fn, self.deadline, self.timed_out = step_fn, deadline, False
+
+        @jax.jit
+        def direction(u, state, grad):
+            g = jax.tree.map(jnp.multiply, grad, mask)  # frozen parameters stay
+            d, state = opt.update(g, state, u)
+            slope = optax.tree.vdot(g, d)
+            # not a descent direction (negative curvature measured): the gradient, memory cleared
+            bad = ~(slope > 0)
+            d = jax.tree.map(lambda a, b: jnp.where(bad, a, b), g, d)
+            state = jax.tree.map(lambda a, b: jnp.where(bad, a, b), opt.init(u), state)
+            slope = jnp.where(bad, optax.tree.vdot(g, g), slope)
+            scale = jnp.minimum(1.0, MAX_STEP / jnp.maximum(optax.tree.norm(d), 1e-300))
+            return jax.tree.map(lambda x: scale * x, d), scale * slope, state
+
+        self.direction = direction
+        self.trial = jax.jit(lambda u, d, eta: jax.tree.map(lambda a, b: a - eta * b, u, d))
+
+    def __call__(self, u, state, eta, current):
+        (value, _), grad = current
+        d, slope, state = self.direction(u, state, grad)
+        eta = min(1.0, eta * GROW)
+        for trial in range(1, TRIALS + 1):
+            v = self.trial(u, d, eta)
+            out = self.step_fn(v)
+            f = float(out[0][0])
+            if np.isfinite(f) and f <= float(value) - ARMIJO * eta * float(slope) and np.isfinite(_norm(out[1])):
+                return v, state, eta, out, trial
+            if self.deadline is not None and time.perf_counter() > self.deadline:
+                self.timed_out = True
+                return None
+            eta *= SHRINK
+        return None
+
+
 def run(
     loss,
     u0: Params,
@@ -298,9 +350,11 @@ def run(
     deadline: float | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
-    """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam.
+    """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam, or
+    with L-BFGS and a line search (``settings.optimizer``, :class:`_LineSearch`).
 
-    Non-finite losses or gradients skip the step (and say so). Every ``checkpoint_every``
+    Non-finite losses or gradients skip Adam's step (and say so); L-BFGS stops there, and where
+    its line search finds no decrease. Every ``checkpoint_every``
     steps the state is written atomically to ``checkpoint``; ``resume`` continues from it and
     ends where an uninterrupted run would. Returns the best internal parameters, those of the
     lowest finite loss among every step's and the last update's (a step can land where the
@@ -314,22 +368,30 @@ def run(
     as fit before it at the compiled step's measured time (``settings.steps`` at most; the
     schedule spans them; a resumed run keeps the first run's count), and the loop stops at it.
     """
+    if settings.optimizer not in OPTIMIZERS:
+        raise ValueError(f"optimizer: expected one of {', '.join(OPTIMIZERS)}, got {settings.optimizer!r}")
     free = u0._fields if settings.free is None else settings.free
     labels = type(u0)(*("free" if n in free else "frozen" for n in u0._fields))
-    opt = make_optimizer(settings, labels)
-    u, state = u0, opt.init(u0)
+    lbfgs = settings.optimizer == "lbfgs"
+    opt = optax.scale_by_lbfgs(memory_size=MEMORY) if lbfgs else make_optimizer(settings, labels)
+    u, state, eta = u0, opt.init(u0), 1.0
     history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
                                 "params": []}  # fmt: skip
     start_step = 0
     mode = settings.mode
     if resume and checkpoint is not None and checkpoint.exists():
         header, arrays = _load(checkpoint)
+        if header.get("optimizer", "adam") != settings.optimizer:
+            raise ValueError(f"the checkpoint {checkpoint} is of the {header.get('optimizer', 'adam')} optimizer, "
+                             f"not of {settings.optimizer}")  # fmt: skip
         u, state = jax.tree.unflatten(
             jax.tree.structure((u, state)), [jnp.asarray(arrays[k]) for k in _named((u, state))]
         )
         history, start_step, mode = header["history"], header["step"], header["mode"]
         settings = settings._replace(steps=header.get("steps", settings.steps))
-        opt = make_optimizer(settings, labels)  # the schedule of the first run's steps
+        eta = header.get("eta", eta)
+        if not lbfgs:
+            opt = make_optimizer(settings, labels)  # the schedule of the first run's steps
         extra = header.get("extra", extra)
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
 
@@ -359,7 +421,8 @@ def run(
         fit = max(1, int((deadline - time.perf_counter()) / per_step) - 1)
         if fit < settings.steps:
             settings = settings._replace(steps=fit)
-            opt = make_optimizer(settings, labels)  # the schedule over the steps that fit; the same state
+            if not lbfgs:
+                opt = make_optimizer(settings, labels)  # the schedule over the steps that fit; the same state
         log(f"tune: budget: {settings.steps} gradient steps ({per_step:.3f} s each) before the deadline")
 
     @jax.jit
@@ -367,16 +430,30 @@ def run(
         updates, state = opt.update(grad, state, u)
         return optax.apply_updates(u, updates), state
 
+    mask = jax.tree.map(lambda label, x: jnp.full_like(x, label == "free"), labels, u)
+    search = _LineSearch(step_fn, opt, mask, deadline) if lbfgs else None
+    current = step_fn(u) if lbfgs else None  # L-BFGS: the loss and gradient at u, from the accepted trial
     t_start = time.perf_counter()
     for step in range(start_step, settings.steps):
         if deadline is not None and step > start_step and time.perf_counter() > deadline:  # one step at least
             log(f"tune: the budget's deadline passed: {step} of {settings.steps} steps done")
             break
-        (value, (err, chat)), grad = step_fn(u)
+        (value, (err, chat)), grad = current if lbfgs else step_fn(u)
         gnorm = _norm(grad)
         finite = bool(np.isfinite(float(value))) and np.isfinite(gnorm)
         history["params"].append([np.asarray(x).tolist() for x in u])
-        if finite:
+        note, stop = "", False
+        if lbfgs:
+            moved = search(u, state, eta, current) if finite else None
+            if moved is None:
+                stop = True
+                why = "non-finite loss or gradient" if not finite else f"no decrease in {TRIALS} trials"
+                why = "the budget's deadline passed in its line search" if search.timed_out else why
+                log(f"tune: step {step + 1}: {why}: L-BFGS stops")
+            else:
+                u, state, eta, current, trials = moved
+                note = f"  step {eta:.2e} ({trials} evaluations)"
+        elif finite:
             u, state = update(u, state, grad)
         else:
             log(f"tune: step {step}: non-finite loss or gradient, step skipped")
@@ -384,18 +461,23 @@ def run(
             history[k].append(float(v))
         history["skipped"].append(not finite)
         log(f"tune: step {step + 1:4d}/{settings.steps}  loss {float(value):.5f}  {terms[0]} {float(err):.5f}  "
-            f"{terms[1]} {float(chat):.5f}  |grad| {gnorm:.3e}  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
+            f"{terms[1]} {float(chat):.5f}  |grad| {gnorm:.3e}{note}  "
+            f"{time.perf_counter() - t_start:7.1f} s")  # fmt: skip
+        if stop:
+            break
         done = step + 1
         if (
             checkpoint is not None
             and settings.checkpoint_every
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
-            header = {"step": done, "mode": mode, "steps": settings.steps, "history": history, "extra": extra}
+            header = {"step": done, "mode": mode, "steps": settings.steps, "history": history, "extra": extra,
+                      "optimizer": settings.optimizer, "eta": eta}  # fmt: skip
             _save(checkpoint, header, _named((u, state)))
-    # the last update's point, not yet evaluated: with the compiled value_and_grad (one gradient's
-    # cost) rather than a jit of the loss alone, which would compile a second program
-    (last, _), _ = step_fn(u)
+    # the last update's point: L-BFGS evaluated it in its line search; Adam's is evaluated with the
+    # compiled value_and_grad (one gradient's cost) rather than a jit of the loss alone, which
+    # would compile a second program
+    (last, _), _ = current if lbfgs else step_fn(u)
     losses = np.asarray(history["loss"] + [float(last)], float)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     if best < len(history["params"]):
