@@ -143,6 +143,7 @@ def test_sign_of_the_margin_on_obvious_cases():
     assert abs(flat.max_hitting) < 1e-9 and not flat.holds
 
 
+@pytest.mark.slow  # 3 s: the default tier keeps to 4 minutes on 2 cores
 def test_points_checked_counts():
     cfg = _config.resolve({})
     c = certify(cfg, **SMALL)

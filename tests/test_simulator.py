@@ -190,7 +190,7 @@ CONFIGS = [
     pytest.param("nominal", "ratio", "equivalent", "rk4", 300, marks=pytest.mark.slow),
     ("sampled", "tanh", "equivalent", "rk4", 300),
     ("sampled", "sat", "paper", "euler", 300),
-    ("sampled", "ratio", "paper", "rk4", 400),  # 400 steps: test_simulate_batch_equals_one_by_one's program
+    ("sampled", "ratio", "paper", "rk4", 400),  # 400 steps: test_simulate_batch_equals_one_by_one's (slow)
 ]
 
 
@@ -323,6 +323,7 @@ def test_convergence_order(integrator, dts, order):
 OPTS = dict(n_steps=400, integrator="rk4", switching="ratio", law="paper")
 
 
+@pytest.mark.slow  # 4 s: the default tier keeps to 4 minutes on 2 cores
 def test_simulate_batch_equals_one_by_one():
     plants = sampled_plants(n=2)
     X0s = jnp.asarray(np.stack([X_start(), X_start(-OFFSET)]))
@@ -588,8 +589,10 @@ def central_differences(f, args, rel=1e-4):
     return grads
 
 
-# "offset" (7 s) in the slow tier: the default tier keeps to 4 minutes on 2 cores
-@pytest.mark.parametrize("offset", [pytest.param("offset", marks=pytest.mark.slow), "on_reference"])
+# in the slow tier (7 s each): the default tier keeps to 4 minutes on 2 cores, and checks the
+# whole tuning loss's gradient against central differences (test_tuning.py)
+@pytest.mark.parametrize("offset", [pytest.param("offset", marks=pytest.mark.slow),
+                                    pytest.param("on_reference", marks=pytest.mark.slow)])  # fmt: skip
 def test_gradients_match_finite_differences(offset):
     # "on_reference": X0 = X_d(0), so Z = 0 at t = 0 (the safe-norm case).
     # Steps of 1e-4 relative: truncation ~1e-8 relative; the loss (~1e-3) carries ~1e-16
