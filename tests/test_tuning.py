@@ -218,3 +218,71 @@ NO_DESCENT = {
     "realistic_arm_uncertain": "the same digital loop with sampled arms: -2.045 at best against -2.064 at "
     "the start (CI, session 32)",
 }
+
+
+# ---------------------------------------------------------------------------- L-BFGS
+
+
+def rosenbrock(u):
+    """Rosenbrock's valley in delta[0], delta[1] (minimum 0 at (1, 1)), a quadratic bowl in the
+    other free entries: Adam's small steps crawl along the valley, a line search does not."""
+    x, y = u.delta[0], u.delta[1]
+    v = (1 - x) ** 2 + 100 * (y - x**2) ** 2 + jnp.sum((u.delta[2] - 0.5) ** 2) + jnp.sum((u.poles + 1) ** 2)
+    return v, (v, v)
+
+
+def lbfgs(steps, **kw):
+    return T.Settings(steps=steps, mode="reverse", checkpoint_every=0, optimizer="lbfgs", **kw)
+
+
+def test_lbfgs_reaches_the_rosenbrock_minimum_and_keeps_frozen_parameters():
+    start = start_point()._replace(delta=jnp.array([-1.2, 1.0, 0.0]), gamma=jnp.array([3.0, 3.0, 3.0]))
+    u, hist = T.run(rosenbrock, start, lbfgs(80, free=("delta", "poles")), log=lambda _: None)
+    np.testing.assert_allclose(u.delta, [1.0, 1.0, 0.5], atol=1e-4)
+    np.testing.assert_allclose(u.poles, -1.0, atol=1e-4)
+    np.testing.assert_array_equal(u.gamma, 3.0)  # frozen
+    assert all(b <= a for a, b in zip(hist["loss"], hist["loss"][1:]))  # no accepted step ascends
+    # Adam from the same start with as many gradients as L-BFGS's line search took stays far off
+    adam = T.Settings(steps=80, learning_rate=0.05, schedule="constant", mode="reverse", free=("delta", "poles"),
+                      checkpoint_every=0)  # fmt: skip
+    v, _ = T.run(rosenbrock, start, adam, log=lambda _: None)
+    assert float(rosenbrock(v)[0]) > 1e3 * float(rosenbrock(u)[0])
+
+
+def test_lbfgs_backs_off_a_flat_penalty_and_a_nan():
+    """Past delta[0] = 0.5 the loss is the diverged rollouts' flat penalty, past 0.8 NaN: the line
+    search rejects both trials, ends below 0.5 and every step it accepts descends."""
+    target = T.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    base = quadratic(target)
+
+    def loss(u):
+        v, aux = base(u)
+        v = jnp.where(u.delta[0] > 0.5, 100.0, v)
+        return jnp.where(u.delta[0] > 0.8, jnp.nan, v), aux
+
+    messages = []
+    u, hist = T.run(loss, start_point(), lbfgs(20), log=messages.append)
+    assert 0.4 < float(u.delta[0]) <= 0.5 and float(loss(u)[0]) < hist["loss"][0]
+    assert all(b <= a for a, b in zip(hist["loss"], hist["loss"][1:]))
+
+
+def test_lbfgs_resumes_to_the_uninterrupted_run_and_refuses_adams_checkpoint(tmp_path):
+    start = start_point()._replace(delta=jnp.array([-1.2, 1.0, 0.0]))
+    s = lbfgs(12)._replace(checkpoint_every=2)
+    full, hist_full = T.run(rosenbrock, start, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
+
+    class Killed(Exception):
+        pass
+
+    def killer(msg):
+        if msg.startswith("tune: step    7/"):
+            raise Killed  # the last checkpoint is at step 6
+
+    with pytest.raises(Killed):
+        T.run(rosenbrock, start, s, checkpoint=tmp_path / "b.npz", log=killer)
+    resumed, hist = T.run(rosenbrock, start, s, checkpoint=tmp_path / "b.npz", resume=True, log=lambda _: None)
+    for a, b in zip(full, resumed):
+        np.testing.assert_array_equal(a, b)
+    assert hist["loss"] == hist_full["loss"]
+    with pytest.raises(ValueError, match="of the lbfgs optimizer, not of adam"):
+        T.run(rosenbrock, start, s._replace(optimizer="adam"), checkpoint=tmp_path / "b.npz", resume=True)

@@ -239,7 +239,8 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
     baton = Baton(names)
     errors: list[BaseException] = []
     n_steps = max(2, math.ceil(STEP_MARGIN * budget / per_step))
-    settings = fs.TuneSettings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0)
+    settings = fs.TuneSettings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0,
+                               s["optimizer"])  # fmt: skip
     tune_out: dict = {"stamps": [], "n_steps": n_steps}
 
     def tune_worker():
@@ -407,6 +408,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     flat_p0, unravel = ravel_pytree(u_p0)
     flat_start = ravel_pytree(fs.to_internal(start, plain.base, None))[0]
     s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], train),
+         "optimizer": args.optimizer or tcfg.get("optimizer", "adam"),
          "loss": fs.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
          "plain_eval": Batched(plain, obj, unravel)}  # fmt: skip
     # compile before the races: tune's gradient (to time a step; run's own jit loads it from the
@@ -441,7 +443,8 @@ def study_config(name: str, cfg: dict, args) -> dict:
                   "truncate_every": int(train.options.get("truncate_every") or 0)},
         "plain": {"dt": float(plain.dt), "n_steps": int(plain.options["n_steps"]), "rollouts": int(plain.rollouts)},
         "objective": obj._asdict(),
-        "tune_settings": {"learning_rate": s["lr"], "schedule": tcfg["schedule"], "clip": tcfg["clip"],
+        "tune_settings": {"optimizer": s["optimizer"], "learning_rate": s["lr"], "schedule": tcfg["schedule"],
+                          "clip": tcfg["clip"],
                           "mode": "reverse", "config_mode": tcfg["mode"], "config_steps": tcfg["steps"],
                           "params": list(tcfg["params"]), "gradient_path": "adjoint kernel" if on_kernel else "vmap"},
         "global_stage": {"candidates": tcfg["global_candidates"], "score": score, "time_s": t_global},
@@ -766,6 +769,7 @@ def main() -> int:
         default="ideal",
         help="where the race from p0 (no global stage) runs too (default: the ideal loops)",
     )
+    ap.add_argument("--optimizer", choices=T.OPTIMIZERS, help="tune's optimizer (default: the config's)")
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
