@@ -286,3 +286,11 @@ def test_lbfgs_resumes_to_the_uninterrupted_run_and_refuses_adams_checkpoint(tmp
     assert hist["loss"] == hist_full["loss"]
     with pytest.raises(ValueError, match="of the lbfgs optimizer, not of adam"):
         T.run(rosenbrock, start, s._replace(optimizer="adam"), checkpoint=tmp_path / "b.npz", resume=True)
+
+
+def test_the_config_names_the_optimizer_and_refuses_others():
+    from fosmc_jax._app import config as _config
+
+    assert _config.resolve({"tune": {"optimizer": "lbfgs"}})["tune"]["optimizer"] == "lbfgs"
+    with pytest.raises(fj.ConfigError, match="tune.optimizer"):
+        _config.resolve({"tune": {"optimizer": "bfgs"}})

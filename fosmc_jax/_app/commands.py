@@ -633,7 +633,7 @@ def run_tune(
         raise ConfigError(str(e)) from None
     lr = T.learning_rate(tcfg["learning_rate"], problem)
     settings = T.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
-                          tuple(tcfg["params"]), tcfg["checkpoint_every"])  # fmt: skip
+                          tuple(tcfg["params"]), tcfg["checkpoint_every"], tcfg["optimizer"])  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}

@@ -31,7 +31,7 @@ from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
 from .._plants.arm import ARM_PARAMS, EXOGENOUS, PARAM_RULES, PAYLOAD_RANGE, Arm, ArmParams, centre_error, rows_over
 from .._plants.linear import UNCERTAINTY, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
-from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, SCALES, WORST_CASE
+from .._search.tune import CHATTERING_METRICS, ERROR_METRICS, FORMS, MODES, OPTIMIZERS, SCALES, WORST_CASE
 from .._simulator.problem import Problem
 from .._simulator.rollout import INTEGRATORS, PAIRINGS
 from . import memory
@@ -131,6 +131,7 @@ def defaults() -> dict[str, Any]:
             "cvar_alpha": 0.9,
             "penalty": 100.0,
             "steps": 100,
+            "optimizer": "adam",
             "learning_rate": 0.0,
             "schedule": "cosine",
             "clip": 1.0,
@@ -381,6 +382,7 @@ SCHEMA: dict[str, Any] = {
         "cvar_alpha": _number("a number in [0, 1)", lambda x: 0 <= x < 1),
         "penalty": _number("a positive number", lambda x: x > 0),
         "steps": _integer("a positive integer", lambda n: n >= 1),
+        "optimizer": _choice(OPTIMIZERS),
         "learning_rate": _number("a non-negative number (0: automatic)", lambda x: x >= 0),
         "schedule": _choice(("cosine", "constant")),
         "clip": _number("a positive number", lambda x: x > 0),
