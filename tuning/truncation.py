@@ -410,8 +410,10 @@ def tune_vs_cma(name: str, cfg: dict, s: dict, args) -> dict:
     runs = {}
     for w in args.tune_windows:
         _, train, _ = problems(cfg, w)
-        settings = fs.TuneSettings(args.tune_steps, tcfg["learning_rate"], tcfg["schedule"], tcfg["clip"], "reverse",
-                              tuple(tcfg["params"]), 0)  # fmt: skip
+        # the rate fosmc tune would use (0 in the config means automatic; 0.0 itself never moved)
+        lr = fs.learning_rate(tcfg["learning_rate"], train)
+        settings = fs.TuneSettings(args.tune_steps, lr, tcfg["schedule"], tcfg["clip"], "reverse",
+                                   tuple(tcfg["params"]), 0)  # fmt: skip
         stamps = []
         t = time.perf_counter()
         u, hist = fs.tune(
