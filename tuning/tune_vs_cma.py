@@ -707,6 +707,14 @@ def report(data: dict) -> str:
             f"{r['machine']['cores']} cores, {r['machine']['devices']} JAX CPU devices, jax {r['machine']['jax']}; "
             f"`uptime` at the start: `{r['uptime_start']}`; at the end: `{r['uptime_end']}`"
         )
+    opts = {c["tune_settings"].get("optimizer", "adam") for c in data["configs"].values()}
+    if opts == {"lbfgs"}:
+        A(
+            "\n**tune's optimizer here: L-BFGS** (`--optimizer lbfgs`: `optax.scale_by_lbfgs`'s directions and a "
+            "backtracking line search, `fosmc_jax._search.tune._LineSearch`; the learning rate, schedule and clip below "
+            "are Adam's and unused; a step of the table is an accepted line search, its time that of all its trials; "
+            "tune stops where the line search finds no decrease)."
+        )
     A("\n**How.** tune = the package's tuner loop (`fosmc_jax._search.tune.run`, Adam with the config's learning "
       "rate as `T.learning_rate` resolves it, its schedule and clip, mode reverse, its free parameters) for N steps, "
       f"N = {st['step_margin']:g} x the steps that fit the budget at the step time measured before the race (the cosine "
