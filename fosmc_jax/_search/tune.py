@@ -299,8 +299,8 @@ class _LineSearch:
     Armijo's condition: the first trial is ``GROW`` times the last accepted step length (1 at
     most: the direction's own scale, at most ``MAX_STEP`` long), each rejected one ``SHRINK``
     times shorter; where ``TRIALS`` trials find no decrease, ``TRIALS`` more along the gradient with
-    the memory cleared (on arm_set2 from p0 this carried 70 steps instead of 44, to a training
-    loss of -6.0 instead of -4.0). A trial is one evaluation of the compiled value and gradient, so
+    the memory cleared (curvature pairs gathered across the chattering loops' kinks mislead more
+    often than the gradient does). A trial is one evaluation of the compiled value and gradient, so
     the accepted one brings the next step's gradient. A trial whose loss is not finite, or is the diverged
     rollouts' flat penalty above the current loss, is rejected like any increase."""
 
