@@ -582,7 +582,10 @@ def test_oversized_batches_are_refused_under_an_address_space_limit():
     lines = done.stdout.splitlines()
     assert done.returncode == 0 and len(lines) == len(OVERSIZED), done.stderr[-2000:]
     for key, line in zip(OVERSIZED, lines):
-        assert line.startswith(f"{key}: the batch needs at least") and "(ulimit -v)" in line, line
+        # the smaller limit is named: the 12 GB address space, or the machine's available memory
+        # where a loaded machine has less than that left
+        assert line.startswith(f"{key}: the batch needs at least"), line
+        assert "(ulimit -v)" in line or "(the machine's available memory)" in line, line
 
 
 def test_the_estimate_is_a_lower_bound_of_the_arrays_drawn_and_the_limit_is_a_boundary():

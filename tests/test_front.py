@@ -10,6 +10,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._app import study as front_study
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
+from fosmc_jax._search import tune as T
 from fosmc_jax.search import epsilon, nondominated
 
 TINY = {
@@ -179,7 +180,7 @@ def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
     assert st["candidates"] % 8 == 0 and st["candidates"] >= 16  # the global stage and the probe's chunk
     # how many generations and rounds fit depends on the machine's load: only their bookkeeping is checked
     assert st["evaluations"] >= st["candidates"] + 8 * st["local_rounds"]
-    header, _ = F.T._load(tmp_path / "c.npz")
+    header, _ = T._load(tmp_path / "c.npz")
     ends = header["ends"]
     # in order; not held against the budget: a stage that overruns its deadline (a loaded machine:
     # 3.66 s of a 3 s budget once) moves the later ones, and timings belong to the benchmarks

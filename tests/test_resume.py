@@ -20,6 +20,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import jsonable
 from fosmc_jax._search import front as F
+from fosmc_jax._search import tune as T
 
 TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
@@ -96,7 +97,7 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
                                                                                  monkeypatch, k, stage):  # fmt: skip
     front, work = whole
     checkpoint = tmp_path / "checkpoint.npz"
-    save, saved = F.T._save, []
+    save, saved = T._save, []
 
     def crash_after_k(path, header, arrays):
         save(path, header, arrays)
@@ -104,13 +105,13 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
         if len(saved) == k:
             raise Crash
 
-    monkeypatch.setattr(F.T, "_save", crash_after_k)
+    monkeypatch.setattr(T, "_save", crash_after_k)
     train, plain, _ = problems
     with pytest.raises(Crash):
         _run(problems, SIZES, checkpoint=checkpoint, log=lambda _: None)
     before = train.calls + plain.calls
     assert saved[-1] == stage
-    monkeypatch.setattr(F.T, "_save", save)
+    monkeypatch.setattr(T, "_save", save)
     lines = []
     resumed, after = _run(problems, SIZES, checkpoint=checkpoint, resume=True, log=lines.append)
     assert lines[0].startswith(f"front: resumed from {checkpoint} at ")
@@ -137,17 +138,17 @@ def test_a_resumed_budgeted_front_replays_to_its_front(problems, tmp_path, monke
     """Stopped at the end of its CMA-ES stage (the stage boundaries are checkpointed whatever
     the time since the last), resumed: its recorded work, replayed, gives its front."""
     settings = F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
-    save = F.T._save
+    save = T._save
 
     def crash_at_local(path, header, arrays):
         save(path, header, arrays)
         if header["stage"] == "local":
             raise Crash
 
-    monkeypatch.setattr(F.T, "_save", crash_at_local)
+    monkeypatch.setattr(T, "_save", crash_at_local)
     with pytest.raises(Crash):
         _run(problems, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
-    monkeypatch.setattr(F.T, "_save", save)
+    monkeypatch.setattr(T, "_save", save)
     lines = []
     resumed, _ = _run(problems, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lines.append)
     assert lines[0].endswith("at local round 0")

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._firmware import identify as I
+from .._firmware import identify as identification
 from .._loop.digital import quantize
 from .._plants.arm import Arm, ArmParams
 from . import config as _config
@@ -24,7 +24,7 @@ def identification_log(
     *,
     delay: int | None = None,
     currents: bool = False,
-) -> I.Log:
+) -> identification.Log:
     """The log of the config's first rollout (its first payload, its first ``[sample]`` draw
     and ``[arm.uncertainty]`` arm where it has them; ``[plant] kind = "arm"`` with a digital
     loop, ``controller.sample_period`` > 0): the times t (N,) s of the controller's samples,
@@ -61,7 +61,7 @@ def identification_log(
         params = ArmParams(**{k: jnp.asarray(cfg["arm"][k], float) for k in ArmParams._fields})
         arm = Arm(params, jnp.asarray(cfg["plant"]["payloads"][0], float))
         current = np.asarray(jax.vmap(lambda x: jnp.stack(arm.init(x).current))(jnp.asarray(X)))
-    log = I.check_log(I.Log(t, theta, u, current))
+    log = identification.check_log(identification.Log(t, theta, u, current))
     if path is not None:
-        I.write_log(log, path)
+        identification.write_log(log, path)
     return log

@@ -22,7 +22,7 @@ from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
 from .._simulator.metrics import METRIC_NAMES, PERCENTILES, UNITS
-from . import commands as C
+from . import commands
 from . import config as _config
 
 _IMPORTED = time.perf_counter()  # process_start's fallback
@@ -56,7 +56,7 @@ def cmd_simulate(args) -> int:
     ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation.
     The rollouts are printed from their arrays as they are formatted (no Python object per
     rollout held: a batch run in chunks prints as much as memory holds)."""
-    sampled = C.config_of(args.config)["sample"]["count"] > 0
+    sampled = commands.config_of(args.config)["sample"]["count"] > 0
     if args.plot:
         from .plots import check_figure_path
 
@@ -66,10 +66,10 @@ def cmd_simulate(args) -> int:
             raise _config.ConfigError(f"--plot: {e}") from None
     for option, path in (("--npz", args.npz), ("--plot", args.plot)):
         if path:
-            C.writable(path, option)
-    r = C.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
-                       keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
-                       chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log)  # fmt: skip
+            commands.writable(path, option)
+    r = commands.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
+                              keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
+                              chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log)  # fmt: skip
     cfg, summary, index = r["config"], r["summary"], r["arrays"]
     n = len(index["plant_index"])
     title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
@@ -102,7 +102,7 @@ def cmd_simulate(args) -> int:
         sys.stdout.write("\n")
     else:
         if not (args.npz or sampled):
-            _print_rollouts(C.rollout_records(r["arrays"]))
+            _print_rollouts(commands.rollout_records(r["arrays"]))
         if n > 1 or args.npz:  # with --npz (or a sample) the summary is all that is printed
             print(f"batch of {n}: {summary['diverged_excluded']} diverged (excluded below)")
             for name in METRIC_NAMES:
@@ -131,7 +131,7 @@ def _simulate_json_parts(r: dict, block: int = 10_000) -> Iterator[str]:
     yield "{\n" + head + ' "rollouts": [\n  '
     arrays = r["arrays"]
     for start in range(0, len(arrays["diverged"]), block):
-        records = C.rollout_records({k: v[start : start + block].tolist() for k, v in arrays.items()})
+        records = commands.rollout_records({k: v[start : start + block].tolist() for k, v in arrays.items()})
         rows = ",\n  ".join(json.dumps(x) for x in records)
         if "NaN" in rows or "Infinity" in rows:
             rows = re.sub(r"-?Infinity|NaN", "null", rows)
@@ -163,7 +163,7 @@ def _fmt3(v) -> str:
 
 def cmd_bounds(args) -> int:
     start = time.perf_counter()
-    d = C.run_bounds(args.config, log=_log)
+    d = commands.run_bounds(args.config, log=_log)
     elapsed = time.perf_counter() - start
     if args.json:
         print(json.dumps(jsonable(d), indent=1))
@@ -236,8 +236,8 @@ def _print_both_models(d: dict, fmt) -> None:
 
 def cmd_reproduce(args) -> int:
     start = time.perf_counter()
-    r = C.run_reproduce(args.out, plant=args.plant, t_final=args.t_final, dt=args.dt, integrator=args.integrator,
-                        force=args.force, report=args.report, log=_log)  # fmt: skip
+    r = commands.run_reproduce(args.out, plant=args.plant, t_final=args.t_final, dt=args.dt, integrator=args.integrator,
+                               force=args.force, report=args.report, log=_log)  # fmt: skip
     print(r["files"]["metrics.md"])
     _log(f"fosmc reproduce: wrote {', '.join(list(r['files']) + r['figures'])} to {args.out}/ "
          f"in {time.perf_counter() - start:.1f} s (total wall time)")  # fmt: skip
@@ -250,11 +250,11 @@ def cmd_reproduce(args) -> int:
 def cmd_tune(args) -> int:
     """The objective's two metrics with their units, initial and final, then the chattering
     measure the objective does not use (total variation or ``chattering_hf``), labelled so."""
-    r = C.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force,
-                   budget=args.budget, started=process_start(), log=_log)  # fmt: skip
+    r = commands.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force,
+                          budget=args.budget, started=process_start(), log=_log)  # fmt: skip
     optimised = (r["objective"]["error_metric"], r["objective"]["chattering_metric"])
-    rows = [(name, C.metric_label(name)) for name in optimised]
-    rows += [(name, C.metric_label(name) + ", not in the objective")
+    rows = [(name, commands.metric_label(name)) for name in optimised]
+    rows += [(name, commands.metric_label(name) + ", not in the objective")
              for name in ("chattering_hf", "chattering") if name not in optimised]  # fmt: skip
     width = max(len(label) for _, label in rows)
     for name, label in rows:
@@ -270,9 +270,10 @@ def cmd_front(args) -> int:
     from .._search.front import AXES
 
     start = process_start()
-    result = C.run_front(args.config, out=args.out, points=args.points, budget=args.budget, candidates=args.candidates,
-                         steps=args.steps, seed=args.seed, compare=tuple(args.compare), force=args.force,
-                         resume=args.resume, replay=args.replay, started=start, log=_log)  # fmt: skip
+    result = commands.run_front(args.config, out=args.out, points=args.points, budget=args.budget,
+                                candidates=args.candidates, steps=args.steps, seed=args.seed,
+                                compare=tuple(args.compare), force=args.force, resume=args.resume,
+                                replay=args.replay, started=start, log=_log)  # fmt: skip
     _log(
         f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
         "start)"
@@ -311,8 +312,8 @@ def cmd_select(args) -> int:
 
 
 def cmd_certify(args) -> int:
-    r = C.run_certify(args.config, vertices=args.vertices, configured_switching=args.configured_switching,
-                      seed=args.seed, log=_log)  # fmt: skip
+    r = commands.run_certify(args.config, vertices=args.vertices, configured_switching=args.configured_switching,
+                             seed=args.seed, log=_log)  # fmt: skip
     if args.json:
         print(json.dumps(jsonable(r), indent=1))
         return 0
@@ -338,8 +339,8 @@ def cmd_certify(args) -> int:
 
 
 def cmd_export(args) -> int:
-    r = C.run_export(args.config, out=args.out, params=args.params, point=args.point, precision=args.precision,
-                     name=args.name, log=_log)  # fmt: skip
+    r = commands.run_export(args.config, out=args.out, params=args.params, point=args.point, precision=args.precision,
+                            name=args.name, log=_log)  # fmt: skip
     print(f"{r['kind']} controller ({r['precision']}): {', '.join(map(str, r['paths']))}")
     if not r["check"].startswith("compiled cleanly"):
         _log(f"fosmc: warning: {r['check']}")
@@ -352,9 +353,10 @@ def cmd_export(args) -> int:
 def cmd_identify(args) -> int:
     """Each entry's configured and identified value with its standard deviation and status, the
     directions the log does not identify, the fit's residuals; the files written."""
-    r = C.run_identify(args.config, data=args.data, params=args.params, out=args.out, payload=args.payload,
-                       delay=args.delay, window=args.window, dt=args.dt, threshold=args.threshold,
-                       iterations=args.iterations, bootstrap=args.bootstrap, force=args.force, log=_log)  # fmt: skip
+    r = commands.run_identify(args.config, data=args.data, params=args.params, out=args.out, payload=args.payload,
+                              delay=args.delay, window=args.window, dt=args.dt, threshold=args.threshold,
+                              iterations=args.iterations, bootstrap=args.bootstrap, force=args.force,
+                              log=_log)  # fmt: skip
     if args.json:
         print(json.dumps(jsonable({k: v for k, v in r.items() if k != "config"}), indent=1))
         return 0

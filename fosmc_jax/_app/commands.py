@@ -372,7 +372,7 @@ def run_reproduce(
     ``metrics.md``, ``design.md``, ``metrics_short.csv`` (and ``realistic.md``,
     ``tradeoff.md`` for the arm), exactly as written to ``out``.
     """
-    from . import reproduce as R
+    from . import reproduce as reproduction
 
     if plant not in ("arm", "linear"):
         raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
@@ -381,7 +381,7 @@ def run_reproduce(
     _config.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
     if plant == "arm":  # the realistic loop's horizon too (its period, its delay), before any case runs
         try:
-            _config.resolve(R.realistic_config(t_final))
+            _config.resolve(reproduction.realistic_config(t_final))
         except ConfigError as e:
             raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
     if report:
@@ -393,44 +393,50 @@ def run_reproduce(
     if out is not None:
         out = _fresh_out(out, force, "use --force to overwrite")
         out.mkdir(parents=True, exist_ok=True)
-    settings = R.Settings(t_final=t_final, dt=dt, integrator=integrator)
+    settings = reproduction.Settings(t_final=t_final, dt=dt, integrator=integrator)
     log(f"fosmc reproduce: {plant} plant, {settings.integrator}, dt = {settings.dt} s, "
         f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
     log(
-        f"fosmc reproduce: the shortened check table ({R.SHORT.t_final} s)"
+        f"fosmc reproduce: the shortened check table ({reproduction.SHORT.t_final} s)"
         f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
     )
     # every group at once, a thread per core: their time is mostly compilation, one core each
-    jobs = [lambda: R.run_cases(plant, settings, log=log), lambda: R.run_cases(plant, R.SHORT, log=log)]
+    jobs = [
+        lambda: reproduction.run_cases(plant, settings, log=log),
+        lambda: reproduction.run_cases(plant, reproduction.SHORT, log=log),
+    ]
     if plant == "arm":
-        jobs += [lambda: R.run_realistic_cases(t_final, log=log), lambda: R.tradeoff_sweeps(t_final, log=log)]
-    cases, short_cases, *arm_only = R.parallel(*jobs)
-    rows, short = R.metric_rows(cases), R.metric_rows(short_cases)
-    files = {"metrics.csv": R.to_csv(rows), "metrics.md": R.to_markdown(rows), "design.md": R.design_facts(),
-             "metrics_short.csv": R.to_csv(short)}  # fmt: skip
+        jobs += [
+            lambda: reproduction.run_realistic_cases(t_final, log=log),
+            lambda: reproduction.tradeoff_sweeps(t_final, log=log),
+        ]
+    cases, short_cases, *arm_only = reproduction.parallel(*jobs)
+    rows, short = reproduction.metric_rows(cases), reproduction.metric_rows(short_cases)
+    files = {"metrics.csv": reproduction.to_csv(rows), "metrics.md": reproduction.to_markdown(rows),
+             "design.md": reproduction.design_facts(), "metrics_short.csv": reproduction.to_csv(short)}  # fmt: skip
     tables = {"metrics": rows, "metrics_short": short}
     figures: list[str] = []
     if out is not None:
         for name, text in files.items():
             write_text(out / name, text)
         log("fosmc reproduce: drawing figures ...")
-        figures = R.write_figures(cases, out, plant)
+        figures = reproduction.write_figures(cases, out, plant)
     if plant == "arm":
         realistic, sweeps = arm_only
-        tables["realistic"] = R.metric_rows(realistic, R.METRIC_NAMES)
-        files.update({"realistic.md": R.to_markdown(tables["realistic"], R.METRIC_NAMES),
-                      "tradeoff.md": R.sweep_markdown(sweeps)})  # fmt: skip
+        tables["realistic"] = reproduction.metric_rows(realistic, reproduction.METRIC_NAMES)
+        files.update({"realistic.md": reproduction.to_markdown(tables["realistic"], reproduction.METRIC_NAMES),
+                      "tradeoff.md": reproduction.sweep_markdown(sweeps)})  # fmt: skip
         if out is not None:
             for name in ("realistic.md", "tradeoff.md"):
                 write_text(out / name, files[name])
-            figures += R.write_realistic_figures(cases + realistic, sweeps, out)
+            figures += reproduction.write_realistic_figures(cases + realistic, sweeps, out)
     if report:
         text = report.read_text()
-        text = R.replace_block(text, "metrics", files["metrics.md"])
-        text = R.replace_block(text, "design", files["design.md"])
+        text = reproduction.replace_block(text, "metrics", files["metrics.md"])
+        text = reproduction.replace_block(text, "design", files["design.md"])
         for name in ("realistic", "tradeoff"):
             if f"{name}.md" in files:
-                text = R.replace_block(text, name, files[f"{name}.md"])
+                text = reproduction.replace_block(text, name, files[f"{name}.md"])
         write_text(report, text)
         log(f"fosmc reproduce: updated {report}")
     return {"files": files, "figures": figures, "rows": tables}
@@ -564,7 +570,7 @@ def run_tune(
     that the optimum holds for that plant only. Its ``log`` lines start with ``tune:``; its
     step lines name the objective's metrics.
     """
-    from .._search import tune as T
+    from .._search import tune as tuner
     from . import study
 
     started = time.perf_counter() if started is None else started
@@ -579,7 +585,7 @@ def run_tune(
             raise ConfigError(f"--steps: expected a positive integer, got {steps}")
         tcfg["steps"] = steps
     kind = cfg["controller"]["kind"]
-    names = T.SPACES[kind].names
+    names = tuner.SPACES[kind].names
     if not set(tcfg["params"]) <= set(names):
         raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
                           f"controller.kind = '{kind}'), got {tcfg['params']}")  # fmt: skip
@@ -599,15 +605,15 @@ def run_tune(
     floor = None
     if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
         d = _config.design_summary(cfg)
-        floor = T.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+        floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
-    m = T.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     t0 = time.perf_counter()
-    initial = T.evaluate(plain, p0)
+    initial = tuner.evaluate(plain, p0)
     # kept back for the final evaluation (compiled) and the held-out one (a program like this one)
     deadline = None if budget is None else started + budget - 1.5 * (time.perf_counter() - t0) - 2.0
-    obj = T.objective_of(tcfg, m)
+    obj = tuner.objective_of(tcfg, m)
     log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
         f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
@@ -615,7 +621,7 @@ def run_tune(
     start_params = p0
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
-    kept = T.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
+    kept = tuner.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
     if kept and "start" in kept:
         start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
     if tcfg["global_candidates"] and floor is None and not resuming:
@@ -628,25 +634,25 @@ def run_tune(
         log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log "
             "scale)")  # fmt: skip
     try:
-        u0 = T.to_internal(start_params, plain.base, floor)
+        u0 = tuner.to_internal(start_params, plain.base, floor)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    lr = T.learning_rate(tcfg["learning_rate"], problem)
-    settings = T.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
-                          tuple(tcfg["params"]), tcfg["checkpoint_every"], tcfg["optimizer"])  # fmt: skip
+    lr = tuner.learning_rate(tcfg["learning_rate"], problem)
+    settings = tuner.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
+                              tuple(tcfg["params"]), tcfg["checkpoint_every"], tcfg["optimizer"])  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
     keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
     if deadline is not None and time.perf_counter() > deadline:
         log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
-    u, history = T.run(T.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                       terms=terms, extra=keep, deadline=deadline, log=log)  # fmt: skip
-    final_params = T.to_physical(u, plain.base, floor)
-    final = T.evaluate(plain, final_params)
+    u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
+                           terms=terms, extra=keep, deadline=deadline, log=log)  # fmt: skip
+    final_params = tuner.to_physical(u, plain.base, floor)
+    final = tuner.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
     held = study.held_out_config(cfg)
-    held_out = T.evaluate(_config.tuning_problems(held)[0], final_params)
+    held_out = tuner.evaluate(_config.tuning_problems(held)[0], final_params)
     log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
         f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
         f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip
@@ -668,7 +674,7 @@ def run_tune(
         from .plots import plot_tuning
 
         write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
-        params_history = [as_dict(T.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
+        params_history = [as_dict(tuner.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
                           for p in history["params"]]  # fmt: skip
         plot_tuning(history, params_history, out / "tuning.png")
         log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
@@ -716,7 +722,7 @@ def run_front(
     result is deterministic except ``stages.wall_time_s``. On a batch of one plant
     (:func:`one_plant`) it warns as ``run_tune`` does. Its ``log`` lines start with ``front:``.
     """
-    from .._search import front as F
+    from .._search import front as search_front
     from . import study
 
     if resume and force:
@@ -747,7 +753,9 @@ def run_front(
     _warn_one_plant(cfg, "front")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    settings = F.Settings(points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed)
+    settings = search_front.Settings(
+        points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed
+    )
     if replay is not None:
         settings = replayed._replace(budget=budget)
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
@@ -929,7 +937,7 @@ def run_identify(
     ``config_check`` (``"ok"``, or the config error the identified arm raises, e.g. inertias that
     break the triangle inequality) and ``config``.
     """
-    from .._firmware import identify as I
+    from .._firmware import identify as identification
 
     # (option, value, integer?, least, strictly above it?, what); None: the default, for the last three
     checks = (("--window", window, False, 0, True, "a positive number (s)"),
@@ -963,13 +971,13 @@ def run_identify(
         out = _fresh_out(out, force, "use --force to overwrite")
     counts = np.asarray(cfg["sensors"]["encoder_counts"], float)
     try:
-        record = I.read_log(data)
-        period = I.sample_period(record.t)
+        record = identification.read_log(data)
+        period = identification.sample_period(record.t)
         samples = round(window / period)
         if samples < 2:
             raise ValueError(f"--window: expected at least 2 of the log's sample periods ({2 * period:g} s), "
                              f"got {window:g} s")  # fmt: skip
-        settings = I.Settings(
+        settings = identification.Settings(
             window=samples,
             delay=cfg["controller"]["delay_samples"] if delay is None else int(delay),
             integrator=cfg["sim"]["integrator"],
@@ -981,7 +989,7 @@ def run_identify(
             resolution=tuple(np.where(counts > 0, 2 * np.pi / np.maximum(counts, 1), 0.0)),
         )
         arm = _config.arm_params_of(cfg, np.float64)
-        result = I.identify(arm, float(payload), record, names, settings, progress=log)
+        result = identification.identify(arm, float(payload), record, names, settings, progress=log)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
@@ -1007,7 +1015,7 @@ def run_identify(
         header += f"\nWARNING: {warning}."
     if config_check != "ok":
         header += f"\nWARNING: not a valid config as it stands: {config_check}"
-    toml = I.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
+    toml = identification.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
     report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
                       "config": cfg})  # fmt: skip
     if out is not None:

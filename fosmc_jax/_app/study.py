@@ -19,7 +19,7 @@ import numpy as np
 
 from .._design import paper
 from .._io import jsonable, write_text
-from .._search import tune as T
+from .._search import tune as tuner
 from .._search.front import Evaluator, Settings, point_of, replay_settings, run
 from . import config as _config
 
@@ -64,11 +64,11 @@ def references(cfg: dict, chunk: int, plain: Evaluator | None = None) -> dict[st
         c = copy.deepcopy(cfg)
         c["controller"].update(switching=switching, kind="fosmc")
         if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
-            problem, p0 = plain, T.Tunable(*(getattr(plain.problem.base, k) for k in T.PARAM_NAMES))
+            problem, p0 = plain, tuner.Tunable(*(getattr(plain.problem.base, k) for k in tuner.PARAM_NAMES))
         else:
             problem, _, p0 = _config.tuning_problems(c)
             problem = Evaluator(problem)
-        ps = T.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
+        ps = tuner.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
                        jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
         m = problem(ps, chunk if problem is plain else len(sets), log=lambda _: None)
         for i, k in enumerate(sets):

@@ -66,12 +66,12 @@ from jax.sharding import PartitionSpec as Spec
 
 from .._io import stamped
 from .._simulator.metrics import METRIC_NAMES, mean_over_survivors
-from . import tune as T
+from . import tune as tuner
 from .pareto import nondominated
 
 #: The two metrics a front is drawn in (means over rollouts and joints).
 AXES = ("rms_error", "chattering_hf")
-_FOSMC = T.SPACES["fosmc"]
+_FOSMC = tuner.SPACES["fosmc"]
 #: Number of the FOSMC's log factors: delta, gamma, poles, one per joint each (a kind's: its Space's dim).
 DIM = _FOSMC.dim
 
@@ -121,13 +121,13 @@ class Settings(NamedTuple):
     plan: Plan | None = None  # the work to redo (a replay, replay_settings): no clock, sizes and rounds as recorded
 
 
-def bounds(space: T.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
+def bounds(space: tuner.Space = _FOSMC) -> tuple[np.ndarray, np.ndarray]:
     """The search box of the log factors z (space.dim,): each parameter's range, three joints
     each (the FOSMC's: delta, gamma, poles)."""
     return space.bounds()
 
 
-def from_factors(p0: T.Params, z: np.ndarray) -> T.Params:
+def from_factors(p0: tuner.Params, z: np.ndarray) -> tuner.Params:
     """Parameter sets (n,) of p0's kind from log10 factors z (n, 3 k): parameter i of joint j
     scaled by 10^z[:, 3 i + j] (the FOSMC's delta, gamma, poles: i = 0, 1, 2)."""
     z = np.atleast_2d(z)
@@ -136,7 +136,7 @@ def from_factors(p0: T.Params, z: np.ndarray) -> T.Params:
     return type(p0)(*(scale(x, z[:, 3 * i : 3 * i + 3]) for i, x in enumerate(p0)))
 
 
-def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
+def grid_factors(g: int, space: tuner.Space = _FOSMC) -> np.ndarray:
     """The g^k log factors (g^k, 3 k) of a grid of common factors (the same for every joint)
     over the k parameters of ``space``: g values per parameter, evenly spaced over its range,
     ends included."""
@@ -145,7 +145,7 @@ def grid_factors(g: int, space: T.Space = _FOSMC) -> np.ndarray:
     return np.repeat(np.stack(np.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, k), 3, axis=1)
 
 
-def global_factors(n: int, seed: int, grid_share: float = 0.5, space: T.Space = _FOSMC) -> np.ndarray:
+def global_factors(n: int, seed: int, grid_share: float = 0.5, space: tuner.Space = _FOSMC) -> np.ndarray:
     """``n`` log factors (n, space.dim): 0 (the start itself), then :func:`grid_factors` with
     g = floor((grid_share n)^(1/k)) for k parameters (no grid below n = 16), then per-joint
     log-uniform draws."""
@@ -164,7 +164,7 @@ def grid_size(n: int, grid_share: float, k: int = 3) -> int:
 
 
 def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int,
-                  space: T.Space = _FOSMC) -> np.ndarray:  # fmt: skip
+                  space: tuner.Space = _FOSMC) -> np.ndarray:  # fmt: skip
     """``n`` children (n, space.dim) of the front of the evaluated factors z with metrics m:
     up to ``points`` parents drawn without replacement from its non-dominated set, children in
     turn per parent, each its parent + a step sigma (hi - lo) N(0, 1), clipped to the box: for
@@ -192,10 +192,10 @@ def _subset(rng: np.random.Generator, n: int, k: int, p: float) -> np.ndarray:
     return mask
 
 
-def sample_candidates(p0: T.Params, n: int, seed: int) -> T.Params:
+def sample_candidates(p0: tuner.Params, n: int, seed: int) -> tuner.Params:
     """``n`` parameter sets of p0's kind around p0 (:func:`global_factors` with a grid of about
     half). Leading axis n."""
-    return from_factors(p0, global_factors(n, seed, 0.5, space=T.space_of(p0)))
+    return from_factors(p0, global_factors(n, seed, 0.5, space=tuner.space_of(p0)))
 
 
 class Evaluator:
@@ -205,7 +205,7 @@ class Evaluator:
     object owns its compilation (one per chunk size): a second call reuses it; a fresh
     evaluator of the same problem pays it again (the studies' equal-cost comparisons)."""
 
-    def __init__(self, problem: T.Problem):
+    def __init__(self, problem: tuner.Problem):
         self.problem = problem
         self.devices = len(jax.local_devices())
         self._run: Callable | None = None
@@ -227,7 +227,7 @@ class Evaluator:
         self._run = jax.jit(jax.shard_map(jax.vmap(one), mesh=mesh, in_specs=split, out_specs=split, check_vma=False))
         return self._run
 
-    def __call__(self, params: T.Params, chunk: int, log: Callable[[str], None] = print, what: str = "evaluating",
+    def __call__(self, params: tuner.Params, chunk: int, log: Callable[[str], None] = print, what: str = "evaluating",
                  deadline: float | None = None, command: str = "front",
                  each: Callable[[int, dict], None] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
         """Mean metrics (over non-diverged rollouts) of every parameter set (leading axis n):
@@ -256,22 +256,24 @@ class Evaluator:
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def evaluator(problem: T.Problem | Evaluator) -> Evaluator:
+def evaluator(problem: tuner.Problem | Evaluator) -> Evaluator:
     """``problem``'s :class:`Evaluator` (an evaluator is returned as it is)."""
     return problem if isinstance(problem, Evaluator) else Evaluator(problem)
 
 
-def evaluate_many(problem: T.Problem | Evaluator, params: T.Params, chunk: int, log: Callable[[str], None] = print,
-                  what: str = "evaluating", deadline: float | None = None, command: str = "front",
-                  each: Callable[[int, dict], None] | None = None) -> dict[str, np.ndarray]:  # fmt: skip
+def evaluate_many(problem: tuner.Problem | Evaluator, params: tuner.Params, chunk: int,
+                  log: Callable[[str], None] = print, what: str = "evaluating", deadline: float | None = None,
+                  command: str = "front", each: Callable[[int, dict], None] | None = None
+                  ) -> dict[str, np.ndarray]:  # fmt: skip
     """:class:`Evaluator`'s call: a problem is compiled afresh for this call, an evaluator reuses
     its compilation."""
     return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline, command=command, each=each)
 
 
-def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, free: tuple[str, ...] | None = None,
-                 seed: int = 0, chunk: int = 16, log: Callable[[str], None] = print, command: str = "tune",
-                 deadline: float | None = None) -> tuple[T.Params, float]:  # fmt: skip
+def global_stage(problem: tuner.Problem, obj: tuner.Objective, p0: tuner.Params, n: int, *,
+                 free: tuple[str, ...] | None = None, seed: int = 0, chunk: int = 16,
+                 log: Callable[[str], None] = print, command: str = "tune",
+                 deadline: float | None = None) -> tuple[tuner.Params, float]:  # fmt: skip
     """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
     (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
     by ``obj`` on their batch-mean metrics; returns the best and its score. Its progress lines
@@ -282,7 +284,7 @@ def global_stage(problem: T.Problem, obj: T.Objective, p0: T.Params, n: int, *, 
     cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
     m = evaluate_many(problem, cands, chunk, log=log, what="global stage", command=command, deadline=deadline)
     means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
-    J = np.asarray(T.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
+    J = np.asarray(tuner.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
     best = int(np.nanargmin(J))
     return jax.tree.map(lambda x: x[best], cands), float(J[best])
 
@@ -317,7 +319,7 @@ def pick_starts(m: dict, k: int) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.clip(np.nan_to_num(slope, nan=1.0), 0.05, 20.0)
 
 
-def cma_stage(problem: T.Problem | Evaluator, p0: T.Params, z: np.ndarray, m: dict, settings: Settings,
+def cma_stage(problem: tuner.Problem | Evaluator, p0: tuner.Params, z: np.ndarray, m: dict, settings: Settings,
               generations: int, deadline: float | None, log: Callable[[str], None], *, resumed: bytes | None = None,
               start: int = 0, save: Callable[[int, np.ndarray, dict, bytes], None] | None = None
               ) -> tuple[np.ndarray, dict, int]:  # fmt: skip
@@ -335,7 +337,7 @@ def cma_stage(problem: T.Problem | Evaluator, p0: T.Params, z: np.ndarray, m: di
     problem = evaluator(problem)  # compiled once for every generation
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     lo, hi = space.bounds()
     if resumed is not None:
         runs, slopes = pickle.loads(resumed)
@@ -394,9 +396,9 @@ MIN_SEARCH_S = 30.0
 
 
 def run(
-    train: T.Problem | Evaluator,
-    plain: T.Problem | Evaluator,
-    p0: T.Params,
+    train: tuner.Problem | Evaluator,
+    plain: tuner.Problem | Evaluator,
+    p0: tuner.Params,
     settings: Settings,
     *,
     checkpoint: Path | None = None,
@@ -419,11 +421,11 @@ def run(
     the global stage, CMA-ES generations, local or plain rounds; with a budget, at most every
     10 s); ``resume`` continues from it where it was written (a fresh run otherwise)."""
     t0 = time.perf_counter()
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     state: dict[str, Any] = {}
     ckpt: dict[str, np.ndarray] = {}
     if resume and checkpoint is not None and checkpoint.exists():
-        state, ckpt = T._load(checkpoint)
+        state, ckpt = tuner._load(checkpoint)
         where = {
             "global": f"{len(ckpt['z'])} global candidates",
             "cma": f"CMA-ES generation {state.get('cma_round')}",
@@ -513,7 +515,7 @@ def run(
             stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
             if stage == "global" and m0:  # the probe's, which join the global stage at its end
                 stored.update({"probe.z": z0, **{f"probe.m.{k}": v for k, v in m0.items()}})
-            T._save(checkpoint, header, stored)
+            tuner._save(checkpoint, header, stored)
 
     z = ckpt.get("z", np.zeros((0, space.dim)))
     m = {k: ckpt[f"m.{k}"] for k in keys}
@@ -664,14 +666,14 @@ def replay_settings(stages: dict[str, Any]) -> Settings:
                     polish=plan.plain_rounds, plan=plan)  # fmt: skip
 
 
-def _same_simulation(a: T.Problem, b: T.Problem) -> bool:
+def _same_simulation(a: tuner.Problem, b: tuner.Problem) -> bool:
     """Whether two problems simulate the same thing (the training problem is no surrogate):
     rematerialisation and gradient truncation change derivatives, not values."""
     opts = lambda p: {k: v for k, v in p.options.items() if k not in ("checkpoint_every", "truncate_every")}
     return float(a.dt) == float(b.dt) and opts(a) == opts(b) and a.make is b.make and a.keys is b.keys
 
 
-def point_of(p: T.Params, metrics: dict, i: int) -> dict[str, Any]:
+def point_of(p: tuner.Params, metrics: dict, i: int) -> dict[str, Any]:
     """A front point as JSON: parameters by name, per-joint mean metrics, diverged count."""
     return {"params": {k: np.asarray(v).tolist() for k, v in p._asdict().items()},
             "metrics": {name: np.asarray(metrics[name][i]).tolist() for name in METRIC_NAMES},

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from . import tune as T
+from . import tune as tuner
 from .front import DIM, bounds, evaluate_many, evaluator, from_factors, grid_factors, nondominated
 
 __all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "nsga2", "optuna_nsga2", "random_search"]
@@ -39,18 +39,18 @@ def _collect(problem, p0, zs: list[np.ndarray], chunk: int, log, what) -> dict[s
     return {"z": z, "metrics": m}
 
 
-def log_grid(problem: T.Problem, p0: T.Params, per_axis: int, chunk: int = 16, log=print) -> dict[str, Any]:
+def log_grid(problem: tuner.Problem, p0: tuner.Params, per_axis: int, chunk: int = 16, log=print) -> dict[str, Any]:
     """A grid over the common factors of p0's parameters (the FOSMC's delta, gamma, poles; the
     same for every joint), ``per_axis`` log-spaced values each over the search box."""
-    return _collect(problem, p0, [grid_factors(per_axis, T.space_of(p0))], chunk, log, "log grid")
+    return _collect(problem, p0, [grid_factors(per_axis, tuner.space_of(p0))], chunk, log, "log grid")
 
 
-def random_search(problem: T.Problem, p0: T.Params, budget: float, chunk: int = 16, seed: int = 0,
+def random_search(problem: tuner.Problem, p0: tuner.Params, budget: float, chunk: int = 16, seed: int = 0,
                   log=print) -> dict[str, Any]:  # fmt: skip
     """Uniform draws of the log factors over the search box, a chunk at a time (at least one),
     until the wall-time ``budget`` (s) is spent."""
     problem = evaluator(problem)  # compiled once for every chunk
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     lo, hi = space.bounds()
     rng = np.random.default_rng(seed)
     start, zs, ms = time.perf_counter(), [], []
@@ -87,12 +87,12 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
     return X[i], F[i], X, F
 
 
-def cma_front(problem: T.Problem, p0: T.Params, weights, budget: float, popsize: int = 16, seed: int = 0,
+def cma_front(problem: tuner.Problem, p0: tuner.Params, weights, budget: float, popsize: int = 16, seed: int = 0,
               log=print) -> dict[str, Any]:  # fmt: skip
     """CMA-ES on the weighted log objective log E + w log C (:mod:`fosmc_jax._search.tune`) for
     each weight in turn, the budget split evenly; every evaluation is kept."""
     problem = evaluator(problem)  # compiled once for every chunk
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     lo, hi = space.bounds()
     zs, ms = [], []
     for w in weights:
@@ -127,7 +127,7 @@ def _archive(front: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     return pts[nondominated(pts[:, 0], pts[:, 1])]
 
 
-def _generations(problem: T.Problem, p0: T.Params, budget: float, popsize: int, ask, tell, name: str,
+def _generations(problem: tuner.Problem, p0: tuner.Params, budget: float, popsize: int, ask, tell, name: str,
                  log) -> dict[str, Any]:  # fmt: skip
     """A peer's generations (one at least) until the wall-time ``budget`` (s) is spent:
     ``ask() -> (z (popsize, dim), handle)``, the generation evaluated in one
@@ -147,7 +147,7 @@ def _generations(problem: T.Problem, p0: T.Params, budget: float, popsize: int, 
     return _joined(zs, ms)
 
 
-def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
+def nsga2(problem: tuner.Problem, p0: tuner.Params, budget: float, popsize: int = 64, seed: int = 0,
           log=print) -> dict[str, Any]:  # fmt: skip
     """pymoo's NSGA-II (its defaults: uniform initial population, SBX crossover, polynomial
     mutation, rank and crowding survival) on :func:`objectives` over the search box of p0's
@@ -160,7 +160,7 @@ def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, se
     from pymoo.core.termination import NoTermination
     from pymoo.problems.static import StaticProblem
 
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     lo, hi = space.bounds()
     box = Problem(n_var=space.dim, n_obj=2, xl=lo, xu=hi)
     algorithm = NSGA2(pop_size=popsize)
@@ -177,7 +177,7 @@ def nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, se
     return _generations(problem, p0, budget, popsize, ask, tell, "nsga2 (pymoo)", log)
 
 
-def optuna_nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int = 64, seed: int = 0,
+def optuna_nsga2(problem: tuner.Problem, p0: tuner.Params, budget: float, popsize: int = 64, seed: int = 0,
                  log=print) -> dict[str, Any]:  # fmt: skip
     """optuna's NSGA-II (``NSGAIISampler(population_size=popsize, seed=seed)``, its defaults
     otherwise) on :func:`objectives` over the search box of p0's kind, through optuna's ask/tell
@@ -189,7 +189,7 @@ def optuna_nsga2(problem: T.Problem, p0: T.Params, budget: float, popsize: int =
     import optuna  # optional (fosmc_jax[peers]), imported here
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    space = T.space_of(p0)
+    space = tuner.space_of(p0)
     lo, hi = space.bounds()
     dists = {f"z{i:02d}": optuna.distributions.FloatDistribution(a, b) for i, (a, b) in enumerate(zip(lo, hi))}
     sampler = optuna.samplers.NSGAIISampler(population_size=popsize, seed=seed)
