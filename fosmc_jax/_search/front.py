@@ -466,7 +466,10 @@ def run(
             plain_point_s = costs["plain"] / settings.chunk
         end = settings.budget if deadline is None else deadline - t0
         # the search's time, less the final evaluations of a front of a few hundred points
-        now = clock.elapsed()  # once: the stages' ends must not pass the run's (local = now + search <= end)
+        # once, and at most the end: the stages' ends must not pass the run's (local = now + search <= end),
+        # also where compiling took the whole budget (a loaded machine)
+        elapsed = clock.elapsed()
+        now = min(elapsed, end)
         final = 300 * (reserve_per_point + plain_point_s)
         search = max(0.0, end - now - final)
         ends = {"global": now + settings.global_share * search}
@@ -481,9 +484,9 @@ def run(
             f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {n_cand} global candidates, then CMA-ES, "
             f"local rounds{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
         if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
-            serve = settings.budget - end + now + final + MIN_SEARCH_S
+            serve = settings.budget - end + elapsed + final + MIN_SEARCH_S
             log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
-                f"{settings.budget - end + now:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for the "
+                f"{settings.budget - end + elapsed:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for the "
                 f"final evaluations: each stage runs one chunk at least, so the run may end late; a budget of "
                 f"{np.ceil(serve):.0f} s or more leaves {MIN_SEARCH_S:.0f} s")  # fmt: skip
 
