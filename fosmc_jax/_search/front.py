@@ -486,8 +486,8 @@ def run(
         if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
             serve = settings.budget - end + elapsed + final + MIN_SEARCH_S
             log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
-                f"{settings.budget - end + elapsed:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for the "
-                f"final evaluations: each stage runs one chunk at least, so the run may end late; a budget of "
+                f"{settings.budget - end + elapsed:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for "
+                f"the final evaluations: each stage runs one chunk at least, so the run may end late; a budget of "
                 f"{np.ceil(serve):.0f} s or more leaves {MIN_SEARCH_S:.0f} s")  # fmt: skip
 
     def finish_by(stage: str, n_points: int) -> float | None:
