@@ -158,7 +158,7 @@ def test_bounds_reports_both_models_and_the_K_the_simulated_controller_uses(arm_
     np.testing.assert_array_equal(d["nominal_A_rows"], C.design_model(arm_cfg).A_rows)
     assert d["models"]["paper"]["alpha"] == pytest.approx(5.9871, abs=1e-4)
     assert 0 < d["alpha"] < d["models"]["paper"]["alpha"]  # the arm's own box is tighter around its nominal
-    monkeypatch.setattr(cli.C, "run_bounds", lambda *args, **kwargs: d)
+    monkeypatch.setattr(cli.commands, "run_bounds", lambda *args, **kwargs: d)
     assert cli.cmd_bounds(types.SimpleNamespace(config=None, json=False)) == 0
     out = capsys.readouterr().out
     assert out.startswith("model: arm (K, CB and the bounds below: the nominal arm and the 8 corners")
