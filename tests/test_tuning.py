@@ -133,16 +133,24 @@ def test_resume_equals_uninterrupted(tmp_path):
     s = T.Settings(steps=6, learning_rate=0.05, mode="reverse", checkpoint_every=2)
     full, hist_full = T.run(loss, u0, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
 
-    class Killed(Exception):
-        pass
+    # dies after step 5 is logged: the last checkpoint is at step 4
+    assert_resumes_to(loss, u0, s, tmp_path / "b.npz", 5, full, hist_full)
+
+
+class Killed(Exception):
+    pass
+
+
+def assert_resumes_to(loss, u0, s, checkpoint, step, full, hist_full):
+    """A run killed after ``step`` is logged, then resumed, ends at ``full`` with its history."""
 
     def killer(msg):
-        if msg.startswith("tune: step    5/"):
-            raise Killed  # dies after step 5 is logged: the last checkpoint is at step 4
+        if msg.startswith(f"tune: step {step:4d}/"):
+            raise Killed
 
     with pytest.raises(Killed):
-        T.run(loss, u0, s, checkpoint=tmp_path / "b.npz", log=killer)
-    resumed, hist = T.run(loss, u0, s, checkpoint=tmp_path / "b.npz", resume=True, log=lambda _: None)
+        T.run(loss, u0, s, checkpoint=checkpoint, log=killer)
+    resumed, hist = T.run(loss, u0, s, checkpoint=checkpoint, resume=True, log=lambda _: None)
     for a, b in zip(full, resumed):
         np.testing.assert_array_equal(a, b)
     assert hist["loss"] == hist_full["loss"]
@@ -271,19 +279,7 @@ def test_lbfgs_resumes_to_the_uninterrupted_run_and_refuses_adams_checkpoint(tmp
     s = lbfgs(12)._replace(checkpoint_every=2)
     full, hist_full = T.run(rosenbrock, start, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
 
-    class Killed(Exception):
-        pass
-
-    def killer(msg):
-        if msg.startswith("tune: step    7/"):
-            raise Killed  # the last checkpoint is at step 6
-
-    with pytest.raises(Killed):
-        T.run(rosenbrock, start, s, checkpoint=tmp_path / "b.npz", log=killer)
-    resumed, hist = T.run(rosenbrock, start, s, checkpoint=tmp_path / "b.npz", resume=True, log=lambda _: None)
-    for a, b in zip(full, resumed):
-        np.testing.assert_array_equal(a, b)
-    assert hist["loss"] == hist_full["loss"]
+    assert_resumes_to(rosenbrock, start, s, tmp_path / "b.npz", 7, full, hist_full)  # last checkpoint: step 6
     with pytest.raises(ValueError, match="of the lbfgs optimizer, not of adam"):
         T.run(rosenbrock, start, s._replace(optimizer="adam"), checkpoint=tmp_path / "b.npz", resume=True)
 

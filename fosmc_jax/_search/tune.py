@@ -436,8 +436,10 @@ def run(
         updates, state = opt.update(grad, state, u)
         return optax.apply_updates(u, updates), state
 
-    mask = jax.tree.map(lambda label, x: jnp.full_like(x, label == "free"), labels, u)
-    search = _LineSearch(step_fn, opt, mask, deadline) if lbfgs else None
+    search = None
+    if lbfgs:
+        mask = jax.tree.map(lambda label, x: jnp.full_like(x, label == "free"), labels, u)
+        search = _LineSearch(step_fn, opt, mask, deadline)
     current = step_fn(u) if lbfgs else None  # L-BFGS: the loss and gradient at u, from the accepted trial
     t_start = time.perf_counter()
     for step in range(start_step, settings.steps):
