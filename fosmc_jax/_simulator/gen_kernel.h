@@ -9,15 +9,20 @@
 //          parameters (hoisted out of the time loop by JAX): the held step's, then the sampled step's
 //   table  (L, kTimeHeld + kTimeSampled)  per step k, what depends on time only (computed by JAX)
 //   carry  (kState, N)  the rollout's state, flat
-//   ckpt   (ceil(L / K), kState, N)  the carry at steps 0, K, 2K, ... (the forward stores them
-//          for the adjoint, which recomputes each block's states from them); with K = 1,
-//          (L, kSaved, N): only the rows kSavedRows that the vector-Jacobian products read
+//   ckpt   the carry at steps 0, K, 2K, ... (the forward stores them for the adjoint, which
+//          recomputes each block's states from them), block-major: for each block of W lanes
+//          (ceil(L / K), kState, W), with K = 1 (L, kSaved, W): only the rows kSavedRows that
+//          the vector-Jacobian products read. A block's checkpoints are one contiguous stream
+//          (rows of N lanes scattered each step's few bytes over the whole buffer).
 // Step k (from t_k to t_{k+1}, k counted from the call's k0) ends with a controller sample when
 // (k0 + k + 1) % kM == 0: Model::Sampled, else Model::Held (kM = 1: the ideal loop).
 #pragma once
 
+#include <sys/mman.h>
+
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <vector>
 
@@ -91,12 +96,12 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
   for (int r = 0; r < n; r++) a[r] = fosmc::Simd<T>::Load(in + r * s.N + c);
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
   V *x = a, *y = b;
+  if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
   for (int64_t k = 0; k < s.L; k++) {
     if (ckpt && s.K == 1)
-      for (int i = 0; i < Mo::kSaved; i++)
-        fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * s.N + c, x[Mo::kSavedRows[i]]);
+      for (int i = 0; i < Mo::kSaved; i++) fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * W, x[Mo::kSavedRows[i]]);
     else if (ckpt && k % s.K == 0)
-      for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * s.N + c, x[r]);
+      for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * W, x[r]);
     Step<Mo>(s.k0 + k + 1, x, lv, table + k * nt, y);
     std::swap(x, y);
   }
@@ -115,14 +120,15 @@ void Adjoint(const Shape& s, int64_t truncate, const T* lanes, const T* table, c
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c), glv[r] = V{};
   for (int r = 0; r < n; r++) g[r] = fosmc::Simd<T>::Load(ct_out + r * s.N + c);
   std::vector<V> states(static_cast<size_t>(std::min(s.K, s.L)) * n);
+  ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
   for (int64_t j = (s.L + s.K - 1) / s.K - 1; j >= 0; j--) {
     const int64_t k1 = j * s.K, k2 = std::min(s.L, k1 + s.K);
     V* st = states.data();
     if (s.K == 1)  // the rows the VJP reads (the others stay zero, unread)
       for (int i = 0; i < Mo::kSaved; i++)
-        st[Mo::kSavedRows[i]] = fosmc::Simd<T>::Load(ckpt + (j * Mo::kSaved + i) * s.N + c);
+        st[Mo::kSavedRows[i]] = fosmc::Simd<T>::Load(ckpt + (j * Mo::kSaved + i) * W);
     else
-      for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * s.N + c);
+      for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * W);
     for (int64_t k = k1; k + 1 < k2; k++)
       Step<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, st + (k - k1 + 1) * n);
     for (int64_t k = k2 - 1; k >= k1; k--) {
@@ -149,6 +155,15 @@ ffi::Error Check(ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer carr
   if (K < 1) return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoint interval must be positive");
   *s = Shape{cd[1], td[0], K, 0};
   return ffi::Error::Success();
+}
+
+// Asks the kernel for huge pages on a fresh buffer of `bytes` (XLA maps one anew per call for the
+// checkpoints, tens of MB): faulting it in 4 KiB pages cost about a tenth of a value and gradient.
+inline void HugePages(void* p, size_t bytes) {
+  constexpr uintptr_t kHuge = uintptr_t{1} << 21;
+  const uintptr_t a = (reinterpret_cast<uintptr_t>(p) + kHuge - 1) & ~(kHuge - 1);
+  const uintptr_t e = (reinterpret_cast<uintptr_t>(p) + bytes) & ~(kHuge - 1);
+  if (e > a) madvise(reinterpret_cast<void*>(a), e - a, MADV_HUGEPAGE);  // advice only: a refusal is harmless
 }
 
 template <class Mo>
@@ -189,6 +204,7 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
   static ffi::Error GenForwardCk(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table,                \
                                  ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out,                              \
                                  ffi::Result<ffi::AnyBuffer> ckpt, int64_t k0, int64_t K) {                       \
+    gen::HugePages(ckpt->untyped_data(), ckpt->size_bytes());                                                     \
     return gen::RunForward<Mo>(pool, lanes, table, in, out, ckpt->typed_data<gen::T>(), k0, K);                   \
   }                                                                                                               \
   XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenForward, GenForward,                                                      \

@@ -158,14 +158,16 @@ class Split(NamedTuple):
     core: Any  # (x, lane values, time values) -> x'
     lane_avals: list
     time_avals: list
+    varies: list  # per lane value: whether it depends on the controller's leaves (else the plant's alone)
 
 
 def _trace(step, x_aval, lane_avals, glob_avals):
     return jax.make_jaxpr(step)(x_aval, lane_avals, glob_avals, jax.ShapeDtypeStruct((), jnp.int32))
 
 
-def split(step, x_aval, lane_avals, glob_avals, closed=None) -> Split:
-    """Traces ``step(x, lane_leaves, glob_leaves, k) -> x'`` (or takes its ``closed`` jaxpr) and splits it."""
+def split(step, x_aval, lane_avals, glob_avals, closed=None, n_plant: int = 0) -> Split:
+    """Traces ``step(x, lane_leaves, glob_leaves, k) -> x'`` (or takes its ``closed`` jaxpr) and
+    splits it; the first ``n_plant`` lane leaves are the plant's (see :attr:`Split.varies`)."""
     closed = _trace(step, x_aval, lane_avals, glob_avals) if closed is None else closed
     n_lane, n_glob = len(lane_avals), len(glob_avals)
     tape: list[_Entry] = []
@@ -182,6 +184,10 @@ def split(step, x_aval, lane_avals, glob_avals, closed=None) -> Split:
         for o in e.outs:
             cls[o] = functools.reduce(int.__or__, (cls[i] for i in e.ins), 0)
     tape = _hoist_solves(tape, cls, counter)
+    controls = set(lane_ids[n_plant:])  # the values that depend on the controller's leaves
+    for e in tape:
+        if any(i in controls for i in e.ins):
+            controls.update(e.outs)
     lane_entries, time_entries, core_entries = [], [], []
     with jax.ensure_compile_time_eval():
         for e in tape:
@@ -216,9 +222,8 @@ def split(step, x_aval, lane_avals, glob_avals, closed=None) -> Split:
         return env[out_ids[0]]
 
     k0 = jax.ShapeDtypeStruct((), jnp.int32)
-    return Split(
-        lane_pre, time_pre, core, jax.eval_shape(lane_pre, lane_avals), jax.eval_shape(time_pre, k0, glob_avals)
-    )
+    return Split(lane_pre, time_pre, core, jax.eval_shape(lane_pre, lane_avals),
+                 jax.eval_shape(time_pre, k0, glob_avals), [i in controls for i in lane_hoist])  # fmt: skip
 
 
 def _moves_to_core(lane_entries: list, core_entries: list, out_ids, cls: dict) -> tuple[list, list]:
@@ -262,22 +267,52 @@ def _size(avals) -> int:
     return sum(math.prod(a.shape) for a in avals)
 
 
+class Kernels(NamedTuple):
+    """A model's compiled library: the FFI targets and the checkpoints' rows."""
+
+    targets: tuple[str, str, str]  # forward, forward with checkpoints, adjoint
+    saved: int  # the carry's rows a checkpoint of every step stores: those the VJPs read
+
+
 class Model(NamedTuple):
-    """A generated kernel, built: the split steps (held and sampled) and the FFI targets."""
+    """A generated model: the split steps (held and sampled), printed and built on first use
+    (:meth:`kernels`)."""
 
     held: Split | None  # None in the ideal loop (m = 1)
     sampled: Split
     n_state: int
     m: int
     dtype: Any
-    targets: tuple[str, str, str]  # forward, forward with checkpoints, adjoint
     dynamic: np.ndarray  # (n_state,) bool: the rows whose derivative a truncation stops
-    saved: int  # the carry's rows a checkpoint of every step stores: those the VJPs read
+    rows: np.ndarray  # the lane rows, the controller's (Split.varies) first: lanes[rows] = (varying, fixed)
+    n_varying: int
+    built: dict  # with_plant -> Kernels
 
-    def lanes(self, lane_leaves) -> Array:
-        """(n_lane,) of one rollout: the held step's hoisted values, then the sampled step's."""
-        parts = [] if self.held is None else self.held.lane_pre(lane_leaves)
-        return _as_float([*parts, *self.sampled.lane_pre(lane_leaves)], self.dtype)
+    def kernels(self, with_plant: bool | None = None) -> Kernels:
+        """The library whose adjoint gives cotangents to the fixed lane rows (the plant's) too
+        (``with_plant``) or to the controller's only: a derivative in the controller alone
+        (the tuner's) skips the plant's share of the reverse sweep. ``None``: any built one."""
+        if with_plant is None:
+            with_plant = next(iter(self.built), False)
+        if with_plant not in self.built:
+            source, saved = _print_model(self, with_plant)
+            self.built[with_plant] = Kernels(_load(tuple(source)), saved)
+        return self.built[with_plant]
+
+    def lanes(self, lane_leaves) -> tuple[Array, Array]:
+        """The hoisted values of one rollout: those that depend on the controller's leaves, then
+        those of the plant's alone (:attr:`rows` orders the kernel's lane rows from them)."""
+        values, varies = [], []
+        for s in (self.held, self.sampled):
+            if s is not None:
+                values += s.lane_pre(lane_leaves)
+                varies += s.varies
+        pick = lambda keep: _as_float([v for v, c in zip(values, varies) if c == keep], self.dtype)
+        return pick(True), pick(False)
+
+    def assemble(self, lanes: tuple[Array, Array]) -> Array:
+        """The kernel's lane rows (n_lane, ...) from :meth:`lanes`' two parts."""
+        return jnp.concatenate(lanes)[np.argsort(self.rows)]
 
     def table_row(self, k, glob_leaves) -> Array:
         parts = [] if self.held is None else self.held.time_pre(k, glob_leaves)
@@ -302,10 +337,13 @@ _SIGNATURES = {
 }
 
 
-def _print_model(held: Split | None, sampled: Split, n_state: int, m: int, dtype, dynamic) -> tuple[list[str], int]:
+def _print_model(model: Model, with_plant: bool) -> tuple[list[str], int]:
     """The model's C++ sources: the skeleton's (the layout and the FFI handlers), then one per
     printed function (compiled in parallel); and how many rows of the carry the vector-Jacobian
-    products read (the rows a checkpoint of every step stores)."""
+    products read (the rows a checkpoint of every step stores). ``with_plant``: cotangents for
+    the lane values of the plant's alone too."""
+    held, sampled, n_state, m, dtype, dynamic = (model.held, model.sampled, model.n_state, model.m, model.dtype,
+                                                 model.dynamic)  # fmt: skip
     ctype = "double" if np.dtype(dtype) == np.float64 else "float"
     head = ["// Generated by fosmc_jax._simulator.generated from the JAX model: do not edit.",
             f"#define FOSMC_T {ctype}", '#include "gen_kernel.h"', "namespace gen {"]  # fmt: skip
@@ -320,14 +358,14 @@ def _print_model(held: Split | None, sampled: Split, n_state: int, m: int, dtype
         fwd = jax.make_jaxpr(s.core)(x_aval, lv, tv)
         inputs = [("x", "V")] + [("lv", "V")] * len(lv) + [("tv", "T")] * len(tv)
         functions.append(codegen.print_function(name, fwd, dtype, inputs, [("y", False)], sig + [("y", "out")]))
-        diff = [jnp.issubdtype(a.dtype, jnp.floating) for a in lv]
+        diff = [jnp.issubdtype(a.dtype, jnp.floating) and (with_plant or c) for a, c in zip(lv, s.varies)]
 
         def vjp(x, lv_, tv_, ct, s=s, diff=diff):
             f = lambda x, d: s.core(x, _merge(lv_, d, diff), tv_)
             return jax.vjp(f, x, [v for v, ok in zip(lv_, diff) if ok])[1](ct)
 
         bwd = jax.make_jaxpr(vjp)(x_aval, lv, tv, x_aval)
-        # the lane rows of a non-float hoisted value get no cotangent (they stay zero)
+        # the lane rows of a non-float or skipped hoisted value get no cotangent (they stay zero)
         outs = [("gx", False)] + [("glv", True)] * sum(diff)
         text = codegen.print_function(name + "_vjp", bwd, dtype, inputs + [("ct", "V")], outs,
                                       sig + [("ct", "V"), ("gx", "out"), ("glv", "out")], derivative=True)  # fmt: skip
@@ -402,21 +440,31 @@ def _load(sources: tuple[str, ...]) -> tuple[str, str, str]:
 _LIBRARIES: list = []  # the loaded libraries stay loaded while their targets are registered
 
 
-def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic) -> Model:
-    """The model of ``step_of(sample) -> step(x, lane_leaves, glob_leaves, k) -> x'``, printed,
-    compiled (cached) and registered. Raises :class:`codegen.Unsupported` or OSError. A model
-    traced again (the same jaxprs and constants: a second trace of the same loss) is the one
-    already printed: printing the arm's takes tens of seconds."""
+def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic, n_plant: int = 0) -> Model:
+    """The model of ``step_of(sample) -> step(x, lane_leaves, glob_leaves, k) -> x'`` (the first
+    ``n_plant`` lane leaves the plant's), split, printed, compiled (cached) and registered (the
+    adjoint for the plant's lanes too on first use, :meth:`Model.kernels`). Raises
+    :class:`codegen.Unsupported` or OSError. A model traced again (the same jaxprs
+    and constants: a second trace of the same loss) is the one already printed: printing the
+    arm's takes tens of seconds."""
     closed = [_trace(step_of(sample), state_aval, lane_avals, glob_avals) for sample in (True, False)[: 1 + (m > 1)]]
-    key = _model_key(closed, m, dynamic)
+    key = _model_key(closed, m, dynamic, n_plant)
     if key is not None and key in _MODELS:
         return _MODELS[key]
-    dtype = state_aval.dtype
-    sampled = split(None, state_aval, lane_avals, glob_avals, closed[0])
-    held = split(None, state_aval, lane_avals, glob_avals, closed[1]) if m > 1 else None
-    source, saved = _print_model(held, sampled, state_aval.shape[0], m, dtype, dynamic)
-    n = state_aval.shape[0]
-    model = Model(held, sampled, n, m, dtype, _load(tuple(source)), np.asarray(dynamic, bool), saved)
+    sampled = split(None, state_aval, lane_avals, glob_avals, closed[0], n_plant)
+    held = split(None, state_aval, lane_avals, glob_avals, closed[1], n_plant) if m > 1 else None
+    sizes, varies = [], []
+    for s in (held, sampled):
+        if s is not None:
+            sizes += [math.prod(a.shape) for a in s.lane_avals]
+            varies += s.varies
+    row_of = np.split(np.arange(sum(sizes)), np.cumsum(sizes)[:-1]) if sizes else []
+    rows = [r for keep in (True, False) for r, c in zip(row_of, varies) if c == keep]
+    rows = np.concatenate(rows).astype(int) if rows else np.zeros(0, int)
+    n_varying = sum(n for n, c in zip(sizes, varies) if c)
+    dtype, n = state_aval.dtype, state_aval.shape[0]
+    model = Model(held, sampled, n, m, dtype, np.asarray(dynamic, bool), rows, n_varying, {})
+    model.kernels(False)  # built now, so that what cannot be printed is known here
     if key is not None:
         _MODELS[key] = model
     return model
@@ -425,10 +473,10 @@ def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic) -> Model
 _MODELS: dict = {}  # printed models by _model_key, for this process
 
 
-def _model_key(closed: list, m: int, dynamic) -> tuple | None:
+def _model_key(closed: list, m: int, dynamic, n_plant: int) -> tuple | None:
     """What a printed model depends on: its steps' jaxprs (their text, which names constants but
     does not show them) and the constants' values; None where a constant is not concrete."""
-    parts = [m, np.asarray(dynamic, bool).tobytes()]
+    parts = [m, np.asarray(dynamic, bool).tobytes(), n_plant]
     for c in closed:
         parts.append(str(c.jaxpr))
         for x in c.consts:
@@ -459,30 +507,33 @@ def _linear_call_batched(args, dims, **params):
     return out, [0] * len(out)
 
 
-def advance(model: Model, x0: Array, lanes: Array, table: Array, truncate: int = 0) -> Array:
+def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, truncate: int = 0) -> Array:
     """The state rows (n_state, N) after the table's L steps from ``x0`` (n_state, N), with the
-    rollouts' ``lanes`` (n_lane, N): the generated kernel, differentiable in ``x0`` and ``lanes``
-    (reverse mode: the adjoint kernel; forward mode: a ``lax.scan`` of the split step) and, by the
-    scan, in ``table``. ``truncate`` > 0: the dynamic rows' derivatives stop every ``truncate``
-    steps (:func:`fosmc_jax.simulate`'s ``truncate_every``)."""
+    rollouts' ``lanes`` (:meth:`Model.lanes`' two parts, rows by N): the generated kernel,
+    differentiable in ``x0`` and ``lanes`` (reverse mode: the adjoint kernel; forward mode: a
+    ``lax.scan`` of the split step) and, by the scan, in ``table``. ``truncate`` > 0: the dynamic
+    rows' derivatives stop every ``truncate`` steps (:func:`fosmc_jax.simulate`'s ``truncate_every``)."""
     dtype = model.dtype
     W = 64 // np.dtype(dtype).itemsize
     L, N, n_state = table.shape[0], x0.shape[1], x0.shape[0]
-    # the carry stored every K steps: every step where that fits in CHECKPOINT_BYTES (only the rows
-    # the VJPs read; the adjoint then recomputes nothing), else the whole carry as rarely as fits
-    # (each block of K recomputed: one forward more)
-    per_row = (N + (-N) % W) * np.dtype(dtype).itemsize
-    K = 1 if L * model.saved * per_row <= CHECKPOINT_BYTES else max(2, -(-L * n_state * per_row // CHECKPOINT_BYTES))
-    rows = model.saved if K == 1 else n_state
     truncate = truncate if 0 < truncate < L else 0
 
-    def forward(x0, lanes, table):
-        xp, lp = _pad(x0, W), _pad(lanes, W)
-        call = jax.ffi.ffi_call(model.targets[0], jax.ShapeDtypeStruct(xp.shape, dtype), vmap_method="sequential")
+    def layout(saved: int) -> int:
+        # K: the carry stored every K steps: every step where that fits in CHECKPOINT_BYTES (only
+        # the rows the VJPs read; the adjoint then recomputes nothing), else the whole carry as
+        # rarely as fits (each block of K recomputed: one forward more)
+        per_row = (N + (-N) % W) * np.dtype(dtype).itemsize
+        return 1 if L * saved * per_row <= CHECKPOINT_BYTES else max(2, -(-L * n_state * per_row // CHECKPOINT_BYTES))
+
+    def forward(x0, varying, fixed, table):
+        xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
+        target = model.kernels().targets[0]
+        call = jax.ffi.ffi_call(target, jax.ShapeDtypeStruct(xp.shape, dtype), vmap_method="sequential")
         return call(lp, table, xp, k0=np.int64(0))[:, :N]
 
-    def scan(x0, lanes, table):
+    def scan(x0, varying, fixed, table):
         dyn = jnp.asarray(model.dynamic)[:, None]
+        lanes = model.assemble((varying, fixed))
 
         def body(x, k):
             if truncate:
@@ -492,35 +543,52 @@ def advance(model: Model, x0: Array, lanes: Array, table: Array, truncate: int =
 
         return jax.lax.scan(body, x0, jnp.arange(L))[0]
 
-    def tangent(res, lin):
-        x0, lanes, table, _ = res
-        return jax.jvp(lambda x, ln: scan(x, ln, table), (x0, lanes), lin)[1]
+    def linear(moving: tuple[int, ...]):
+        """The tangent map and its transpose (the adjoint kernel) in the inputs ``moving`` (of
+        x0, the varying lanes, the fixed lanes): the others' tangents are zero, so they get no
+        cotangent (a linear_call's every linear input must be one)."""
+        kernels = model.kernels(with_plant=2 in moving)
+        K = layout(kernels.saved)
 
-    def transpose(res, ct):
-        _, lanes, table, ckpt = res
-        lp, cp = _pad(lanes, W), _pad(ct, W)
-        shapes = (jax.ShapeDtypeStruct(cp.shape, dtype), jax.ShapeDtypeStruct(lp.shape, dtype))
-        call = jax.ffi.ffi_call(model.targets[2], shapes, vmap_method="sequential")
-        g_x, g_lanes = call(lp, table, ckpt, cp, k0=np.int64(0), K=np.int64(K), truncate=np.int64(truncate))
-        return g_x[:, :N], g_lanes[:, :N]
+        def tangent(res, lin):
+            primals = res[:3]
+            full = [jnp.zeros_like(p) for p in primals]
+            for i, t in zip(moving, lin):
+                full[i] = t
+            return jax.jvp(lambda *xs: scan(*xs, res[3]), primals, tuple(full))[1]
+
+        def transpose(res, ct):
+            _, varying, fixed, table, ckpt = res
+            lp, cp = _pad(model.assemble((varying, fixed)), W), _pad(ct, W)
+            shapes = (jax.ShapeDtypeStruct(cp.shape, dtype), jax.ShapeDtypeStruct(lp.shape, dtype))
+            call = jax.ffi.ffi_call(kernels.targets[2], shapes, vmap_method="sequential")
+            g_x, g_lanes = call(lp, table, ckpt, cp, k0=np.int64(0), K=np.int64(K), truncate=np.int64(truncate))
+            g_lanes = g_lanes[model.rows, :N]
+            g = (g_x[:, :N], g_lanes[: model.n_varying], g_lanes[model.n_varying :])
+            return tuple(g[i] for i in moving)
+
+        return kernels, K, tangent, transpose
 
     run = jax.custom_jvp(forward)
 
     def rule(primals, tangents):
-        x0, lanes, table = primals
-        if not isinstance(tangents[2], SymbolicZero):  # a derivative in dt or the reference: the scan
-            full = [jnp.zeros(t.aval.shape, t.aval.dtype) if isinstance(t, SymbolicZero) else t for t in tangents]
+        zero = [isinstance(t, SymbolicZero) for t in tangents]
+        if not zero[3]:  # a derivative in dt or the reference: the scan
+            full = [jnp.zeros(t.aval.shape, t.aval.dtype) if z else t for t, z in zip(tangents, zero)]
             return jax.jvp(scan, primals, tuple(full))
-        xp, lp = _pad(x0, W), _pad(lanes, W)
-        n_ck = -(-L // K)
-        shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((n_ck, rows, xp.shape[1]), dtype))
-        call = jax.ffi.ffi_call(model.targets[1], shapes, vmap_method="sequential")
+        x0, varying, fixed, table = primals
+        moving = tuple(i for i in range(3) if not zero[i])
+        kernels, K, tangent, transpose = linear(moving)
+        rows = kernels.saved if K == 1 else n_state
+        xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
+        shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((-(-L // K), rows, xp.shape[1]), dtype))
+        call = jax.ffi.ffi_call(kernels.targets[1], shapes, vmap_method="sequential")
         out, ckpt = call(lp, table, xp, k0=np.int64(0), K=np.int64(K))
-        lin = tuple(jnp.zeros(t.aval.shape, t.aval.dtype) if isinstance(t, SymbolicZero) else t for t in tangents[:2])
-        return out[:, :N], linear_call(tangent, transpose, (x0, lanes, table, ckpt), lin)
+        lin = tuple(tangents[i] for i in moving)
+        return out[:, :N], linear_call(tangent, transpose, (x0, varying, fixed, table, ckpt), lin)
 
     run.defjvp(rule, symbolic_zeros=True)
-    return run(x0, lanes, table)
+    return run(x0, *lanes, table)
 
 
 #: What the generated kernels run (``FOSMC_JAX_GENERATED``): ``derivatives`` (default), the
@@ -634,10 +702,10 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
 
     # float views of the avals for the flat state (the bool rows are 0 / 1 floats there)
     state_aval = jax.ShapeDtypeStruct((n_state,), dtype)
-    model = build(step_of, state_aval, lane_avals, glob_avals, m, dynamic)
+    model = build(step_of, state_aval, lane_avals, glob_avals, m, dynamic, n_plant)
     x0 = jax.vmap(flatten)(carry).T
     per_lane = [x if i < n_plant else jnp.broadcast_to(x, (N, *jnp.shape(x))) for i, x in enumerate(lane_leaves)]
-    lanes = jax.vmap(model.lanes)(per_lane).T
+    lanes = tuple(part.T for part in jax.vmap(model.lanes)(per_lane))
     table = jax.vmap(lambda k: model.table_row(k, glob_leaves))(jnp.arange(n_steps, dtype=jnp.int32))
     x = advance(model, x0, lanes, table, truncate_every)
     final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x))(x.T)
