@@ -13,9 +13,11 @@ steps, in two cells: Euler float32 and RK4 float64. The variants, each in a fres
 - (c) the kernel built with ``-DFOSMC_NO_REUSE``: the accelerations recomputed at the start of
   each step instead of reusing those computed when the state was observed;
 - (d) the kernel built with ``-DFOSMC_LIBM_SINCOS``: libm's sin and cos lane by lane instead of
-  the vectorised branch-free sincos.
+  the vectorised branch-free sincos;
+- (e) the kernel built with ``-DFOSMC_SIMD_BYTES=64``: blocks of 64 bytes (the width before
+  issue 32) where the CPU's register is narrower (AVX2: 32; on AVX-512 (e) is (b)).
 
-(c) and (d) pass their macro through ``FOSMC_JAX_KERNEL_FLAGS`` (part of the kernel's build
+(c), (d) and (e) pass their macro through ``FOSMC_JAX_KERNEL_FLAGS`` (part of the kernel's build
 cache key: each variant is built once, under ``FOSMC_JAX_CACHE``); each kernel process checks
 that ``simulate_batch`` takes the kernel on this batch and records which library it loaded,
 (a) that it does not. Each variant runs twice: unpinned (both cores) and in a process pinned to
@@ -59,6 +61,7 @@ VARIANTS = (
     ("b", "kernel", {}),
     ("c", "kernel -DFOSMC_NO_REUSE", {"FOSMC_JAX_KERNEL_FLAGS": "-DFOSMC_NO_REUSE"}),
     ("d", "kernel -DFOSMC_LIBM_SINCOS", {"FOSMC_JAX_KERNEL_FLAGS": "-DFOSMC_LIBM_SINCOS"}),
+    ("e", "kernel -DFOSMC_SIMD_BYTES=64", {"FOSMC_JAX_KERNEL_FLAGS": "-DFOSMC_SIMD_BYTES=64"}),
 )
 CELLS = (("euler", "float32"), ("rk4", "float64"))
 BATCH = 1024
@@ -219,7 +222,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="a trial: 200 steps, 3 rounds of >= 0.1 s")
     ap.add_argument("--out", help="write everything as JSON")
-    ap.add_argument("--variants", default="abcd", help="a subset of abcd; (b) is always run (default abcd)")
+    ap.add_argument("--variants", default="abcde", help="a subset of abcde; (b) is always run (default abcde)")
     ap.add_argument("--child", help=argparse.SUPPRESS)  # a variant's process: its spec file
     ap.add_argument("--pin", action="store_true", help=argparse.SUPPRESS)  # that process on CPU 0 (top of file)
     args = ap.parse_args(argv)

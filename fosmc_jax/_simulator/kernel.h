@@ -14,7 +14,19 @@
 
 namespace fosmc {
 
-constexpr int kBytes = 64;  // one block: a 64-byte SIMD vector (16 float or 8 double rollouts)
+// One block: the CPU's SIMD register (AVX-512: 64 bytes, 8 double or 16 float rollouts; AVX: 32;
+// else 16). A block wider than the register takes two registers per value, and the long
+// straight-line step then spills what it cannot hold (BENCHMARKS.md, "Issue 32").
+// -DFOSMC_SIMD_BYTES=N sets another width (benchmarks/arm_levers.py's ablation).
+#if defined(FOSMC_SIMD_BYTES)
+constexpr int kBytes = FOSMC_SIMD_BYTES;
+#elif defined(__AVX512F__)
+constexpr int kBytes = 64;
+#elif defined(__AVX__)
+constexpr int kBytes = 32;
+#else
+constexpr int kBytes = 16;
+#endif
 
 // A block's rollouts as one GCC vector: each variable below holds one quantity of every
 // rollout of the block, each operator acts lane by lane, and a comparison gives a lane mask.
