@@ -26,6 +26,7 @@ import pytest
 from fosmc_jax._app import chunks, memory
 from fosmc_jax._app import commands as C
 from fosmc_jax._app import config as _config
+from fosmc_jax._app import simulate as S
 from fosmc_jax._app.cli import main
 from fosmc_jax._simulator.metrics import METRIC_NAMES, Metrics
 
@@ -376,7 +377,7 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
     (folder / "x").write_text("")
     code, err = run("--checkpoint", folder)
     assert code == 2 and err.startswith(f"fosmc: error: --checkpoint: {folder} exists and is not empty (--resume")
-    C._checkpoint_chunk(folder, cfg, 1, 1000, 70, resume=False)  # the plan.json a run of chunks of 70 writes
+    S._checkpoint_chunk(folder, cfg, 1, 1000, 70, resume=False)  # the plan.json a run of chunks of 70 writes
     code, err = run("--checkpoint", folder, "--resume", "--devices", 1, "--chunk", 50)
     assert code == 2 and err.startswith(f"fosmc: error: --chunk: {folder} holds chunks of 70 rollouts") and err.count(
         "\n") == 1  # fmt: skip
@@ -384,12 +385,12 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
     assert code == 2 and err.startswith("fosmc: error: --chunk: expected a positive integer (rollouts), got 0")
     other = dict(cfg, sim={**cfg["sim"], "t_final": 0.02})
     with pytest.raises(_config.ConfigError, match=rf"^--resume: {folder} holds chunks of another config's run"):
-        C._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
+        S._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
     with pytest.raises(_config.ConfigError, match=r"run on 1 device\(s\) .*: give --devices 1, or give another"):
-        C._checkpoint_chunk(folder, cfg, 2, 1000, None, resume=True)
+        S._checkpoint_chunk(folder, cfg, 2, 1000, None, resume=True)
     with pytest.raises(_config.ConfigError, match=r"chunks of 70 rollouts, more than the 60 this process may hold"):
-        C._checkpoint_chunk(folder, cfg, 1, 60, None, resume=True)
-    assert C._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
+        S._checkpoint_chunk(folder, cfg, 1, 60, None, resume=True)
+    assert S._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
 
 
 @pytest.mark.parametrize("option", ["--chunk", "--checkpoint"])

@@ -4,7 +4,7 @@ For each config (default: realistic_arm, arm_ideal_set2, arm_set2, unseen_arm, v
 realistic_arm_uncertain of tuning/configs/, and two configs nobody tuned on,
 tuning/configs/unseen_ideal_payloads.toml and unseen_ideal_set3.toml; ``--configs`` for others):
 
-1. tune's start, exactly as ``fosmc tune`` (``run_tune`` in fosmc_jax/_app/commands.py) computes
+1. tune's start, exactly as ``fosmc tune`` (``run_tune`` in fosmc_jax/_app/tune.py) computes
    it: ``_config.tuning_problems(cfg)``, the objective ``T.objective_of`` with its scales from
    the training problem's metrics at the config's parameters p0, ``global_stage`` of
    ``[tune] global_candidates`` on the training problem (same seed), ``T.to_internal``;

@@ -4,6 +4,7 @@ bounds (24)-(26)."""
 
 from __future__ import annotations
 
+import time
 from typing import Any, NamedTuple
 
 import jax
@@ -23,6 +24,7 @@ from .._certificate.hitting import (
 from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS
 from .config import ConfigError, arm_params_of, box_of, controller_of, design_summary, reference_of
+from .shared import Config, Log, _is_integer, _quiet, _with_x64, config_of
 
 
 def certify(
@@ -215,3 +217,41 @@ def report(cfg: dict, eps: float = 0.01, verdicts: bool = True, **options) -> di
         ab, vs = gamma_verdicts(cfg, eps, **options)
         out["gamma_bounds"] = {**ab, "eps": eps, "conventions": [v._asdict() for v in vs]}
     return out
+
+
+@_with_x64
+def run_certify(
+    config: Config = None,
+    *,
+    vertices: int | str = "all",
+    configured_switching: bool = False,
+    seed: int = 0,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc certify``: the hitting condition (20), s^T ds/dt < 0, checked numerically
+    along the reference over sampled errors and sliding directions, over the whole box
+    (``vertices = "all"``, exact) or ``vertices`` sampled vertices, or over the payload range
+    for the arm; and the verdicts on the gamma bounds (24)-(26) of each convention.
+
+    SGN switching unless ``configured_switching`` (then ``controller.switching``).
+    Returns ``fosmc_jax._app.certify.report``'s dict (``max_hitting``, ``holds``,
+    ``points_checked``, ``evaluations``, ``where``, ``vertices``, ``plant``, ``envelope``,
+    ``gamma_bounds``): what ``--json`` prints.
+    """
+    if not (_is_integer(seed) and seed >= 0):
+        raise ConfigError(f"--seed: expected a non-negative integer, got {seed}")
+    cfg = config_of(config)
+    switching = cfg["controller"]["switching"] if configured_switching else "sign"
+    opts = {"switching": switching, "seed": seed}
+    if vertices != "all":
+        count = vertices if isinstance(vertices, int) and not isinstance(vertices, bool) else None
+        if isinstance(vertices, str) and vertices.isdigit():
+            count = int(vertices)
+        if count is None or count < 1:
+            raise ConfigError(f"--vertices: expected 'all' or a positive integer, got {vertices!r}")
+        opts["vertices"] = count
+    log(f"fosmc certify: {cfg['plant']['kind']} plant, {switching} switching ...")
+    start = time.perf_counter()
+    r = report(cfg, **opts)
+    log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")
+    return r

@@ -26,11 +26,14 @@ import numpy as np
 from .._controllers.fosmc import FOSMC, FOSMCParams
 from .._design import paper
 from .._design.gains import summarize
+from .._io import write_text
 from .._plants.linear import LinearPlant, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._simulator.metrics import METRIC_NAMES, UNITS
 from .._simulator.rollout import simulate, simulate_batch
 from . import config as _config
+from .config import ConfigError
+from .shared import Log, _fresh_out, _quiet, _with_x64, writable
 
 SWITCHINGS = ("sign", "set 1", "set 2", "set 3")
 
@@ -464,3 +467,95 @@ def replace_block(text: str, name: str, content: str) -> str:
     if i < 0 or j < i:
         raise ValueError(f"report has no block {begin} ... {end}")
     return text[: i + len(begin)] + "\n" + content + text[j:]
+
+
+@_with_x64
+def run_reproduce(
+    out: str | Path | None = None,
+    *,
+    plant: str = "arm",
+    t_final: float = 4.0,
+    dt: float = 1e-4,
+    integrator: str = "rk4",
+    force: bool = False,
+    report: str | Path | None = None,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc reproduce``: the paper's cases (Table 1's sets and SGN, nominal and box
+    vertices or the arm at 0 and 10 kg) at ``t_final``, ``dt``, ``integrator``; the shortened
+    check table; for ``plant = "arm"`` the realistic loop beside the ideal one and the
+    trade-off sweeps. It takes no config: the cases are the paper's.
+
+    ``out``: folder for the tables and figures (None: nothing written, no figures).
+    ``report``: a Markdown file whose generated blocks are refreshed.
+    Returns ``{"files": {file name: text}, "figures": [file names], "rows": {"metrics",
+    "metrics_short"[, "realistic"]: metric rows}}``; ``files`` holds ``metrics.csv``,
+    ``metrics.md``, ``design.md``, ``metrics_short.csv`` (and ``realistic.md``,
+    ``tradeoff.md`` for the arm), exactly as written to ``out``.
+    """
+    if plant not in ("arm", "linear"):
+        raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
+    if integrator not in ("euler", "rk4"):
+        raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
+    _config.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
+    if plant == "arm":  # the realistic loop's horizon too (its period, its delay), before any case runs
+        try:
+            _config.resolve(realistic_config(t_final))
+        except ConfigError as e:
+            raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
+    if report:
+        report = writable(report, "--report")
+        try:
+            report.read_text()
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"--report: cannot read {report}: {getattr(e, 'strerror', None) or e}") from None
+    if out is not None:
+        out = _fresh_out(out, force, "use --force to overwrite")
+        out.mkdir(parents=True, exist_ok=True)
+    settings = Settings(t_final=t_final, dt=dt, integrator=integrator)
+    log(f"fosmc reproduce: {plant} plant, {settings.integrator}, dt = {settings.dt} s, "
+        f"{settings.t_final} s; compiling and running the cases ...")  # fmt: skip
+    log(
+        f"fosmc reproduce: the shortened check table ({SHORT.t_final} s)"
+        f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
+    )
+    # every group at once, a thread per core: their time is mostly compilation, one core each
+    jobs = [
+        lambda: run_cases(plant, settings, log=log),
+        lambda: run_cases(plant, SHORT, log=log),
+    ]
+    if plant == "arm":
+        jobs += [
+            lambda: run_realistic_cases(t_final, log=log),
+            lambda: tradeoff_sweeps(t_final, log=log),
+        ]
+    cases, short_cases, *arm_only = parallel(*jobs)
+    rows, short = metric_rows(cases), metric_rows(short_cases)
+    files = {"metrics.csv": to_csv(rows), "metrics.md": to_markdown(rows),
+             "design.md": design_facts(), "metrics_short.csv": to_csv(short)}  # fmt: skip
+    tables = {"metrics": rows, "metrics_short": short}
+    figures: list[str] = []
+    if out is not None:
+        for name, text in files.items():
+            write_text(out / name, text)
+        log("fosmc reproduce: drawing figures ...")
+        figures = write_figures(cases, out, plant)
+    if plant == "arm":
+        realistic, sweeps = arm_only
+        tables["realistic"] = metric_rows(realistic, METRIC_NAMES)
+        files.update({"realistic.md": to_markdown(tables["realistic"], METRIC_NAMES),
+                      "tradeoff.md": sweep_markdown(sweeps)})  # fmt: skip
+        if out is not None:
+            for name in ("realistic.md", "tradeoff.md"):
+                write_text(out / name, files[name])
+            figures += write_realistic_figures(cases + realistic, sweeps, out)
+    if report:
+        text = report.read_text()
+        text = replace_block(text, "metrics", files["metrics.md"])
+        text = replace_block(text, "design", files["design.md"])
+        for name in ("realistic", "tradeoff"):
+            if f"{name}.md" in files:
+                text = replace_block(text, name, files[f"{name}.md"])
+        write_text(report, text)
+        log(f"fosmc reproduce: updated {report}")
+    return {"files": files, "figures": figures, "rows": tables}

@@ -1,0 +1,150 @@
+"""``fosmc export`` as a function: the digital loop's controller as C99 for a drive."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import config as _config
+from .config import ConfigError
+from .shared import (
+    Config,
+    Log,
+    _quiet,
+    _with_x64,
+    config_of,
+    writable,
+)
+
+
+@_with_x64
+def run_export(
+    config: Config = None,
+    *,
+    out: str | Path | None = None,
+    params: str | Path | dict | None = None,
+    point: int | None = None,
+    precision: str = "float64",
+    name: str = "fosmc",
+    check: bool = True,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc export``: the config's digital-loop controller as C99 (``fosmc_jax._firmware.export``):
+    ``<name>.h`` and ``<name>.c`` with the constants of the config's point, or of the tuned
+    parameters ``params``: a ``fosmc tune`` result.json, or point ``point`` of a ``fosmc front``
+    front.json, as ``run_simulate`` takes them, or a dict of the kind's parameters by name, as
+    ``fosmc_jax.build(config).simulate(params)`` takes it (a subset: the others stay the
+    config's; e.g. ``run_tune(...)["final"]["params"]``), checked as the simulator checks it;
+    in ``precision`` (``float32`` or ``float64``).
+
+    The constants are computed in float64 whatever ``[sim] precision`` says and rounded to
+    ``precision`` when written; the files say which design model (``[model] from``) their rows
+    are. A config without a digital loop (``controller.sample_period`` = 0) is refused: its
+    ideal loop reads the exact state at every integration step and integrates the law's state
+    with the plant, which no drive does, and the package has no simulation of that law at
+    another rate to check the code against. With ``out``, a folder (created), the files are
+    written there (existing files of those names replaced; both targets checked before either
+    is written) and, with ``check``, compiled with the host's C compiler under ``-std=c99 -Wall
+    -Wextra -Werror -pedantic`` (skipped, and said so, without one); ``log`` gets the line of a
+    clean compile (the command line prints the paths). Returns ``{"files":
+    {filename: text}, "paths": [written paths], "kind", "precision", "model": the design model
+    in words, "check": the compile command that passed, or why none ran}``.
+    """
+    import re
+    from collections.abc import Mapping
+
+    from .._firmware import export as _export
+    from .._io import read_json
+    from .._simulator.checks import check_inputs
+
+    if not isinstance(precision, str) or precision not in _export.PRECISIONS:
+        raise ConfigError(f"--precision: expected one of {', '.join(_export.PRECISIONS)}, got {precision!r}")
+    if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+        raise ConfigError(f"--name: expected a C identifier (letters, digits, _; not first a digit), got {name!r}")
+    if point is not None and (isinstance(point, bool) or not isinstance(point, (int, np.integer))):
+        raise ConfigError(f"--point: expected an integer (the index of a front's point), got {point!r}")
+    given = isinstance(params, Mapping) or hasattr(params, "_asdict")  # parameters, not a file
+    if not (params is None or given or isinstance(params, (str, Path))):
+        raise ConfigError(f"--params: expected a fosmc tune result.json or fosmc front front.json (a path), or a "
+                          f"dict of the controller kind's parameters by name, got {type(params).__name__}")  # fmt: skip
+    if point is not None and (params is None or given):
+        raise ConfigError("--point: needs --params FRONT.json" + (" (not a dict of parameters)" if given else ""))
+    if out is not None:
+        try:
+            out = _export.check_targets(out, (f"{name}.h", f"{name}.c"))
+        except ValueError as e:
+            raise ConfigError(f"--out: {e} (nothing written)") from None
+        writable(out, "--out", folder=True)  # a probe: what permission bits do not tell (root, read-only mounts)
+    cfg = config_of(config)
+    if params is not None and not given:
+        if point is None:
+            try:
+                data = read_json(params)
+            except ValueError:
+                data = None  # with_params says why
+            if isinstance(data, dict) and isinstance(data.get("points"), list):
+                raise ConfigError(f"--point: {params} is a front of {len(data['points'])} points: name the one to "
+                                  "export with --point I (e.g. the one `fosmc select` names)")  # fmt: skip
+        cfg = _config.with_params(cfg, params, point)
+    if cfg["controller"]["kind"] not in _export.EXPORTED_KINDS:
+        raise ConfigError(f"controller.kind: fosmc export writes {', '.join(_export.EXPORTED_KINDS)}, got "
+                          f"{cfg['controller']['kind']!r}")  # fmt: skip
+    if not cfg["controller"]["sample_period"]:
+        raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
+                          "drive's period, e.g. 1e-3): the ideal loop reads the exact state at every step and "
+                          "integrates the law with the plant, which no drive does")  # fmt: skip
+    cfg["sim"]["precision"] = "float64"  # the constants in full precision; rounded to `precision` when written
+    problem = _config.build(cfg)
+    loop = problem.controller()
+    if given:  # as Problem.simulate takes them: names and shapes (Problem.controller), then signs and ranges
+        try:
+            loop = problem.controller(params)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the step-size warning is the simulation's, not the drive's
+                check_inputs(problem.plants, loop, problem.reference, problem.X0s, problem.dt, True, problem.options)
+        except ValueError as e:  # named as the option: params.delta, not controller.law.params.delta
+            message = re.sub(r"^controller\.law\.(params\.)?(?=\w+:)", "params.", str(e))
+            raise ConfigError(message if message.startswith("params") else f"params: {message}") from None
+    design = _config.design_model(cfg)
+    if design.source == "arm":
+        model = "the model derived from the configured [arm] along the reference"
+    elif all(cfg["model"][k] == _config.defaults()["model"][k] for k in ("A_rows", "B_rows")):
+        model = _export.PAPER_MODEL
+    else:
+        model = "the config's nominal model ([model] A_rows, B_rows)"
+    origin = ["config: " + (str(config) if isinstance(config, (str, Path)) else "the paper's defaults"
+                            if config is None else "a config dict")]  # fmt: skip
+    if given:
+        names = list(params if isinstance(params, Mapping) else params._asdict())
+        origin.append(f"params: a dict of {', '.join(names) or 'none'} (the config's for the rest)")
+    elif params is not None:
+        origin.append(f"params: {params}" + (f", point {point}" if point is not None else " (final)"))
+    origin.append(f"design model: [model] from = '{design.source}'" + (
+        f", the midpoint of the rows' box over {design.sampled}" if design.source == "arm" else ""))  # fmt: skip
+    try:
+        files = _export.export_c(loop, problem.reference, precision=precision, name=name,
+                                 source="\n".join(origin), model=model)  # fmt: skip
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    paths, checked = [], "not written"
+    if out is not None:
+        try:
+            paths = _export.write(files, out)
+        except (ValueError, OSError) as e:
+            raise ConfigError(f"--out: {e}") from None
+        checked = "not checked"
+        if check:
+            if _export.c_compiler() is None:
+                checked = "not compiled: no C compiler found ($CC, cc, gcc, clang)"
+            else:
+                try:
+                    checked = "compiled cleanly: " + _export.check_compiles(paths[1])
+                except RuntimeError as e:
+                    checked = f"did NOT compile: {e}"
+            if checked.startswith("compiled cleanly"):  # otherwise "check" says why (the command line warns)
+                log(f"fosmc export: {checked}")
+    return {"files": files, "paths": paths, "kind": cfg["controller"]["kind"], "precision": precision,
+            "model": model, "check": checked}  # fmt: skip

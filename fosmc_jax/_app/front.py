@@ -1,0 +1,102 @@
+"""``fosmc front`` as a function: the trade-off front of the config's batch."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from .config import ConfigError
+from .shared import (
+    Config,
+    Log,
+    _fresh_out,
+    _is_integer,
+    _is_real,
+    _quiet,
+    _warn_one_plant,
+    _with_x64,
+    config_of,
+)
+
+#: The largest ``fosmc front --seed``: its CMA-ES runs seed NumPy's legacy generator with
+#: ``seed * 1_000_003 + 700_000 + run`` (``fosmc_jax._search.front``), which must stay below 2^32.
+MAX_FRONT_SEED = (2**32 - 1 - 700_000 - 1_000) // 1_000_003
+
+
+@_with_x64
+def run_front(
+    config: Config = None,
+    *,
+    out: str | Path | None = None,
+    points: int | None = None,
+    budget: float = 300.0,
+    candidates: int | None = None,
+    steps: int | None = None,
+    seed: int = 0,
+    compare: tuple[str | Path, ...] | list[str | Path] = (),
+    force: bool = False,
+    resume: bool = False,
+    replay: str | Path | None = None,
+    started: float | None = None,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc front``: the Pareto front of mean ``rms_error`` against mean
+    ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time, over the
+    parameters of the config's ``controller.kind`` (every kind is tunable: the FOSMC's delta,
+    gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
+    kind's box, ``fosmc_jax._search.tune.SPACES``), by ``fosmc_jax._app.study.study``: ``points``
+    parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
+    the local rounds, default from the budget; ``seed``: of the search's draws. ``out``: folder for ``front.json``,
+    ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
+    nothing written); ``resume`` continues from its checkpoint. The budget counts from
+    ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
+    this call). ``replay``: a front.json whose recorded work (``stages.replay``) is redone with
+    its config, seed and sizes, without a clock: bit for bit the same front on the same machine
+    and device count (``config``, ``points``, ``candidates``, ``steps`` not given).
+
+    Returns what ``front.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"},
+    "axes", "points": [{params, metrics, held_out, diverged}], "stages", "references",
+    "held_out_batch", "config"}``, ``params`` by the kind's names, ``references`` the paper's
+    FOSMC (Table 1's sets, SGN) whatever the kind. With ``candidates`` and ``steps`` given the
+    result is deterministic except ``stages.wall_time_s``. On a batch of one plant
+    (:func:`one_plant`) it warns as ``run_tune`` does. Its ``log`` lines start with ``front:``.
+    """
+    from .._search import front as search_front
+    from . import study
+
+    if resume and force:
+        raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
+    if replay is not None:
+        given = [n for n, v in (("--config", config), ("--points", points), ("--candidates", candidates),
+                                ("--steps", steps)) if v is not None]  # fmt: skip
+        if given:
+            raise ConfigError(f"--replay: takes the config and sizes from its front.json: leave out {', '.join(given)}")
+        cfg, replayed = study.replayed(replay)
+    else:
+        cfg = config_of(config)
+    if out is not None:
+        out = _fresh_out(out, force or resume, "use --resume or --force")
+    for name, value in (("--points", points), ("--candidates", candidates), ("--steps", steps)):
+        if value is not None and not (_is_integer(value) and value >= (1 if name == "--points" else 0)):
+            raise ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
+                              f"integer, got {value}")  # fmt: skip
+    if not (_is_real(budget) and math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"--budget: expected a positive, finite number of seconds, got {budget}")
+    if not (_is_integer(seed) and 0 <= seed <= MAX_FRONT_SEED):
+        raise ConfigError(f"--seed: expected an integer in [0, {MAX_FRONT_SEED}], got {seed}")
+    for path in compare:
+        try:
+            json.loads(Path(path).read_text())
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"--compare: cannot read {path}: {e}") from None
+    _warn_one_plant(cfg, "front")
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    settings = search_front.Settings(
+        points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed
+    )
+    if replay is not None:
+        settings = replayed._replace(budget=budget)
+    return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)

@@ -1,0 +1,210 @@
+"""``fosmc simulate`` as a function: the config's batch, in chunks where it does not fit, resumable."""
+
+from __future__ import annotations
+
+import functools
+import json
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._io import jsonable, stamped, write_text
+from .._simulator.metrics import METRIC_NAMES, Metrics, batch_summary
+from .._simulator.rollout import simulate_batch
+from . import chunks, memory
+from . import config as _config
+from .config import ConfigError
+from .shared import (
+    Config,
+    Log,
+    _is_integer,
+    _quiet,
+    _with_x64,
+    config_of,
+    writable,
+)
+
+
+@_with_x64
+def run_simulate(
+    config: Config = None,
+    *,
+    params: str | Path | None = None,
+    point: int | None = None,
+    devices: int | None = None,
+    keep_trace: bool = False,
+    records: bool = True,
+    draws: bool = True,
+    chunk: int | None = None,
+    checkpoint: str | Path | None = None,
+    resume: bool = False,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
+
+    ``params``: a ``fosmc tune`` result.json or ``fosmc front`` front.json whose parameters
+    replace the config's (``point``: the front's point): the FOSMC's delta, gamma, poles, or
+    SMC's k, phi (``smc_k``, ``smc_phi``) or super-twisting's k1, k2 (``st_k1``, ``st_k2``),
+    of the config's ``controller.kind`` only. The batch is split over ``devices`` devices
+    (``simulate_sharded``; default: every local device, one per core on CPU after
+    ``use_all_cores()`` or ``use_host_devices(n)`` before the first JAX operation, as the
+    command line does; 1: unsharded).
+    ``keep_trace`` stores a decimated trace (``[sim] save_every``, or about 4,000 samples when
+    it is 0) and adds it as ``"trace"`` (a :class:`Trace` with a batch axis).
+
+    Returns ``{"fosmc_jax": {"version", "metrics_version"}, "rollouts": [{"plant_index",
+    "offset_index", "realization_index", "metrics": {name: (3,)}, "diverged", "diverged_at"},
+    ...], "summary": batch_summary, "config": resolved config}``: what ``--json`` prints; with
+    a ``[sample]`` table also ``"sampled"``: its draws (``payloads``, ``offsets``), indexed by
+    ``plant_index`` and ``offset_index``; with ``[arm.uncertainty]`` each rollout's
+    ``arm_index`` and ``"arms"``: each sampled arm's parameters by ``[arm]`` key. With
+    ``records=False``, ``"arrays"`` instead of ``"rollouts"``: the same fields as NumPy arrays
+    over the rollouts (what ``--npz`` writes, with the versions, and ``--json`` prints as
+    records; no Python object per rollout). With ``draws=False``, no ``"sampled"`` or
+    ``"arms"`` (the draws as lists, which the command line prints only with ``--json``: 3 KB per
+    sampled arm).
+
+    A batch larger than memory holds at once runs in chunks of one shape (the last padded), of
+    as many rollouts as fit beside what the whole run holds (:func:`fosmc_jax._app.memory.plan`;
+    ``chunk``: at most that many), with the same results; a ``log`` line after the first chunk
+    and then every 10 s says how far it is. One whose draws and outputs cannot fit, chunked or
+    not, is refused (:class:`ConfigError` naming the key to lower, with the estimate and the
+    limit) before anything is drawn.
+
+    ``checkpoint``: a folder (empty or new) where each finished chunk is written as it ends
+    (chunks of at most :data:`fosmc_jax._app.chunks.CHECKPOINT_CHUNK` rollouts then, whatever
+    the memory), so that ``resume`` continues a killed run from its last finished chunk, with
+    the same results as a run not killed; the folder's ``plan.json`` (config, chunk size,
+    devices, versions) must be the run's.
+    """
+    if resume and checkpoint is None:
+        raise ConfigError("--resume: needs --checkpoint DIR, the folder of the run's chunks")
+    if checkpoint is not None:
+        checkpoint = writable(checkpoint, "--checkpoint", folder=True)
+        if not resume and checkpoint.exists() and any(checkpoint.iterdir()):
+            raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
+                              "there; or give another folder)")  # fmt: skip
+    cfg = config_of(config)
+    devices = jax.local_device_count() if devices is None else devices
+    if params:
+        cfg = _config.with_params(cfg, params, point)
+    elif point is not None:
+        raise ConfigError("--point: needs --params FRONT.json")
+    n = _config.n_steps(cfg)
+    if keep_trace and not cfg["sim"]["save_every"]:
+        m = _config.sample_steps(cfg)
+        cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
+    if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
+        raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
+    if cfg["sim"]["save_every"] and (chunk is not None or checkpoint is not None):
+        option = "--checkpoint" if checkpoint is not None else "--chunk"
+        raise ConfigError(f"{option}: a batch that keeps a trace ([sim] save_every, or --plot without a [sample] "
+                          "table) runs whole, not in chunks")  # fmt: skip
+    size, too_large = memory.plan(cfg, records=records, draws=draws)  # before anything is drawn
+    if too_large is not None:
+        raise ConfigError(too_large)
+    if checkpoint is not None:
+        size = _checkpoint_chunk(checkpoint, cfg, devices, size, chunk, resume)
+    size = size if chunk is None else min(size, chunk)
+    problem = _config.problem_of(cfg)
+    n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
+    paired = cfg["sim"]["pairing"] == "paired"
+    per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
+    in_chunks = size < n_rollouts or checkpoint is not None
+    log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
+        f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s)"
+        f"{f' in chunks of at most {size} rollouts' if in_chunks else ''}: compiling and running ...")  # fmt: skip
+    start = time.perf_counter()
+    if devices > 1:
+        from .._simulator.sharding import simulate_sharded
+
+        run = functools.partial(simulate_sharded, devices=devices)
+    else:
+        run = simulate_batch
+    if in_chunks:
+        plants, ctrl, reference, X0s, dt = problem.args
+        simulate = lambda plants, X0s, keys: run(plants, ctrl, reference, X0s, dt, keys=keys, **problem.options)
+        try:
+            arrays = chunks.run(simulate, plants, X0s, problem.keys, paired, size, log, checkpoint=checkpoint)
+        except ValueError as e:  # a chunk file that is not this run's
+            raise ConfigError(f"--resume: {e}") from None
+    else:
+        result = jax.block_until_ready(run(*problem.args, keys=problem.keys, **problem.options))
+        # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
+        # rollouts: BENCHMARKS.md)
+        arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
+        arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at))
+    log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
+    # result.summary() of the arrays, whether or not they came in chunks
+    summary = batch_summary(Metrics(*(arrays[name] for name in METRIC_NAMES)), arrays["diverged"])
+
+    r = np.arange(n_rollouts)
+    arrays.update(plant_index=r // (per_plant * n_real), realization_index=r % n_real,
+                  offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
+    if _config.arm_varies(cfg):  # [arm.uncertainty]: which sampled arm each rollout ran (arm-major, then payload)
+        payloads = cfg["sample"]["count"] if cfg["sample"]["payloads"] else len(cfg["plant"]["payloads"])
+        arrays["arm_index"] = arrays["plant_index"] // (1 if paired else payloads)
+    drawn, extra = _config.draws(cfg) if draws else {}, {}
+    if cfg["sample"]["count"] and draws:
+        extra["sampled"] = {k: v.tolist() for k, v in drawn.items() if k != "arms"}
+    if "arms" in drawn:  # each sampled arm's parameters
+        n_arms = len(drawn["arms"]["F"])
+        extra["arms"] = [{k: v[i].tolist() for k, v in drawn["arms"].items()} for i in range(n_arms)]
+    body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
+    out = stamped({**body, "summary": summary, **extra, "config": cfg})
+    return dict(out, trace=result.trace) if keep_trace else out
+
+
+def _checkpoint_chunk(folder: Path, cfg: dict, devices: int, size: int, chunk: int | None, resume: bool) -> int:
+    """The rollouts per chunk of a run with a checkpoint ``folder``: a new run's (at most
+    :data:`fosmc_jax._app.chunks.CHECKPOINT_CHUNK`, ``size`` where memory holds fewer, ``chunk``
+    where given), recorded in the folder's ``plan.json`` with the config, the devices and the
+    versions; a resumed run's, read from it, which must record this run (a :class:`ConfigError`
+    naming what differs otherwise: another config's chunks, or another device count's, which
+    differ to rounding, would not be this run's results)."""
+    plan_path = folder / "plan.json"
+    meta = stamped({"config": json.loads(json.dumps(jsonable(cfg))), "devices": devices})
+    if not (resume and plan_path.exists()):
+        chunk = min(size, chunks.CHECKPOINT_CHUNK, chunk or size)
+        write_text(plan_path, json.dumps(jsonable({**meta, "chunk": chunk}), indent=1))
+        return chunk
+    try:
+        kept = json.loads(plan_path.read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"--resume: cannot read {plan_path}: {e}") from None
+    differs = {
+        "config": "of another config's run: give its config",
+        "devices": f"run on {kept.get('devices')} device(s) (results that differ from {devices}'s to rounding): "
+        f"give --devices {kept.get('devices')}",
+        "fosmc_jax": f"run by fosmc_jax {kept.get('fosmc_jax')}: resume with that version",
+    }
+    for key, what in differs.items():
+        if kept.get(key) != meta[key]:
+            raise ConfigError(f"--resume: {folder} holds chunks {what}, or give another folder")
+    if chunk is not None and chunk != kept["chunk"]:
+        raise ConfigError(f"--chunk: {folder} holds chunks of {kept['chunk']} rollouts: give that, or leave it out")
+    if kept["chunk"] > size:
+        raise ConfigError(f"--resume: {folder} holds chunks of {kept['chunk']} rollouts, more than the {size} this "
+                          "process may hold at once now")  # fmt: skip
+    return kept["chunk"]
+
+
+def rollout_records(arrays: dict) -> Iterator[dict[str, Any]]:
+    """``run_simulate``'s records, one per rollout, from its ``arrays`` (NumPy arrays, or their
+    ``tolist()``, as ``--json`` passes them to json's encoder): indices (``arm_index`` too with
+    sampled arms), ``metrics`` rows, ``diverged`` and ``diverged_at``."""
+    arms = "arm_index" in arrays
+    for i in range(len(arrays["diverged"])):
+        yield {
+            **({"arm_index": int(arrays["arm_index"][i])} if arms else {}),
+            "plant_index": int(arrays["plant_index"][i]),
+            "offset_index": int(arrays["offset_index"][i]),
+            "realization_index": int(arrays["realization_index"][i]),
+            "metrics": {name: arrays[name][i] for name in METRIC_NAMES},
+            "diverged": bool(arrays["diverged"][i]),
+            "diverged_at": float(arrays["diverged_at"][i]),
+        }

@@ -1,0 +1,177 @@
+"""``fosmc tune`` as a function: one controller tuned on the config's batch."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from .._io import jsonable, stamped, write_text
+from .._simulator.metrics import UNITS
+from . import config as _config
+from .config import ConfigError
+from .shared import (
+    Config,
+    Log,
+    _fresh_out,
+    _is_real,
+    _quiet,
+    _warn_one_plant,
+    _with_x64,
+    config_of,
+    metric_label,
+)
+
+
+@_with_x64
+def run_tune(
+    config: Config = None,
+    *,
+    steps: int | None = None,
+    out: str | Path | None = None,
+    resume: bool = False,
+    force: bool = False,
+    budget: float | None = None,
+    started: float | None = None,
+    log: Log = _quiet,
+) -> dict[str, Any]:
+    """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` of the config's
+    ``controller.kind`` (every kind is tunable, each with its own parameters: the FOSMC's
+    delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2; default: all of them) on the
+    training simulation (``tune.train_dt``, ``tune.train_t_final``), with the objective's
+    scales taken at the config's parameters, the optional global stage
+    (``tune.global_candidates``) and, for the FOSMC only, gamma floor (24)-(26)
+    (``tune.keep_gamma_bound``); initial and final parameters evaluated on the plain
+    ``[sim]`` simulation.
+
+    ``steps`` overrides ``tune.steps``. ``budget``: seconds of wall time from ``started`` (a
+    ``time.perf_counter()`` value; the CLI passes its process's start; None: this call's), which
+    the global stage (30% of what is left after the start's evaluations) and the gradient steps
+    (as many as fit, ``tune.steps`` at most) share, the final and held-out evaluations' time kept
+    back (estimated from the first evaluation's). ``out``: folder for ``result.json``, ``tuning.png``
+    and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
+    parameters); ``resume`` continues from its checkpoint. Returns what
+    ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
+    {"params", "metrics", ...}, "start": {"params", "global_candidates"}, "final": {...},
+    "held_out": {"metrics", ...}, "held_out_batch", "objective", "history", "config"}``
+    (``held_out``: the final parameters on :func:`fosmc_jax._app.study.held_out_config`'s
+    batch, fresh payloads, sampled arms and draws, as ``fosmc front`` evaluates its points),
+    ``params`` by the kind's names (e.g. ``{"k": [...], "phi": [...]}``). On a batch of one
+    plant (:func:`one_plant`: the default config's nominal model) it warns (``UserWarning``)
+    that the optimum holds for that plant only. Its ``log`` lines start with ``tune:``; its
+    step lines name the objective's metrics.
+    """
+    from .._search import tune as tuner
+    from . import study
+
+    started = time.perf_counter() if started is None else started
+    if resume and force:
+        raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
+    if budget is not None and not (_is_real(budget) and math.isfinite(budget) and budget > 0):
+        raise ConfigError(f"--budget: expected a positive, finite number of seconds, got {budget}")
+    cfg = config_of(config)
+    tcfg = cfg["tune"]
+    if steps is not None:
+        if steps < 1:
+            raise ConfigError(f"--steps: expected a positive integer, got {steps}")
+        tcfg["steps"] = steps
+    kind = cfg["controller"]["kind"]
+    names = tuner.SPACES[kind].names
+    if not set(tcfg["params"]) <= set(names):
+        raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
+                          f"controller.kind = '{kind}'), got {tcfg['params']}")  # fmt: skip
+    if tcfg["keep_gamma_bound"] and kind != "fosmc":
+        raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
+                          f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
+    if out is not None:
+        out = _fresh_out(out, force or resume, "use --resume or --force")
+        if resume and (done := study.finished(out, "result.json", cfg, "tune", log)) is not None:
+            return done
+        if not resume:
+            study.start_afresh(out, "result.json", "checkpoint.npz")
+    _warn_one_plant(cfg, "tune")
+    plain, problem, p0 = _config.tuning_problems(cfg)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    floor = None
+    if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
+        d = _config.design_summary(cfg)
+        floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+    log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
+        f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
+    m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    t0 = time.perf_counter()
+    initial = tuner.evaluate(plain, p0)
+    # kept back for the final evaluation (compiled) and the held-out one (a program like this one)
+    deadline = None if budget is None else started + budget - 1.5 * (time.perf_counter() - t0) - 2.0
+    obj = tuner.objective_of(tcfg, m)
+    log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
+        f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
+        f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
+        f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
+    start_params = p0
+    checkpoint = None if out is None else out / "checkpoint.npz"
+    resuming = resume and checkpoint is not None and checkpoint.exists()
+    kept = tuner.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
+    if kept and "start" in kept:
+        start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
+    if tcfg["global_candidates"] and floor is None and not resuming:
+        from .._search.front import global_stage
+
+        share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
+        start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
+                                           log=log, command="tune", deadline=share)  # fmt: skip
+        which = "the best candidate" if share else f"the best of {tcfg['global_candidates']} candidates"
+        log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log "
+            "scale)")  # fmt: skip
+    try:
+        u0 = tuner.to_internal(start_params, plain.base, floor)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    lr = tuner.learning_rate(tcfg["learning_rate"], problem)
+    settings = tuner.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
+                              tuple(tcfg["params"]), tcfg["checkpoint_every"], tcfg["optimizer"])  # fmt: skip
+    start = time.perf_counter()
+    terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
+    found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
+    keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
+    if deadline is not None and time.perf_counter() > deadline:
+        log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
+    u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
+                           terms=terms, extra=keep, deadline=deadline, log=log)  # fmt: skip
+    final_params = tuner.to_physical(u, plain.base, floor)
+    final = tuner.evaluate(plain, final_params)
+    # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
+    held = study.held_out_config(cfg)
+    held_out = tuner.evaluate(_config.tuning_problems(held)[0], final_params)
+    log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
+        f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
+        f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip
+    as_dict = lambda p: {k: np.asarray(v).tolist() for k, v in p._asdict().items()}
+    result = stamped({
+        "initial": {"params": as_dict(p0), **initial},
+        "start": {
+            "params": as_dict(start_params),
+            "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
+        },  # fmt: skip
+        "final": {"params": as_dict(final_params), **final},
+        "held_out": held_out,
+        "held_out_batch": study.held_out_batch(held),
+        "objective": obj._asdict(),
+        "history": {k: v for k, v in history.items() if k != "params"},
+        "config": cfg,
+    })  # fmt: skip
+    if out is not None:
+        from .plots import plot_tuning
+
+        write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
+        params_history = [as_dict(tuner.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
+                          for p in history["params"]]  # fmt: skip
+        plot_tuning(history, params_history, out / "tuning.png")
+        log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
+    return result
