@@ -647,12 +647,13 @@ def _simulate_batch(
     cannot be built, a structure-of-arrays ``lax.scan``), and :class:`fosmc_jax.Arm` under the
     FOSMC, SMC or super-twisting in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`
     (:mod:`fosmc_jax._simulator.arm_native`, where the kernel is built); anything else runs ``vmap`` of
-    :func:`simulate`. Derivatives of the fast path (forward and reverse mode) are those of
-    the ``lax.scan``; in reverse mode it compiles several times slower and runs slower than
-    the ``vmap`` path, so gradient code (the tuner) passes ``fast=False``. The arm's
-    derivatives are the ``vmap`` path's. ``native=False`` (static) keeps the compiled kernels
-    out: the linear fast path runs its ``lax.scan``, the arm the ``vmap`` path (the benchmarks'
-    scan-only timings; ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
+    :func:`simulate`. Derivatives of the linear fast path are the ``vmap`` path's (its
+    ``custom_jvp``); the arm's come from the generated adjoint kernel
+    (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to rounding), where
+    ``FOSMC_JAX_GENERATED`` allows it (``all``: every printable model runs there, forward too).
+    ``native=False`` (static) keeps the compiled kernels out: the linear fast path runs its
+    ``lax.scan``, the arm the ``vmap`` path (the benchmarks' scan-only timings;
+    ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     paired = pairing == "paired"
     if pairing not in PAIRINGS:
