@@ -342,7 +342,7 @@ def test_readme_digital_loop_example_runs():
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = text[text.index("## Python API") : text.index("### The commands from Python")]
+    section = text[text.index("## Python API") : text.index("## Where things live")]
     blocks = re.findall(r"```python\n(.*?)```", section, re.S)
     assert len(blocks) == 2 and "DigitalLoop" in blocks[1]
     scope: dict = {}
