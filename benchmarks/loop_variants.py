@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import fosmc_jax._simulator.rollout as S  # noqa: E402
+import fosmc_jax._simulator.linear_path as S  # noqa: E402
 
 _ORIGINAL_SCAN = S._scan_steps
 

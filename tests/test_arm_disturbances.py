@@ -15,7 +15,7 @@ import pytest
 import fosmc_jax as fj
 from fosmc_jax._plants import arm as A
 from fosmc_jax._plants.base import derivative_at
-from fosmc_jax._simulator.rollout import _rk4
+from fosmc_jax._simulator.step import _rk4
 
 #: An arm with every new term on: Coulomb friction, a bias, a step at 50.4 ms (between the
 #: samples of dt = 1e-3 s) and a sinusoid per joint.

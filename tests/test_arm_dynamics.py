@@ -19,7 +19,7 @@ from fosmc_jax._plants.arm import (
     mass_matrix_closed,
     potential_energy,
 )
-from fosmc_jax._simulator.rollout import _rk4
+from fosmc_jax._simulator.step import _rk4
 
 
 def test_closed_form_equals_the_autodiff_oracle():

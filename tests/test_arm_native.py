@@ -15,7 +15,7 @@ from fosmc_jax._app import config as _config
 from fosmc_jax._plants.arm import ARM_PARAMS, arm_sweep
 from fosmc_jax._simulator import arm_native as _arm_native
 from fosmc_jax._simulator import native as _native
-from fosmc_jax._simulator.rollout import as_controller
+from fosmc_jax._simulator.step import as_controller
 
 # the kernels are CPU code: on a GPU backend the default path runs the vmap path (checked there by
 # test_simulator, test_api), and these white-box calls of the FFI targets have no handler

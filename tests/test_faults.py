@@ -33,6 +33,7 @@ from fosmc_jax._app import reproduce as R
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import check_writable, write_text
 from fosmc_jax._simulator.checks import check_inputs
+from fosmc_jax._simulator.rollout import option_names
 
 ROOT = Path(__file__).resolve().parents[1]
 FRONT = ROOT / "tuning" / "results" / "front_budget_300" / "front.json"
@@ -339,7 +340,16 @@ def test_valid_options_pass_the_check(problem):
     """NumPy integers are integers; every option of simulate_batch a config sets passes."""
     with jax.enable_x64(True):
         options = dict(problem.options, n_steps=np.int64(3), fast=False, native=True, chattering_cutoff=20.0)
-        check_inputs(problem.plants, problem.controller(), problem.reference, problem.X0s, problem.dt, True, options)
+        check_inputs(
+            problem.plants,
+            problem.controller(),
+            problem.reference,
+            problem.X0s,
+            problem.dt,
+            True,
+            options,
+            option_names(True),
+        )
 
 
 def test_params_of_a_wrong_type_named(problem):
@@ -355,7 +365,16 @@ def test_integer_initial_state_names_its_dtype(problem):
         for batch, name, X0 in ((True, "X0s", jnp.zeros((1, 9), jnp.int32)), (False, "X0", jnp.zeros(9, jnp.int32))):
             plants = problem.plants if batch else jax.tree.map(lambda x: x[0], problem.plants)
             with pytest.raises(TypeError, match=rf"^{name}: expected floating-point numbers .* got an array of int32$"):
-                check_inputs(plants, problem.controller(), problem.reference, X0, problem.dt, batch, {"n_steps": 5})
+                check_inputs(
+                    plants,
+                    problem.controller(),
+                    problem.reference,
+                    X0,
+                    problem.dt,
+                    batch,
+                    {"n_steps": 5},
+                    option_names(batch),
+                )
 
 
 # ---------------------------------------------------------------------------- a reader that goes away

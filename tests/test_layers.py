@@ -67,6 +67,57 @@ def test_no_import_runs_back_up(path):
     assert not upward, "\n".join(upward)
 
 
+def _module_graph() -> dict[tuple[str, ...], set[tuple[str, ...]]]:
+    """Every module of the package (a package by its ``__init__``; the package's face is ``()``)
+    with the modules it imports, at its top or inside functions."""
+    modules = {}
+    for path in PKG.rglob("*.py"):
+        rel = path.relative_to(PKG).parts
+        modules[rel[:-1] if rel[-1] == "__init__.py" else rel[:-1] + (rel[-1].removesuffix(".py"),)] = path
+
+    def module_of(target: tuple[str, ...]) -> tuple[str, ...]:  # a name imported from a module: that module
+        return next(target[:n] for n in range(len(target), -1, -1) if target[:n] in modules)
+
+    return {name: {module_of(t) for _, t in _imports(path)} - {name} for name, path in modules.items()}
+
+
+def _circles(graph: dict) -> list[list[tuple[str, ...]]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index, low, stack, found = {}, {}, [], []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = stack[stack.index(v) :]
+            del stack[stack.index(v) :]
+            if len(component) > 1:
+                found.append(component)
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_circle():
+    """No modules import each other round a circle, through function-level imports either
+    (a hidden circle: each module works only if the other is loaded first)."""
+    circles = [" -> ".join(".".join(m) or "fosmc_jax" for m in c) for c in _circles(_module_graph())]
+    assert not circles, "\n".join(circles)
+
+
+def test_the_circle_check_finds_a_circle():
+    graph = {("a",): {("b",)}, ("b",): {("c",)}, ("c",): {("a",)}, ("d",): {("a",)}}
+    assert [sorted(c) for c in _circles(graph)] == [[("a",), ("b",), ("c",)]]
+
+
 #: White-box studies of internal variants: alternatives to private loop bodies and kernel builds
 #: that no user chooses between (benchmarks), and the front's levers switched off inside a child
 #: process (tuning/front_ablation.py, whose child code is a string this test cannot see), and the

@@ -59,6 +59,7 @@ def run_export(
     from .._firmware import export as _export
     from .._io import read_json
     from .._simulator.checks import check_inputs
+    from .._simulator.rollout import option_names
 
     if not isinstance(precision, str) or precision not in _export.PRECISIONS:
         raise ConfigError(f"--precision: expected one of {', '.join(_export.PRECISIONS)}, got {precision!r}")
@@ -104,7 +105,8 @@ def run_export(
             loop = problem.controller(params)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # the step-size warning is the simulation's, not the drive's
-                check_inputs(problem.plants, loop, problem.reference, problem.X0s, problem.dt, True, problem.options)
+                args = (problem.plants, loop, problem.reference, problem.X0s, problem.dt)
+                check_inputs(*args, True, problem.options, option_names(True))
         except ValueError as e:  # named as the option: params.delta, not controller.law.params.delta
             message = re.sub(r"^controller\.law\.(params\.)?(?=\w+:)", "params.", str(e))
             raise ConfigError(message if message.startswith("params") else f"params: {message}") from None

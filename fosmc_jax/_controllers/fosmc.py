@@ -1,7 +1,7 @@
 """The FOSMC controller: sliding surface (14), control law (23), switching functions (28).
 
 :class:`FOSMC` (the paper's ideal loop) and :class:`DiscreteFOSMC` (a sampled controller)
-wrap these functions in the controller interface of :mod:`fosmc_jax._simulator.rollout`.
+wrap these functions in the controller interface of :mod:`fosmc_jax._simulator.step`.
 
 :class:`FOSMCParams` holds what may be traced and tuned (C, the poles, gamma, delta) plus the
 nominal design model (rows 3, 6, 9 of A and B) used for K, Omega and the integral term.
@@ -136,7 +136,7 @@ def control_law(
 
 # ---------------------------------------------------------------------------- controllers
 #
-# A controller is a pytree with the shape optax gives optimizers (see fosmc_jax._simulator.rollout):
+# A controller is a pytree with the shape optax gives optimizers (see fosmc_jax._simulator.step):
 #   init(X0, r0, key) -> state
 #   update(state, Y, r, t) -> (U, state)     at each controller sample, from the measurement Y
 # and optionally derivative(state, X, r, t) -> state', the continuous-time part of its state,

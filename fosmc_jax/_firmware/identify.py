@@ -69,7 +69,7 @@ import numpy as np
 from .._io import atomic_write, write_text
 from .._plants.arm import Arm, ArmParams
 from .._plants.base import derivative_at
-from .._simulator.rollout import _STEPPERS
+from .._simulator.step import _STEPPERS
 
 #: The name of the payload (kg) among the identifiable parameters (it is :class:`Arm`'s, not a field).
 PAYLOAD = "payload"

@@ -1,6 +1,6 @@
 """The linear uncertain plant (3): X' = (A + dA) X + (B + dB) U, and its uncertainty draws.
 
-A plant, for the simulator, is any pytree with three methods (see :mod:`fosmc_jax._simulator.rollout`):
+A plant, for the simulator, is any pytree with three methods (see :mod:`fosmc_jax._simulator.step`):
 ``init(X0) -> state``, ``observe(state) -> X (9,)`` and ``derivative(state, U) -> state'``.
 For this plant the internal state is X itself. Only rows 3, 6, 9 carry dynamics (and all the
 uncertainty: the matching condition (11)-(12)); the others are integrator chains.

@@ -317,7 +317,7 @@ void Block(const How<T>& h, const T* lanes, const T* table, int64_t L, int64_t R
     W d[3];                // the external torque at a stage's time
     const W *q = st + kQ, *dq = st + kDq, *cur = st + kCur, *acc = st + kAcc, *w = st + kW, *U = st + kU;
     W nq[3], ndq[3], ncur[3], nw[3], nacc[3], nU[3], dc[3], dw[3];
-    // the integrator step from t_k with U held (fosmc_jax._simulator.rollout._euler / _rk4); acc are the
+    // the integrator step from t_k with U held (fosmc_jax._simulator.step._euler / _rk4); acc are the
     // accelerations of this state, computed when it was observed
 #ifdef FOSMC_NO_REUSE  // an ablation (benchmarks/arm_levers.py): the accelerations recomputed
     W acc0[3];

@@ -15,7 +15,7 @@ controllers the tuner and the presets use:
 Euler or RK4, float32 or float64. Everything else (other controllers, noise, traces) runs the
 ``vmap`` of :func:`fosmc_jax.simulate`, and so does everything where the kernel is not built.
 
-What stays in JAX: the first sample (:func:`fosmc_jax._simulator.rollout.start`, vmapped), everything
+What stays in JAX: the first sample (:func:`fosmc_jax._simulator.step.start`, vmapped), everything
 derived from the controller's parameters (K, (CB)^-1, S), the time-only terms (X_d at the stage
 times, Omega, their norms: a table per call, so any reference works) and
 :func:`fosmc_jax._simulator.metrics.finish`. Every parameter (the arm's, the controller's, the loop's) is
@@ -43,6 +43,7 @@ from .._plants.reference import desired_state
 from . import metrics as _metrics
 from . import native as _native
 from .generated import jvp_perturbed
+from .step import Result, start_batch
 
 # The layouts of arm_kernel.cc: its lane rows, and where the carry's rows hold the accumulator's
 # fields (field-major), the divergence flag and its time, the delay line after them (defined in
@@ -206,8 +207,6 @@ def _folded(advance):
 
 def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, divergence_bound, chattering_cutoff,
                   paired=False):  # fmt: skip
-    from .rollout import Result, start_batch
-
     dtype = X0s.dtype
     dt = jnp.asarray(dt, dtype)
     P = plants.payload.shape[0]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import inspect
 import numbers
 import warnings
 from collections.abc import Callable
@@ -33,6 +32,7 @@ from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
 from .._plants.arm import Arm, ArmParams
 from .._plants.linear import LinearPlant
 from .._plants.reference import Cycloid, Sinusoid
+from .step import INTEGRATORS
 
 #: A field's ``shape`` when it holds an object checked by its own type's rules (if any).
 NESTED = "nested"
@@ -183,7 +183,7 @@ def _count(least: int, what: str) -> Field:
 _FLAG = Field(STATIC, lambda v: isinstance(v, bool), "True or False")
 #: The options of :func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` whose values
 #: are checked here; ``integrator`` and ``pairing`` the simulator checks itself, ``key`` and
-#: ``keys`` are in :data:`ARGUMENTS`. Any other name is refused (:func:`_option_names`).
+#: ``keys`` are in :data:`ARGUMENTS`. Any name not among the function's options is refused.
 OPTIONS: dict[str, Field] = {
     "n_steps": _count(1, "a positive integer (steps)"),
     "save_every": _count(0, "a non-negative integer (steps; 0: no trace)"),
@@ -198,26 +198,9 @@ OPTIONS: dict[str, Field] = {
 }
 
 
-@functools.cache
-def _option_names(batch: bool) -> tuple[str, ...]:
-    """The keyword options :func:`fosmc_jax.simulate` (``batch`` False) or
-    :func:`fosmc_jax.simulate_batch` (True) take: the keyword-only parameters of their jitted
-    functions (the batch's own and, through its ``**options``, the single rollout's)."""
-    from . import rollout  # rollout imports this module
-
-    functions = (rollout._simulate_batch, rollout._simulate) if batch else (rollout._simulate,)
-    names = []
-    for f in functions:
-        for p in inspect.signature(f).parameters.values():
-            if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in names:
-                names.append(p.name)
-    return tuple(names)
-
-
-def _check_options(walk: _Walk, batch: bool, options: dict) -> None:
-    """``options``' names among :func:`_option_names` (else a ``TypeError`` naming the first
-    unknown one) and the values of :data:`OPTIONS` (else a one-line ``ValueError``)."""
-    known = _option_names(batch)
+def _check_options(walk: _Walk, batch: bool, options: dict, known: tuple[str, ...]) -> None:
+    """``options``' names among ``known`` (else a ``TypeError`` naming the first unknown one)
+    and the values of :data:`OPTIONS` (else a one-line ``ValueError``)."""
     unknown = [name for name in options if name not in known]
     if unknown:
         function = "simulate_batch" if batch else "simulate"
@@ -360,8 +343,6 @@ def _step_limit(walk: _Walk, dt: Any, integrator: str) -> str | None:
     a concrete ``dt`` for a known ``integrator``; None otherwise."""
     if not walk.fosmc or isinstance(dt, jax.core.Tracer):
         return None
-    from .rollout import INTEGRATORS  # rollout imports this module
-
     if integrator not in INTEGRATORS:
         return None
     dt = float(np.asarray(dt))
@@ -380,12 +361,13 @@ def _step_limit(walk: _Walk, dt: Any, integrator: str) -> str | None:
 
 
 def check_inputs(
-    plant: Any, controller: Any, reference: Any, X0: Any, dt: Any, batch: bool, options: dict
+    plant: Any, controller: Any, reference: Any, X0: Any, dt: Any, batch: bool, options: dict, known: tuple[str, ...]
 ) -> tuple[Any, ...]:
     """(plant, controller, reference, X0, dt) checked and normalised for :func:`fosmc_jax.simulate`
     (``batch`` False: X0 (9,), unbatched plant) or :func:`fosmc_jax.simulate_batch` (True:
     ``plants`` with a leading axis P on every leaf, X0s (O, 9), ``options["keys"]`` (R, 2) or R
-    typed keys); ``options`` are theirs (read, not changed): an unknown name is a ``TypeError``
+    typed keys); ``options`` are theirs (read, not changed): a name not in ``known`` (the
+    function's options, :func:`fosmc_jax._simulator.rollout.option_names`) is a ``TypeError``
     naming it, a value of :data:`OPTIONS` out of range (``n_steps`` not a positive integer) a
     ``ValueError``; X0 of an integer dtype a ``TypeError`` naming its dtype.
 
@@ -401,7 +383,7 @@ def check_inputs(
     names = ARGUMENTS[batch]
     x0_name, plant_name = ("X0s", "plants") if batch else ("X0", "plant")
     walk = _Walk(X0)
-    _check_options(walk, batch, options)
+    _check_options(walk, batch, options, known)
     X0 = walk.array(X0, x0_name, names[x0_name])
     dtype = getattr(X0, "dtype", None)
     if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):  # X0's dtype is the run's

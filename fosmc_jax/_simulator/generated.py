@@ -1,6 +1,6 @@
 """Generated kernels: the closed loop's step printed from the JAX model into C++, forward and adjoint.
 
-One rollout's step, :func:`fosmc_jax._simulator.rollout.closed_loop_step` (the plant, the law, the
+One rollout's step, :func:`fosmc_jax._simulator.step.closed_loop_step` (the plant, the law, the
 loop, the integrator, the guard and the metrics, whatever pytrees they are: a user's law or plant
 too), is traced on one rollout's flat state and split by what each value depends on:
 
@@ -637,7 +637,7 @@ def warn_unsupported(reason: Exception) -> None:
 
 def _state_layout(carry) -> tuple[Any, list, np.ndarray]:
     """The carry's flat layout without its step count: (treedef, leaf avals, dynamic rows)."""
-    from .rollout import _DYNAMIC
+    from .step import _DYNAMIC
 
     rest = tuple(carry[1:])
     leaves, treedef = jax.tree.flatten(rest)
@@ -654,7 +654,7 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     states or (``paired``) the i-th with the i-th, one noise key; raises
     :class:`codegen.Unsupported` or OSError where the model cannot be printed or built."""
     from . import metrics as _metrics
-    from .rollout import Result, _Carry, closed_loop_step, sample_steps, start_batch
+    from .step import Result, _Carry, closed_loop_step, sample_steps, start_batch
 
     plants, ctrl, reference, X0s, dt, keys, bound, cutoff = args
     dtype = X0s.dtype

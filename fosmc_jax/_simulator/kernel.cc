@@ -3,7 +3,7 @@
 //
 // It advances L steps of the ideal-loop FOSMC ((14), (23) or the equivalent law, switching
 // (28), sign, sat or tanh) on linear plants (3), exactly the operations of
-// fosmc_jax._simulator.rollout._linear_batch's ``body`` in the same order, for N independent rollouts
+// fosmc_jax._simulator.linear_path._linear_batch's ``body`` in the same order, for N independent rollouts
 // ("lanes"). Everything that depends on time only (X_d at the integrator's stage times, and at
 // the sample: X_d, Omega (10), the reference part of rho) comes in a table computed by JAX, so
 // any reference works. The rollouts are held W at a time in SIMD lanes with the time loop
@@ -73,7 +73,7 @@ void Block(const Consts<T>& c, int sw_code, int law_code, const T* ab, const T* 
     const T* row = table + k * R;
     const T* sample = row + (Rk4 ? 27 : 9);  // X_d (9), Omega (3), rho_ref, t'
     const V *x = st + kX, *w = st + kWi, *U = st + kU;
-    // the integrator step, as fosmc_jax._simulator.rollout._euler / _rk4
+    // the integrator step, as fosmc_jax._simulator.step._euler / _rk4
     V nx[9], nw[3], k1x[9], k1w[3];
     field(U, x, row, k1x, k1w);
     if constexpr (!Rk4) {
