@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .._controllers.fosmc import FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
+from .._controllers.fosmc import FOSMC, FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import metrics as _metrics
@@ -222,3 +222,31 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
     div, div_at = out[div], out[div + 1]
     acc = tuple(_metrics.Accumulator(*acc[j::3]) for j in range(3))
     return _Batch(c.k + n_steps, tuple(x), tuple(w), tuple(U), acc, div != 0, div_at)
+
+
+def supports(plants, ctrl, paired: bool) -> bool:
+    """Whether this path runs the batch: plants of the linear model (3) under the ideal-loop
+    FOSMC, every plant with every initial state."""
+    return isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not paired
+
+
+def simulate_batch(args: tuple, derivative, *, native: bool, n_steps: int, integrator: str,
+                   checkpoint_every: int = 0, truncate_every: int = 0, **_) -> Result:  # fmt: skip
+    """:func:`fosmc_jax.simulate_batch` of ``args`` = (plants, ctrl, reference, X0s, dt, keys,
+    divergence_bound, chattering_cutoff) (:func:`supports` must hold; the loop draws no noise)
+    by :func:`_linear_batch`, its time loop in the native kernel where that is built (the
+    kernel is the CPU's: on a GPU, or with ``native=False``, the ``lax.scan`` loop runs).
+    Derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
+    ``derivative(*args)``, the ``vmap`` path's, equal to the scan's to rounding and faster to
+    compile and run (BENCHMARKS.md, benchmarks/linear_paths.py)."""
+    kernel = native and jax.default_backend() == "cpu" and _native.available()
+
+    def scan_path(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
+        return _linear_batch(plants, ctrl.params, reference, X0s, dt, n_steps=n_steps, integrator=integrator,
+                             switching=ctrl.switching, law=ctrl.law, checkpoint_every=checkpoint_every,
+                             truncate_every=truncate_every, divergence_bound=bound, chattering_cutoff=cutoff,
+                             native=kernel)  # fmt: skip
+
+    run = jax.custom_jvp(scan_path)
+    run.defjvp(lambda primals, tangents: jax.jvp(derivative, primals, tangents))
+    return run(*args)

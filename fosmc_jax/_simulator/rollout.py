@@ -13,44 +13,16 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .._controllers.fosmc import FOSMC
 from .._plants.arm import without_idle_terms
-from .._plants.linear import LinearPlant
 from . import arm_native as _arm_native
 from . import codegen as _codegen
 from . import generated as _generated
+from . import linear_path as _linear_path
 from . import metrics as _metrics
-from . import native as _native
 from .checks import check_inputs
-from .linear_path import _linear_batch
 from .step import _STATIC, INTEGRATORS, Result, Trace, _simulate, as_controller, sample_steps
 
 __all__ = ["INTEGRATORS", "PAIRINGS", "Result", "Trace", "simulate", "simulate_batch"]
-
-
-def _fast_batch(plants, controller, reference, X0s, dt, *, native: bool = True, **options) -> Result:
-    """:func:`_linear_batch` with its time loop in the native kernel where that is built (the
-    kernel is the CPU's: on a GPU, or with ``native=False``, the ``lax.scan`` loop runs).
-    Derivatives (``custom_jvp``: forward mode, and reverse mode by its transpose) are those of
-    ``vmap`` of :func:`simulate`, equal to the scan's to rounding: in forward mode they ran
-    3.5x faster than the scan's and compiled 6x sooner (benchmarks/results/linear_paths.md)."""
-    kernel = native and jax.default_backend() == "cpu" and _native.available()
-    switching, law = options["switching"], options["law"]
-    # the traced options are arguments: closed over, they would leak from the custom_jvp rule
-    names = [k for k in ("divergence_bound", "chattering_cutoff") if k in options]
-    static = {k: v for k, v in options.items() if k not in names}
-    rest = {k: v for k, v in static.items() if k not in ("switching", "law")}
-
-    def vmap_path(plants, params, reference, X0s, dt, *traced):  # simulate_batch's own, one realization
-        return _simulate_batch(plants, FOSMC(params, switching, law), reference, X0s, dt, fast=False, **rest,
-                              **dict(zip(names, traced)))  # fmt: skip
-
-    def scan_path(plants, params, reference, X0s, dt, *traced):
-        return _linear_batch(plants, params, reference, X0s, dt, native=kernel, **static, **dict(zip(names, traced)))
-
-    run = jax.custom_jvp(scan_path)
-    run.defjvp(lambda primals, tangents: jax.jvp(vmap_path, primals, tangents))
-    return run(plants, controller, reference, X0s, dt, *(jnp.asarray(options[k], X0s.dtype) for k in names))
 
 
 #: How :func:`simulate_batch` combines plants and initial states: every plant with every
@@ -100,52 +72,53 @@ def _simulate_batch(
     if paired and jax.tree.leaves(plants)[0].shape[0] != X0s.shape[0]:
         raise ValueError(f"pairing = 'paired': expected as many initial states as plants "
                          f"({jax.tree.leaves(plants)[0].shape[0]}), got {X0s.shape[0]}")  # fmt: skip
-    one_key = keys is None or keys.shape[0] == 1  # the ideal FOSMC draws no noise
-    linear = isinstance(plants, LinearPlant) and type(ctrl) is FOSMC
-    if fast and linear and not paired and one_key and not options.get("save_every"):  # paired: the vmap path
-        options = {k: v for k, v in options.items() if k not in ("save_every", "key")}
-        options.update(switching=ctrl.switching, law=ctrl.law)
-        return _fast_batch(plants, ctrl.params, reference, X0s, dt, native=native, **options)
     key = options.pop("key", None)
     if keys is None:
         keys = (jax.random.PRNGKey(0) if key is None else key)[None]
-    # traced options are vmap_path's arguments: closed over, they would leak from the custom_jvp rules
+    # traced options are the paths' arguments: closed over, they would leak from the custom_jvp rules
     traced = (options.pop("divergence_bound", 1e6), options.pop("chattering_cutoff", _metrics.CHATTERING_CUTOFF))
-
-    def vmap_path(plants, ctrl, reference, X0s, dt, keys, bound, cutoff):
-        one = lambda plant, X0, key: _simulate(plant, ctrl, reference, X0, dt, key=key, divergence_bound=bound,
-                                              chattering_cutoff=cutoff, **options)  # fmt: skip
-        if paired:
-            result = jax.vmap(jax.vmap(one, (None, None, 0)), (0, 0, None))(plants, X0s, keys)
-        else:
-            result = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))(
-                plants, X0s, keys
-            )
-        lead = 2 if paired else 3
-        return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[lead:]), result)
-
     options.setdefault("integrator", "rk4")
     args = (plants, ctrl, reference, X0s, dt, keys, *(jnp.asarray(x, X0s.dtype) for x in traced))
-    if not (fast and native and keys.shape[0] == 1 and not options.get("save_every")):
-        return vmap_path(*args)
-    n_steps, integrator = options["n_steps"], options["integrator"]
-    generated = _generated.mode()
+    vmap = functools.partial(_vmap_batch, paired=paired, **options)
+    if not (fast and keys.shape[0] == 1 and not options.get("save_every")):
+        return vmap(*args)  # a trace or noise realizations: the vmap path's alone
+    if _linear_path.supports(plants, ctrl, paired):
+        return _linear_path.simulate_batch(args, vmap, native=native, **options)
+    if not native:
+        return vmap(*args)
+    generated = functools.partial(_generated_or, vmap, paired=paired, **options)
+    if _arm_native.supports(plants, ctrl, options["integrator"]):  # the hand-written forward, generated derivatives
+        return _arm_native.simulate_batch(args, generated, n_steps=options["n_steps"],
+                                          integrator=options["integrator"], paired=paired)  # fmt: skip
+    return generated(*args) if _generated.mode() == "all" else vmap(*args)
 
-    def kernel_path(*args):
-        """The generated kernel (forward and adjoint), else, where the model cannot be printed, the vmap path."""
-        if generated == "0":
-            return vmap_path(*args)
-        try:
-            return _generated.simulate_batch(args, n_steps=n_steps, integrator=integrator, paired=paired,
-                                             truncate_every=-(-options.get("truncate_every", 0) // m) * m)  # fmt: skip
-        except (_codegen.Unsupported, OSError) as e:  # not printable, or its C++ did not build
-            _generated.warn_unsupported(e)
-            return vmap_path(*args)
 
-    m = sample_steps(ctrl)
-    if _arm_native.supports(plants, ctrl, integrator):  # the hand-written forward, the generated derivatives
-        return _arm_native.simulate_batch(args, kernel_path, n_steps=n_steps, integrator=integrator, paired=paired)
-    return kernel_path(*args) if generated == "all" else vmap_path(*args)
+def _vmap_batch(plants, ctrl, reference, X0s, dt, keys, bound, cutoff, *, paired: bool, **options) -> Result:
+    """``vmap`` of :func:`simulate` over the plants, the initial states (crossed or ``paired``)
+    and the keys: every batch runs here, and the fast paths' derivatives come from here where
+    the generated kernel does not give them."""
+    one = lambda plant, X0, key: _simulate(plant, ctrl, reference, X0, dt, key=key, divergence_bound=bound,
+                                          chattering_cutoff=cutoff, **options)  # fmt: skip
+    if paired:
+        result = jax.vmap(jax.vmap(one, (None, None, 0)), (0, 0, None))(plants, X0s, keys)
+    else:
+        result = jax.vmap(jax.vmap(jax.vmap(one, (None, None, 0)), (None, 0, None)), (0, None, None))(plants, X0s, keys)
+    lead = 2 if paired else 3
+    return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[lead:]), result)
+
+
+def _generated_or(vmap, *args, paired: bool, n_steps: int, integrator: str, truncate_every: int = 0, **_) -> Result:
+    """The generated kernel (forward and adjoint), else, where the model cannot be printed or
+    its C++ not built, ``vmap(*args)`` with a warning naming why."""
+    if _generated.mode() == "0":
+        return vmap(*args)
+    m = sample_steps(args[1])
+    try:
+        return _generated.simulate_batch(args, n_steps=n_steps, integrator=integrator, paired=paired,
+                                         truncate_every=-(-truncate_every // m) * m)  # fmt: skip
+    except (_codegen.Unsupported, OSError) as e:
+        _generated.warn_unsupported(e)
+        return vmap(*args)
 
 
 @functools.cache
