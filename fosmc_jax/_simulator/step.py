@@ -341,30 +341,9 @@ def _simulate(
 
     carry = start(plant, ctrl, reference, X0, key, divergence_bound)
 
-    def snapshot(c: _Carry):
-        return (
-            c.k,
-            observe_at(plant, c.plant_state, c.k.astype(dtype) * dt),
-            c.U,
-            _sliding_variable(ctrl, c.ctrl_state, dtype),
-        )
-
     trace = None
     if save_every:
-        blocks, rest = divmod(n_steps, save_every)
-
-        def block(c, _):
-            c = advance(c, save_every)
-            return c, snapshot(c)
-
-        first = snapshot(carry)
-        carry, samples = jax.lax.scan(block, carry, None, length=blocks)
-        carry = advance(carry, rest)
-        stack = lambda head, body, tail: jnp.concatenate([head[None], body] + ([tail[None]] if rest else []))
-        ks, Xs, Us, ss = jax.tree.map(stack, first, samples, snapshot(carry))
-        ts = ks.astype(dtype) * dt
-        X_ds = jax.vmap(lambda t: desired_state(reference(t)))(ts)
-        trace = Trace(ts, Xs, X_ds, Us, ss)
+        carry, trace = _traced(plant, ctrl, reference, dt, advance, carry, n_steps, save_every)
     else:
         whole = lambda steps: -(-steps // m) * m
         detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in _DYNAMIC})
@@ -372,3 +351,27 @@ def _simulate(
 
     metrics = _metrics.masked(_metrics.finish(carry.acc, n_steps * dt), carry.diverged)
     return Result(metrics, carry.diverged, carry.diverged_at, trace)
+
+
+def _traced(plant, ctrl, reference, dt: Array, advance, carry: _Carry, n_steps: int, save_every: int):
+    """``advance`` over ``n_steps`` in blocks of ``save_every``, sampling the :class:`Trace` at
+    t = 0, after each block and at the end: (the last carry, the trace)."""
+    dtype = dt.dtype
+
+    def snapshot(c: _Carry):
+        t = c.k.astype(dtype) * dt
+        return c.k, observe_at(plant, c.plant_state, t), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
+
+    def block(c, _):
+        c = advance(c, save_every)
+        return c, snapshot(c)
+
+    blocks, rest = divmod(n_steps, save_every)
+    first = snapshot(carry)
+    carry, samples = jax.lax.scan(block, carry, None, length=blocks)
+    carry = advance(carry, rest)
+    stack = lambda head, body, tail: jnp.concatenate([head[None], body] + ([tail[None]] if rest else []))
+    ks, Xs, Us, ss = jax.tree.map(stack, first, samples, snapshot(carry))
+    ts = ks.astype(dtype) * dt
+    X_ds = jax.vmap(lambda t: desired_state(reference(t)))(ts)
+    return carry, Trace(ts, Xs, X_ds, Us, ss)
