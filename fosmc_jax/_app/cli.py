@@ -22,7 +22,7 @@ from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
 from .._simulator.metrics import METRIC_NAMES, PERCENTILES, UNITS
-from . import commands
+from . import commands, distributed
 from . import config as _config
 
 _IMPORTED = time.perf_counter()  # process_start's fallback
@@ -67,9 +67,14 @@ def cmd_simulate(args) -> int:
     for option, path in (("--npz", args.npz), ("--plot", args.plot)):
         if path:
             commands.writable(path, option)
-    r = commands.run_simulate(args.config, params=args.params, point=args.point, devices=args.devices,
+    across = _processes(args)
+    devices = None if distributed.Processes(**across).asked else args.devices  # per process: its own count
+    r = commands.run_simulate(args.config, params=args.params, point=args.point, devices=devices,
                               keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
-                              chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log)  # fmt: skip
+                              chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log,
+                              **across)  # fmt: skip
+    if not _leads():  # process 0 alone prints and writes
+        return 0
     cfg, summary, index = r["config"], r["summary"], r["arrays"]
     n = len(index["plant_index"])
     title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
@@ -251,7 +256,9 @@ def cmd_tune(args) -> int:
     """The objective's two metrics with their units, initial and final, then the chattering
     measure the objective does not use (total variation or ``chattering_hf``), labelled so."""
     r = commands.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force,
-                          budget=args.budget, started=process_start(), log=_log)  # fmt: skip
+                          budget=args.budget, started=process_start(), log=_log, **_processes(args))  # fmt: skip
+    if not _leads():  # process 0 alone prints
+        return 0
     optimised = (r["objective"]["error_metric"], r["objective"]["chattering_metric"])
     rows = [(name, commands.metric_label(name)) for name in optimised]
     rows += [(name, commands.metric_label(name) + ", not in the objective")
@@ -273,7 +280,9 @@ def cmd_front(args) -> int:
     result = commands.run_front(args.config, out=args.out, points=args.points, budget=args.budget,
                                 candidates=args.candidates, steps=args.steps, seed=args.seed,
                                 compare=tuple(args.compare), force=args.force, resume=args.resume,
-                                replay=args.replay, started=start, log=_log)  # fmt: skip
+                                replay=args.replay, started=start, log=_log, **_processes(args))  # fmt: skip
+    if not _leads():
+        return 0
     _log(
         f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
         "start)"
@@ -282,6 +291,29 @@ def cmd_front(args) -> int:
         e, c = (float(np.mean(pt["metrics"][k])) for k in AXES)
         print(f"point {i:3d}  {AXES[0]} {e:.4e} rad  {AXES[1]} {c:.4e} V  diverged {pt['diverged']}")
     return 0
+
+
+def _processes(args) -> dict:
+    """The options that join a command's process to the others (``run_*``'s keywords)."""
+    return {"distributed": args.distributed, "coordinator": args.coordinator, "num_processes": args.num_processes,
+            "process_id": args.process_id, "join_timeout": args.join_timeout}  # fmt: skip
+
+
+def _leads() -> bool:
+    """Whether this process prints a command's results: process 0 of a run across processes."""
+    return jax.process_index() == 0
+
+
+def _add_processes(p: argparse.ArgumentParser) -> None:
+    """The options of a command run as several processes (docs/performance.md)."""
+    g = p.add_argument_group("across processes (jax.distributed; every process runs the same command)")
+    g.add_argument("--distributed", action="store_true",
+                   help="join the other processes of a SLURM or Open MPI job (jax.distributed.initialize)")  # fmt: skip
+    g.add_argument("--coordinator", metavar="HOST:PORT", help="process 0's host and a free port on it")
+    g.add_argument("--num-processes", type=int, metavar="N", help="with --coordinator: the number of processes")
+    g.add_argument("--process-id", type=int, metavar="I", help="with --coordinator: this process's index, 0 to N-1")
+    g.add_argument("--join-timeout", type=float, default=distributed.JOIN_TIMEOUT_S, metavar="S",
+                   help=f"seconds for every process to join (default {distributed.JOIN_TIMEOUT_S:g})")  # fmt: skip
 
 
 # ---------------------------------------------------------------------------- select
@@ -449,6 +481,7 @@ def parser() -> argparse.ArgumentParser:
         help="split the batch over N devices (default: every core, or the count set in "
         "JAX_NUM_CPU_DEVICES / XLA_FLAGS; 1 turns sharding off)",
     )
+    _add_processes(s)
     s.set_defaults(func=cmd_simulate)
     b = sub.add_parser("bounds", help="alpha, beta (31), K (16), gamma bounds (24)-(26)")
     b.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -483,6 +516,7 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
     f.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     f.add_argument("--replay", metavar="JSON", help="redo the work a front.json records, bit for bit")
+    _add_processes(f)
     f.set_defaults(func=cmd_front)
     e = sub.add_parser("select", help="the front point that best meets a bound on error or chattering; its TOML")
     e.add_argument("--front", required=True, metavar="JSON", help="a `fosmc front` front.json")
@@ -501,6 +535,7 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")
     t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")
+    _add_processes(t)
     t.set_defaults(func=cmd_tune)
     c = sub.add_parser("certify", help="check the hitting condition (20) numerically; gamma-bound verdicts")
     c.add_argument("--config", help="TOML config (default: the paper's setup)")
@@ -564,12 +599,24 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     started = time.time()
     args = parser().parse_args(argv)
+    processes = distributed.Processes(*(getattr(args, k, None) for k in ("distributed", "coordinator",
+                                                                          "num_processes", "process_id")),
+                                      getattr(args, "join_timeout", distributed.JOIN_TIMEOUT_S))  # fmt: skip
+    if processes.asked and not os.environ.get(distributed.CHILD):
+        try:
+            processes.checked()
+        except _config.ConfigError as e:
+            print(f"fosmc: error: {e}", file=sys.stderr)
+            return 2
+        return distributed.supervise(argv, processes)  # the work in a child: its faults in one line
     warnings.showwarning = _warn
     from .._simulator.cache import use_compilation_cache
-    from .._simulator.sharding import _cores, use_all_cores, use_host_devices  # before the first JAX operation
+    from .._simulator.sharding import _cores, show_all_cores, use_all_cores, use_host_devices  # before JAX starts
 
     if getattr(args, "devices", None) is None:
-        use_all_cores()  # simulate, front (and tune's global stage) split their batches over every local device
+        # simulate, front (and tune's global stage) split their batches over every local device; a process
+        # that joins others must not start JAX before it has
+        show_all_cores() if processes.asked else use_all_cores()
     else:
         # each CPU device has its own threads: thousands abort the process (LLVM's pthread_create)
         if not 1 <= args.devices <= _cores():
@@ -584,6 +631,8 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
     try:
+        if processes.asked:  # first: before the command's own JAX operations (its config's checks)
+            distributed.join(processes)
         code = args.func(args)
         sys.stdout.flush()  # a reader that went away shows here, not at the interpreter's exit
         return code
@@ -596,6 +645,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _log(_interrupted(args, argv, started))
         return INTERRUPTED
+    except Exception as e:
+        if processes.asked and distributed.collective_failed(e):  # a peer died: the supervisor names it
+            return distributed.after_collective_failed(e)
+        raise
 
 
 def _silence_stdout() -> None:

@@ -7,7 +7,9 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .._simulator import sharding
 from .config import ConfigError
+from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
     Log,
@@ -41,6 +43,11 @@ def run_front(
     replay: str | Path | None = None,
     started: float | None = None,
     log: Log = _quiet,
+    distributed: bool = False,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    join_timeout: float = JOIN_TIMEOUT_S,
 ) -> dict[str, Any]:
     """``fosmc front``: the Pareto front of mean ``rms_error`` against mean
     ``chattering_hf`` over the config's batch within ``budget`` seconds of wall time, over the
@@ -62,8 +69,44 @@ def run_front(
     FOSMC (Table 1's sets, SGN) whatever the kind. With ``candidates`` and ``steps`` given the
     result is deterministic except ``stages.wall_time_s``. On a batch of one plant
     (:func:`one_plant`) it warns as ``run_tune`` does. Its ``log`` lines start with ``front:``.
+
+    Across processes (:mod:`fosmc_jax._app.distributed`): ``distributed`` (``jax.distributed.initialize()``
+    finds SLURM or Open MPI), or ``coordinator`` ``"HOST:PORT"``, ``num_processes`` and this
+    ``process_id``, all joined within ``join_timeout`` s, before JAX computes anything in this
+    process (a :class:`ConfigError` otherwise). Each process runs this call with the same
+    config and options (checked before any work); the candidates are split over every
+    process's devices; every process returns the same result, process 0 alone logs and writes
+    ``out`` (``resume`` reads the checkpoint every process sees there: the same file).
     """
     from .._search import front as search_front
+    from . import study
+
+    across = join(Processes(distributed, coordinator, num_processes, process_id, join_timeout))
+    lead = not across or sharding.leads()
+    log = log if lead else _quiet
+    with agreeing(across) as agree:
+        cfg, out = _checked_front(config, out, points, budget, candidates, steps, seed, compare, force, resume, replay,
+                                  lead)  # fmt: skip
+        files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
+        agree(digest({"command": "front", "config": cfg, "out": out, "points": points, "budget": budget,
+                      "candidates": candidates, "steps": steps, "seed": seed, "compare": list(compare),
+                      "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
+    if lead:
+        _warn_one_plant(cfg, "front")
+    if out is not None and lead:
+        out.mkdir(parents=True, exist_ok=True)
+    settings = search_front.Settings(
+        points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed
+    )
+    if replay is not None:
+        settings = study.replayed(replay)[1]._replace(budget=budget)
+    return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
+
+
+def _checked_front(config, out, points, budget, candidates, steps, seed, compare, force, resume, replay,
+                   lead) -> tuple[dict, Path | None]:  # fmt: skip
+    """``run_front``'s checks of its inputs (one-line :class:`ConfigError` s): the resolved
+    config and the output folder (probed by process 0 alone, the one that writes)."""
     from . import study
 
     if resume and force:
@@ -73,11 +116,11 @@ def run_front(
                                 ("--steps", steps)) if v is not None]  # fmt: skip
         if given:
             raise ConfigError(f"--replay: takes the config and sizes from its front.json: leave out {', '.join(given)}")
-        cfg, replayed = study.replayed(replay)
+        cfg = study.replayed(replay)[0]
     else:
         cfg = config_of(config)
     if out is not None:
-        out = _fresh_out(out, force or resume, "use --resume or --force")
+        out = _fresh_out(out, force or resume, "use --resume or --force") if lead else Path(out)
     for name, value in (("--points", points), ("--candidates", candidates), ("--steps", steps)):
         if value is not None and not (_is_integer(value) and value >= (1 if name == "--points" else 0)):
             raise ConfigError(f"{name}: expected a {'positive' if name == '--points' else 'non-negative'} "
@@ -91,12 +134,4 @@ def run_front(
             json.loads(Path(path).read_text())
         except (OSError, ValueError) as e:
             raise ConfigError(f"--compare: cannot read {path}: {e}") from None
-    _warn_one_plant(cfg, "front")
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-    settings = search_front.Settings(
-        points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed
-    )
-    if replay is not None:
-        settings = replayed._replace(budget=budget)
-    return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
+    return cfg, out

@@ -13,11 +13,13 @@ import jax
 import numpy as np
 
 from .._io import jsonable, stamped, write_text
+from .._simulator import sharding
 from .._simulator.metrics import METRIC_NAMES, Metrics, batch_summary
 from .._simulator.rollout import simulate_batch
 from . import chunks, memory
 from . import config as _config
 from .config import ConfigError
+from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
     Log,
@@ -43,6 +45,11 @@ def run_simulate(
     checkpoint: str | Path | None = None,
     resume: bool = False,
     log: Log = _quiet,
+    distributed: bool = False,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    join_timeout: float = JOIN_TIMEOUT_S,
 ) -> dict[str, Any]:
     """``fosmc simulate``: every plant x initial offset (x noise realization) of the config.
 
@@ -80,7 +87,24 @@ def run_simulate(
     the memory), so that ``resume`` continues a killed run from its last finished chunk, with
     the same results as a run not killed; the folder's ``plan.json`` (config, chunk size,
     devices, versions) must be the run's.
+
+    Across processes (``distributed`` or ``coordinator``, ``num_processes``, ``process_id``,
+    ``join_timeout``: as :func:`fosmc_jax._app.front.run_front`'s), the batch is split over every
+    process's devices (``devices``: None, all of them) and every process returns the whole
+    result; process 0 alone logs. Not with ``checkpoint`` (its chunk files would be written by
+    every process).
     """
+    across = join(Processes(distributed, coordinator, num_processes, process_id, join_timeout))
+    log = log if not across or sharding.leads() else _quiet
+    with agreeing(across) as agree:
+        if across and checkpoint is not None:
+            raise ConfigError("--checkpoint: not in a run across processes (each would write the chunks)")
+        if across and devices not in (None, jax.device_count()):
+            raise ConfigError(f"--devices: a run across processes splits the batch over every process's devices "
+                              f"({jax.device_count()}); set each process's count with JAX_NUM_CPU_DEVICES")  # fmt: skip
+        options = {"command": "simulate", "config": config_of(config), "params": params, "point": point,
+                   "keep_trace": keep_trace, "records": records, "draws": draws, "chunk": chunk}  # fmt: skip
+        agree(digest(options, (params,)))
     if resume and checkpoint is None:
         raise ConfigError("--resume: needs --checkpoint DIR, the folder of the run's chunks")
     if checkpoint is not None:
@@ -89,7 +113,7 @@ def run_simulate(
             raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
                               "there; or give another folder)")  # fmt: skip
     cfg = config_of(config)
-    devices = jax.local_device_count() if devices is None else devices
+    devices = (jax.device_count() if across else jax.local_device_count()) if devices is None else devices
     if params:
         cfg = _config.with_params(cfg, params, point)
     elif point is not None:
@@ -119,10 +143,10 @@ def run_simulate(
         f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s)"
         f"{f' in chunks of at most {size} rollouts' if in_chunks else ''}: compiling and running ...")  # fmt: skip
     start = time.perf_counter()
-    if devices > 1:
-        from .._simulator.sharding import simulate_sharded
-
-        run = functools.partial(simulate_sharded, devices=devices)
+    if across:  # every process's devices; every process gets the whole batch's results
+        run = lambda *args, **kw: sharding.gathered(sharding.simulate_sharded(*args, devices=None, **kw))
+    elif devices > 1:
+        run = functools.partial(sharding.simulate_sharded, devices=devices)
     else:
         run = simulate_batch
     if in_chunks:

@@ -21,6 +21,7 @@ from .._design import paper
 from .._io import jsonable, write_text
 from .._search import tune as tuner
 from .._search.front import Evaluator, Settings, point_of, replay_settings, run
+from .._simulator import sharding
 from . import config as _config
 
 
@@ -101,7 +102,7 @@ def start_afresh(out: Path | None, *names: str) -> None:
     """Remove a previous run's final file and checkpoint ``names`` from ``out`` (a run started
     over it with ``--force``), so that a final file in a folder always belongs to its last
     run, and a checkpoint never to another run."""
-    for name in names if out is not None else ():
+    for name in names if out is not None and sharding.leads() else ():  # process 0 alone writes
         (Path(out) / name).unlink(missing_ok=True)
 
 
@@ -150,6 +151,7 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
         t = time.perf_counter()
         held(one, settings.chunk, log=lambda _: None)
         held_s = min(held_s, (time.perf_counter() - t) / settings.chunk)
+    held_s = sharding.first(float(held_s))  # process 0's: the search's plan is the same on every process
     log(f"front: the held-out evaluation costs {1e3 * held_s:.1f} ms per front point")
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
     result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
@@ -162,7 +164,7 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     result["references"] = refs
     result["held_out_batch"] = held_out_batch(held_out_config(cfg))
     result["config"] = cfg
-    if out is not None:
+    if out is not None and sharding.leads():
         from .plots import plot_front
 
         write_text(Path(out) / "front.json", json.dumps(jsonable(result), indent=1))

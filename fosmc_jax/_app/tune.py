@@ -12,9 +12,11 @@ import jax
 import numpy as np
 
 from .._io import jsonable, stamped, write_text
+from .._simulator import sharding
 from .._simulator.metrics import UNITS
 from . import config as _config
 from .config import ConfigError
+from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
     Log,
@@ -39,6 +41,11 @@ def run_tune(
     budget: float | None = None,
     started: float | None = None,
     log: Log = _quiet,
+    distributed: bool = False,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
+    join_timeout: float = JOIN_TIMEOUT_S,
 ) -> dict[str, Any]:
     """``fosmc tune``: gradient-based tuning (optax) of the ``[tune] params`` of the config's
     ``controller.kind`` (every kind is tunable, each with its own parameters: the FOSMC's
@@ -65,11 +72,40 @@ def run_tune(
     plant (:func:`one_plant`: the default config's nominal model) it warns (``UserWarning``)
     that the optimum holds for that plant only. Its ``log`` lines start with ``tune:``; its
     step lines name the objective's metrics.
+
+    Across processes (``distributed`` or ``coordinator``, ``num_processes``, ``process_id``,
+    ``join_timeout``: as :func:`fosmc_jax._app.front.run_front`'s), the global stage's candidates
+    and the training batch's rollouts (where their count divides among the devices) are split
+    over every process's devices; every process returns the same result, process 0 alone logs
+    and writes ``out``.
     """
-    from .._search import tune as tuner
     from . import study
 
     started = time.perf_counter() if started is None else started
+    across = join(Processes(distributed, coordinator, num_processes, process_id, join_timeout))
+    lead = not across or sharding.leads()
+    log = log if lead else _quiet
+    with agreeing(across) as agree:
+        cfg, out = _checked_tune(config, steps, out, resume, force, budget, lead)
+        files = (out / "checkpoint.npz", out / "result.json") if resume and out is not None else ()
+        agree(digest({"command": "tune", "config": cfg, "out": out, "resume": resume, "force": force,
+                      "budget": budget}, files))  # fmt: skip
+    if out is not None:
+        if resume and (done := study.finished(out, "result.json", cfg, "tune", log)) is not None:
+            return done
+        if not resume:
+            study.start_afresh(out, "result.json", "checkpoint.npz")
+    if lead:
+        _warn_one_plant(cfg, "tune")
+    return _tune(cfg, out, resume, budget, started, lead, log)
+
+
+def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict, Path | None]:
+    """``run_tune``'s checks of its inputs (one-line :class:`ConfigError` s): the resolved
+    config with ``steps`` in it, and the output folder (probed by process 0 alone, the one that
+    writes)."""
+    from .._search import tune as tuner
+
     if resume and force:
         raise ConfigError("--resume: continues the run in --out, --force starts it afresh: give one of them")
     if budget is not None and not (_is_real(budget) and math.isfinite(budget) and budget > 0):
@@ -89,14 +125,19 @@ def run_tune(
         raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
                           f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
-        out = _fresh_out(out, force or resume, "use --resume or --force")
-        if resume and (done := study.finished(out, "result.json", cfg, "tune", log)) is not None:
-            return done
-        if not resume:
-            study.start_afresh(out, "result.json", "checkpoint.npz")
-    _warn_one_plant(cfg, "tune")
+        out = _fresh_out(out, force or resume, "use --resume or --force") if lead else Path(out)
+    return cfg, out
+
+
+def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
+          log: Log) -> dict[str, Any]:  # fmt: skip
+    """``run_tune``'s work, its inputs checked."""
+    from .._search import tune as tuner
+    from . import study
+
+    tcfg = cfg["tune"]
     plain, problem, p0 = _config.tuning_problems(cfg)
-    if out is not None:
+    if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
     floor = None
     if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
@@ -166,7 +207,7 @@ def run_tune(
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg,
     })  # fmt: skip
-    if out is not None:
+    if out is not None and lead:
         from .plots import plot_tuning
 
         write_text(out / "result.json", json.dumps(jsonable(result), indent=1))

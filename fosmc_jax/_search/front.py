@@ -65,6 +65,7 @@ from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as Spec
 
 from .._io import stamped
+from .._simulator import sharding
 from .._simulator.metrics import METRIC_NAMES, mean_over_survivors
 from . import tune as tuner
 from .pareto import nondominated
@@ -201,20 +202,23 @@ def sample_candidates(p0: tuner.Params, n: int, seed: int) -> tuner.Params:
 class Evaluator:
     """Mean metrics of many parameter sets of one problem, in jitted, vmapped chunks split over
     every local device (on CPU one per core after :func:`fosmc_jax.use_all_cores`: the CLI's
-    default; 2.2x on 2 cores); candidates are independent, so the split changes no result. The
+    default; 2.2x on 2 cores), and over every process's devices in a run across processes
+    (``jax.distributed``: each process holds every chunk, runs its devices' slice, and gets
+    all the metrics back); candidates are independent, so the split changes no result. The
     object owns its compilation (one per chunk size): a second call reuses it; a fresh
     evaluator of the same problem pays it again (the studies' equal-cost comparisons)."""
 
     def __init__(self, problem: tuner.Problem):
         self.problem = problem
-        self.devices = len(jax.local_devices())
+        self.devices = jax.device_count()  # every process's, in a run across processes
         self._run: Callable | None = None
+        self._mesh: Mesh | None = None
 
     def compiled(self) -> Callable:
         """The jitted evaluation of a chunk (built on first use)."""
         if self._run is not None:
             return self._run
-        mesh = Mesh(np.asarray(jax.local_devices()), ("candidates",))
+        mesh = self._mesh = Mesh(np.asarray(jax.devices()), ("candidates",))
 
         def one(p):
             r = self.problem.simulate(p, checkpoint_every=0)
@@ -240,13 +244,15 @@ class Evaluator:
         padded = -(-chunk // devices) * devices  # the compiled size: a multiple of the devices
         parts, start, shown = [], time.perf_counter(), -np.inf
         for i in range(0, n, chunk):
-            if parts and deadline is not None and time.perf_counter() > deadline:
+            if parts and deadline is not None and sharding.first(time.perf_counter() > deadline):
                 break
             part = jax.tree.map(lambda x, i=i: x[i : i + chunk], params)
             size = jax.tree.leaves(part)[0].shape[0]
             if size < padded:  # pad to the compiled size
                 part = jax.tree.map(lambda x, pad=padded - size: jnp.concatenate([x, jnp.repeat(x[-1:], pad, 0)]), part)
-            parts.append(jax.tree.map(lambda x, size=size: np.asarray(x)[:size], run(part)))
+            if sharding.across_processes():  # every process holds the chunk; each runs its devices' slice
+                part = sharding.spread(part, self._mesh, Spec("candidates"))
+            parts.append(jax.tree.map(lambda x, size=size: x[:size], sharding.gathered(run(part))))
             if each is not None:
                 each(min(i + chunk, n), {k: np.concatenate([p[k] for p in parts]) for k in parts[0]})
             now = time.perf_counter()
@@ -351,7 +357,7 @@ def cma_stage(problem: tuner.Problem | Evaluator, p0: tuner.Params, z: np.ndarra
     t0 = shown = saved = time.perf_counter()
     for g in range(start, generations):
         live = [k for k, es in enumerate(runs) if not es.stop()]
-        if not live or (deadline is not None and time.perf_counter() > deadline):
+        if not live or (deadline is not None and sharding.first(time.perf_counter() > deadline)):
             why = "every run met pycma's stop criteria" if not live else "the stage's time is spent"
             log(f"front: CMA-ES stopped after {g} generations: {why}")
             return z, m, g
@@ -456,19 +462,19 @@ def run(
         compile_s = time.perf_counter() - t
         t = time.perf_counter()
         m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-        costs["train"] = time.perf_counter() - t
+        costs["train"] = sharding.first(time.perf_counter() - t)  # process 0's clock: the plan is the same everywhere
         plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
         if surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
             for _ in range(2):
                 t = time.perf_counter()
                 evaluate_many(plain, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-            costs["plain"] = time.perf_counter() - t
+            costs["plain"] = sharding.first(time.perf_counter() - t)
             plain_point_s = costs["plain"] / settings.chunk
         end = settings.budget if deadline is None else deadline - t0
         # the search's time, less the final evaluations of a front of a few hundred points
         # once, and at most the end: the stages' ends must not pass the run's (local = now + search <= end),
         # also where compiling took the whole budget (a loaded machine)
-        elapsed = clock.elapsed()
+        elapsed, end = sharding.first(clock.elapsed()), sharding.first(float(end))
         now = min(elapsed, end)
         final = 300 * (reserve_per_point + plain_point_s)
         search = max(0.0, end - now - final)
@@ -501,7 +507,7 @@ def run(
         the clock, so that a replay or a resumed run steps as the first run did)."""
         if which not in horizon:
             cost = costs.get("train" if which == "local" else "plain", 0.0)
-            guess = (end - time.perf_counter()) / cost if end is not None and cost > 0 else n - 1
+            guess = sharding.first((end - time.perf_counter()) / cost) if end is not None and cost > 0 else n - 1
             horizon[which] = int(max(1, min(guess, n - 1)))
         return horizon[which]
 
@@ -536,7 +542,7 @@ def run(
                 save("global", np.concatenate([z, zg[done : done + k]]), join(m, mk))
                 saved[:] = [time.perf_counter(), chunks]
 
-        if done < limit and not (done and end is not None and time.perf_counter() > end):
+        if done < limit and not (done and end is not None and sharding.first(time.perf_counter() > end)):
             mg = evaluate_many(train, from_factors(p0, zg[done:limit]), settings.chunk, log=log, what="global stage",
                                deadline=end, each=partial)  # fmt: skip
             z, m = np.concatenate([z, zg[done : done + len(mg["diverged"])]]), join(m, mg)
@@ -570,7 +576,7 @@ def run(
         zs, ms = [z], [m]
         for r in range(r0, n):
             now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
-            if end is not None and now > end:
+            if end is not None and sharding.first(now > end):
                 log(f"front: {what} rounds: {r} run, the stage's time is spent")
                 n = r
                 break

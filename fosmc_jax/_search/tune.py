@@ -55,6 +55,7 @@ from .._controllers.smc import SMCGains as SMCGains
 from .._controllers.super_twisting import STGains as STGains
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
+from .._simulator import sharding
 from .._simulator.metrics import mean_over_survivors
 from .._simulator.problem import Problem
 from .._simulator.sharding import replicated
@@ -260,7 +261,10 @@ def _on_adjoint_kernel(loss, u) -> bool:
 
 
 def _save(path: Path, header: dict, arrays: dict[str, Any]) -> None:
-    """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``."""
+    """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``; by
+    process 0 alone in a run across processes (the others hold the same state)."""
+    if not sharding.leads():
+        return
     if "header" in arrays:
         raise ValueError("a checkpoint array may not be named 'header'")
     text = np.frombuffer(json.dumps(header).encode(), np.uint8)
@@ -337,7 +341,7 @@ class _LineSearch:
                 f = float(out[0][0])
                 if np.isfinite(f) and f <= float(value) - ARMIJO * eta * float(slope) and np.isfinite(_norm(out[1])):
                     return v, state, eta, out, trials
-                if self.deadline is not None and time.perf_counter() > self.deadline:
+                if self.deadline is not None and sharding.first(time.perf_counter() > self.deadline):
                     self.timed_out = True
                     return None
                 eta *= SHRINK
@@ -413,7 +417,7 @@ def run(
             jax.block_until_ready(f(u))  # compile
             t0 = time.perf_counter()
             jax.block_until_ready(f(u))
-            timings[m] = time.perf_counter() - t0
+            timings[m] = sharding.first(time.perf_counter() - t0)  # process 0's: the same choice everywhere
         mode = min(timings, key=timings.get)
         log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
             f"forward {timings['forward']:.3f} s)")  # fmt: skip
@@ -422,9 +426,9 @@ def run(
         jax.block_until_ready(step_fn(u))  # compiled (where auto did not)
         t0 = time.perf_counter()
         jax.block_until_ready(step_fn(u))
-        per_step = time.perf_counter() - t0
-        # one evaluation more after the steps: the last update's loss
-        fit = max(1, int((deadline - time.perf_counter()) / per_step) - 1)
+        per_step = sharding.first(time.perf_counter() - t0)
+        # one evaluation more after the steps: the last update's loss (process 0's count, on every process)
+        fit = sharding.first(max(1, int((deadline - time.perf_counter()) / per_step) - 1))
         if fit < settings.steps:
             settings = settings._replace(steps=fit)
             if not lbfgs:
@@ -443,7 +447,7 @@ def run(
     current = step_fn(u) if lbfgs else None  # L-BFGS: the loss and gradient at u, from the accepted trial
     t_start = time.perf_counter()
     for step in range(start_step, settings.steps):
-        if deadline is not None and step > start_step and time.perf_counter() > deadline:  # one step at least
+        if deadline is not None and step > start_step and sharding.first(time.perf_counter() > deadline):
             log(f"tune: the budget's deadline passed: {step} of {settings.steps} steps done")
             break
         (value, (err, chat)), grad = current if lbfgs else step_fn(u)

@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as Spec
 
@@ -109,12 +110,18 @@ def use_all_cores() -> int:
     ``jax.distributed.initialize`` pass ``devices=None`` to :func:`simulate_sharded` to span
     every process's devices. Sharding never changes results (tests/test_performance_paths.py).
     """
+    show_all_cores()
+    return jax.local_device_count()
+
+
+def show_all_cores() -> None:
+    """:func:`use_all_cores` without starting JAX (it returns nothing): what a process that
+    joins others (``jax.distributed.initialize``, which must come before JAX starts) calls."""
     if _user_device_count() is None:
         try:
             jax.config.update("jax_num_cpu_devices", _cores())
         except RuntimeError:  # backends already initialised
             pass
-    return jax.local_device_count()
 
 
 def batch_mesh(devices: int | Sequence[jax.Device] | None = None) -> Mesh:
@@ -195,11 +202,54 @@ def _sharded(mesh, plant_spec, x0_spec, options, plants, controller, reference, 
     return _split(mesh, plant_spec, x0_spec, dict(options), plants, controller, reference, X0s, dt, keys)
 
 
+def across_processes() -> bool:
+    """Whether this run spans several processes (``jax.distributed.initialize`` came first):
+    then every process holds the same inputs in full, the device meshes span every process's
+    devices, and results are gathered so that every process sees all of them."""
+    return jax.process_count() > 1
+
+
+def leads() -> bool:
+    """Whether this process prints and writes a run's outputs: process 0 (the only one of a
+    run in one process)."""
+    return jax.process_index() == 0
+
+
+def spread(tree, mesh: Mesh, spec: Spec):
+    """``tree`` (held in full by every process) as global arrays laid out by ``spec`` on
+    ``mesh``, each process supplying its own devices' slices."""
+    return jax.tree.map(lambda x: _global(x, NamedSharding(mesh, spec)), tree)
+
+
+def gathered(tree):
+    """``tree``'s arrays as NumPy arrays holding every process's part: the full results on
+    every process (``process_allgather``; plain ``np.asarray`` in one process)."""
+    if not across_processes():
+        return jax.tree.map(np.asarray, tree)
+    return jax.tree.map(np.asarray, multihost_utils.process_allgather(tree, tiled=True))
+
+
+def first(value):
+    """Process 0's ``value`` (a NumPy scalar or array, a bool, an int or a float) on every
+    process: a decision taken from a clock (a deadline passed, a measured cost) must be the
+    same everywhere, or the processes run different work. A collective: every process calls it
+    at the same point. ``value`` itself in one process."""
+    if not across_processes():
+        return value
+    a = np.asarray(value)
+    raw = np.frombuffer(np.ascontiguousarray(a).tobytes(), np.uint8)  # bytes: no dtype is cast (x64 off)
+    got = np.asarray(multihost_utils.broadcast_one_to_all(raw), np.uint8)
+    out = np.frombuffer(got.tobytes(), a.dtype).reshape(a.shape)
+    return type(value)(out.item()) if isinstance(value, (bool, int, float)) else out
+
+
 def replicated(tree):
     """``tree`` placed whole on every local device, on :func:`simulate_split`'s mesh: how the
     gradients of a loss on it come out, so that a jitted optimizer step fed its own outputs
     compiles once (an uncommitted first input compiled a second program: 34 -> 21 s on
     arm_set2_truncated, tuning/results/truncation.md)."""
+    if across_processes():  # every process's devices: the tuner's loss spans them
+        return spread(tree, Mesh(np.asarray(jax.devices()), (AXIS,)), Spec())
     if jax.local_device_count() == 1:
         return tree
     sharding = NamedSharding(Mesh(np.asarray(jax.local_devices()), (AXIS,)), Spec())
@@ -208,17 +258,19 @@ def replicated(tree):
 
 def simulate_split(plants, controller, reference, X0s, dt, *, keys: Array | None = None, **options) -> Result:
     """:func:`fosmc_jax.simulate_batch` with its rollouts split over this process's devices
-    when the initial states (O) or else the plants (P) divide evenly among them (the choice of
+    (every process's, in a run across processes: :func:`across_processes`) when the initial
+    states (O) or else the plants (P) divide evenly among them (the choice of
     :func:`simulate_sharded`, which pads where neither does), and ``simulate_batch`` itself
     otherwise. Traceable (inside ``jit`` and ``grad``, unlike
     :func:`simulate_sharded`, which places concrete inputs): the tuner's loss runs on it.
     Returns the same :class:`Result`, plant-major, (P*O*R, ...)."""
-    n = jax.local_device_count()
+    devices = jax.devices() if across_processes() else jax.local_devices()
+    n = len(devices)
     P, O = jax.tree.leaves(plants)[0].shape[0], X0s.shape[0]
     paired = options.get("pairing") == "paired"
     if n == 1 or (P % n and (paired or O % n)):
         return simulate_batch(plants, controller, reference, X0s, dt, keys=keys, **options)
-    mesh = Mesh(np.asarray(jax.local_devices()), (AXIS,))
+    mesh = Mesh(np.asarray(devices), (AXIS,))
     plants = without_idle_terms(plants)  # before shard_map makes its amplitudes tracers
     if paired:
         plant_spec = x0_spec = Spec(AXIS)
