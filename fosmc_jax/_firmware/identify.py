@@ -627,6 +627,9 @@ def identify(
       (s), ``residual_variance`` s^2, ``threshold``, ``bootstrap`` (resamples; 0 when skipped),
       ``bootstrap_skipped`` (why, or None), ``stds`` (where the standard deviations come from);
     - ``log``: samples, duration, period, currents, delay.
+
+    Its length (the stages are :func:`_fit`, :func:`_fit_passes`, :func:`_delay_costs`,
+    :func:`_uncertainty`): the report draws on the values of every stage, kept in one place.
     """
     settings = settings or Settings()
     progress = progress or (lambda _: None)
@@ -673,33 +676,9 @@ def identify(
     progress(f"identify: {k} direction(s) not identified by the log (standard deviation above "
              f"{settings.threshold:g}){'; fixed as configured: ' + names_of(fixed) if k else ''}")  # fmt: skip
 
-    # the well-identified entries first, then every free one: a weakly identified entry moved
-    # while the strong ones are still wrong runs off (F to 0 against Kb's damping, measured);
-    # then each channel weighted by its own residual (the scatter about local cubics overstates
-    # the noise of a current that follows a chattering voltage) and fitted again
-    weak = int(np.sum(std0 > settings.threshold * WEAK))
-    first = free.copy()
-    first[choose_fixed(V[:, :weak])] = False
-    costs, iterations = [], 0
-    passes = [(first, "without the weakly identified " + names_of(np.flatnonzero(free & ~first)))] * (weak > k)
-    for mask, what in passes + [(free, "every free entry"), (free, "reweighted")]:
-        if what == "reweighted":
-            rms = np.sqrt(np.mean(np.asarray(r).reshape(W, -1, settings.window + 1, 3) ** 2, axis=(0, 2)))
-            sigma = np.maximum(rms.ravel() * sigma, floors)
-            what += f": noise {np.array2string(sigma, precision=2)} ({units})"
-        progress(f"identify: fitting {what}")
-        x0s, z, history, (r, Jx, Jz) = _fit(model, sigma, x0s, z, mask, settings.iterations, progress)
-        costs.append(history[-1])
-        iterations += len(history) - 1
-
-    # the delay: each other one from 0 to DELAYS refitted (states and free entries) from this optimum, on the
-    # same windows (delays up to SMOOTHING leave them where they are) and the same compiled model
-    delays = {settings.delay: costs[-1]}
-    for d in range(max(DELAYS, settings.delay) + 1 if settings.delay <= SMOOTHING else 0):
-        if d != settings.delay:
-            other = _model(ents, params, payload, cut(log, settings.window, d), settings.integrator, steps,
-                           model.compiled)  # fmt: skip
-            delays[d] = _fit(other, sigma, x0s, z, free, DELAY_ITERATIONS)[2][-1]
+    x0s, z, sigma, costs, iterations, (r, Jx, Jz) = _fit_passes(model, sigma, floors, x0s, z, free, V, std0, k,
+                                                                names_of, units, settings, progress)  # fmt: skip
+    delays = _delay_costs(ents, params, payload, log, model, sigma, x0s, z, free, steps, costs[-1], settings)
     delay_note = delay_warning(delays, settings.delay)
     if delay_note:
         progress(f"identify: warning: {delay_note}")
@@ -753,6 +732,43 @@ def identify(
             "delay_costs": {str(d): c for d, c in sorted(delays.items())},
         },  # fmt: skip
     }
+
+
+def _fit_passes(model, sigma, floors, x0s, z, free, V, std0, k, names_of, units, settings: Settings, progress):
+    """The fits from the states-only optimum: the well-identified entries first, then every
+    free one (a weakly identified entry moved while the strong ones are still wrong runs off:
+    F to 0 against Kb's damping), then each channel weighted by its own residual (the scatter
+    about local cubics overstates the noise of a current that follows a chattering voltage)
+    and fitted again. Returns (x0s, z, sigma, costs, iterations, (r, Jx, Jz))."""
+    W = x0s.shape[0]
+    weak = int(np.sum(std0 > settings.threshold * WEAK))
+    first = free.copy()
+    first[choose_fixed(V[:, :weak])] = False
+    costs, iterations, r = [], 0, None
+    passes = [(first, "without the weakly identified " + names_of(np.flatnonzero(free & ~first)))] * (weak > k)
+    for mask, what in passes + [(free, "every free entry"), (free, "reweighted")]:
+        if what == "reweighted":
+            rms = np.sqrt(np.mean(np.asarray(r).reshape(W, -1, settings.window + 1, 3) ** 2, axis=(0, 2)))
+            sigma = np.maximum(rms.ravel() * sigma, floors)
+            what += f": noise {np.array2string(sigma, precision=2)} ({units})"
+        progress(f"identify: fitting {what}")
+        x0s, z, history, (r, Jx, Jz) = _fit(model, sigma, x0s, z, mask, settings.iterations, progress)
+        costs.append(history[-1])
+        iterations += len(history) - 1
+    return x0s, z, sigma, costs, iterations, (r, Jx, Jz)
+
+
+def _delay_costs(ents, params, payload, log, model, sigma, x0s, z, free, steps, cost, settings: Settings) -> dict:
+    """{delay: cost}: the fit's ``cost`` at ``settings.delay`` and each other delay from 0 to
+    :data:`DELAYS` refitted (states and free entries) from this optimum, on the same windows
+    (delays up to :data:`SMOOTHING` leave them where they are) and the same compiled model."""
+    delays = {settings.delay: cost}
+    for d in range(max(DELAYS, settings.delay) + 1 if settings.delay <= SMOOTHING else 0):
+        if d != settings.delay:
+            other = _model(ents, params, payload, cut(log, settings.window, d), settings.integrator, steps,
+                           model.compiled)  # fmt: skip
+            delays[d] = _fit(other, sigma, x0s, z, free, DELAY_ITERATIONS)[2][-1]
+    return delays
 
 
 def delay_warning(costs: dict[int, float], delay: int, margin: float = DELAY_MARGIN) -> str | None:
