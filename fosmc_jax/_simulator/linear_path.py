@@ -87,7 +87,8 @@ def _linear_batch(
     """:func:`fosmc_jax.simulate_batch` without a trace for plants (P,) of :class:`LinearPlant` and
     X0s (O, 9); results with a leading axis P * O, plant-major. With ``native`` the time loop
     runs in the compiled kernel of :mod:`fosmc_jax._simulator.native` (forward only), else in
-    ``lax.scan``."""
+    ``lax.scan``. Its length: the step's stages (``sample``, ``field``, ``body``) are closures
+    over the batch's rows of A, B, C, S, K, gamma and delta, unpacked once here."""
     if integrator not in _STEPPERS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
     dtype = X0s.dtype
