@@ -7,6 +7,8 @@ seconds): the default tier holds one small model, the arm's in the slow tier."""
 
 import dataclasses
 import functools
+import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -171,6 +173,50 @@ def test_a_primitive_the_printer_does_not_know_is_named_and_the_batch_runs_the_v
     np.testing.assert_array_equal(res.metrics.rms_error, want.metrics.rms_error)
 
 
+def _lapack_calls(text: str) -> list[tuple[str, tuple, int]]:
+    """The LAPACK calls of a lowered program: (kind, shape, jaxlib 0.10's work estimate of the
+    batch: m n min(m, n) per LU, m n m (left side) or m n n per triangular solve of m x n)."""
+    calls = []
+    for line in text.splitlines():
+        found = re.search(r"custom_call @lapack_[sdcz](getrf|trsm)_ffi", line)
+        if found:
+            types = re.findall(r"tensor<((?:\d+x)*)[a-z]\w*>", line.rsplit(" : (", 1)[-1].split("->")[0])
+            *batch, m, n = (int(d) for d in types[-1 if found[1] == "trsm" else 0].rstrip("x").split("x"))
+            cost = m * n * min(m, n) if found[1] == "getrf" else m * n * (m if "side = 76" in line else n)
+            calls.append((found[1], (*batch, m, n), math.prod(batch) * cost))
+    return calls
+
+
+def _solves(v):
+    """A 3 x 3 solve with 9 right-hand sides and one with 1 (jaxlib's work: 81 and 9, LU 27)."""
+    M = jnp.diag(3 + jnp.cos(v[:3])) + 0.1 * jnp.outer(jnp.sin(v[3:6]), jnp.cos(v[6:9]))
+    b = jnp.outer(jnp.tanh(v[9:12]), jnp.arange(1.0, 10.0))
+    return jnp.linalg.solve(M, b), jnp.linalg.solve(M, b[:, 0])
+
+
+def test_batched_lapack_calls_stay_below_jaxlibs_split_and_keep_their_values():
+    """jaxlib's CPU LAPACK kernels split a batch of 200,000 flops or more over XLA's intra-op
+    threads and wait for the pieces on one of them: two such calls at once on 2 cores hung the
+    arm's gradient of 3,072 rollouts (the solves of its hoisted lanes, 3 x 9 right-hand sides).
+    ``generated._vmap`` maps such a batch in pieces below that, values bitwise unchanged, its
+    derivatives' calls too; a batch below it is the plain ``vmap``."""
+    assert generated._lapack_work(jax.make_jaxpr(_solves)(jnp.zeros(12)).jaxpr) == 81
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(3072, 12)))
+    plain = jax.jit(jax.vmap(_solves)).lower(x).as_text()
+    assert max(w for *_, w in _lapack_calls(plain)) == 3072 * 81  # the premise: plain vmap splits
+    mapped = lambda x: generated._vmap(_solves, (x,))
+    grad = jax.grad(lambda x: jnp.sum(mapped(x)[0] ** 2) + jnp.sum(mapped(x)[1]))
+    for f in (mapped, grad):
+        calls = _lapack_calls(jax.jit(f).lower(x).as_text())
+        assert calls and max(w for *_, w in calls) < generated._LAPACK_SPLIT, calls
+    halves = [jax.jit(jax.vmap(_solves))(h) for h in (x[:1536], x[1536:])]  # 1,536 x 81: one thread each
+    for got, want in zip(jax.jit(mapped)(x), zip(*halves)):
+        np.testing.assert_array_equal(got, np.concatenate(want))
+    small = x[:2048]  # 2,048 x 81 < 200,000: the plain vmap's calls, whole
+    calls = _lapack_calls(jax.jit(mapped).lower(small).as_text())
+    assert calls == _lapack_calls(jax.jit(jax.vmap(_solves)).lower(small).as_text()) and calls[0][1][0] == 2048
+
+
 def test_the_mode_is_checked():
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FOSMC_JAX_GENERATED", "always")
@@ -290,6 +336,23 @@ def test_a_users_law_with_a_state_of_its_own_runs_on_the_arm_kernel_in_float32()
     v, g = jax.value_and_grad(lambda k: loss(k, "gen"))(law.Ki)
     w, h = jax.value_and_grad(lambda k: loss(k, "vmap"))(law.Ki)
     assert _rel(v, w) < 1e-4 and _rel(g, h) < 1e-3  # float32: to rounding over 200 steps
+
+
+@pytest.mark.slow
+def test_the_arms_gradient_of_3072_rollouts_splits_no_lapack_batch_over_threads():
+    """The hang of 3,072 arm rollouts (64 payloads x 48 offsets, RK4): in the gradient's program
+    (lowered, not run: the hang is one of threads, a run on many cores may pass), no LAPACK call
+    reaches jaxlib's split (:func:`test_batched_lapack_calls_stay_below_jaxlibs_split_and_keep_their_values`)."""
+    c = fj.config.load("tuning/configs/arm_ideal_set2.toml")
+    c["plant"]["payloads"] = np.linspace(0, 10, 64).tolist()
+    c["plant"].pop("uncertainty", None)
+    offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (48, 9)).tolist()
+    c["sim"].update(integrator="rk4", t_final=20 * c["sim"]["dt"], initial_offset=offsets)
+    problem = fj.build(c)
+    loss = lambda p: jnp.mean(problem.simulate(p).mean().rms_error)
+    calls = _lapack_calls(jax.jit(jax.value_and_grad(loss)).lower(problem.params()).as_text())
+    assert problem.rollouts == 3072 and any(len(s) == 3 for _, s, _ in calls)  # batched solves: there
+    assert max(w for *_, w in calls) < 200_000, sorted(calls, key=lambda c: -c[2])[:3]  # jaxlib 0.10's split
 
 
 @pytest.mark.slow

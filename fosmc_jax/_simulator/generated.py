@@ -491,6 +491,79 @@ def _model_key(closed: list, m: int, dynamic, n_plant: int) -> tuple | None:
 # ----------------------------------------------------------------------------- in JAX
 
 
+#: jaxlib's CPU LAPACK kernels (0.10) split a batch of matrices over XLA's intra-op threads once
+#: their estimate of its work (flops, ``GetLapackBatchChunkSize``) reaches this, and wait for the
+#: pieces on the calling thread, itself one of those threads: when every one of them waits so
+#: (two batched solves at once on 2 cores), nobody runs the pieces and the program hangs, every
+#: thread idle. A batch whose calls stay below it runs on the calling thread alone.
+_LAPACK_SPLIT = 200_000
+#: The primitives that run as jaxlib's LAPACK kernels on the CPU.
+_LAPACK = {"lu", "triangular_solve", "cholesky", "eig", "eigh", "svd", "geqrf", "geqp3", "householder_product",
+           "ormqr", "schur", "hessenberg", "tridiagonal", "tridiagonal_solve"}  # fmt: skip
+
+
+def _lapack_work(jaxpr) -> int:
+    """The largest work of one LAPACK call in ``jaxpr`` (its sub-jaxprs too) per element of a
+    ``vmap`` over it: jaxlib's estimate for ``lu`` and ``triangular_solve`` (m n min(m, n), and m n m
+    or m n n of the right-hand side), 100 m n max(m, n) for the others (above jaxlib's), times
+    the matrices the call holds already, times 3 for complex ones."""
+    worst = 0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name in _LAPACK:
+            aval = eqn.invars[-1 if name in ("triangular_solve", "tridiagonal_solve") else 0].aval
+            *batch, m, n = (1, 1, *aval.shape)[-max(2, len(aval.shape)) :]
+            if name == "lu":
+                cost = m * n * min(m, n)
+            elif name == "triangular_solve":
+                cost = m * n * (m if eqn.params["left_side"] else n)
+            else:
+                cost = 100 * m * n * max(m, n)
+            cost *= math.prod(batch) * (3 if jnp.issubdtype(aval.dtype, jnp.complexfloating) else 1)
+            worst = max(worst, cost)
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            worst = max(worst, _lapack_work(sub))
+    return worst
+
+
+def _vmap(fn, args: tuple, in_axes=0, out_axes=0):
+    """``jax.vmap(fn, in_axes, out_axes)(*args)``, or, where one of ``fn``'s LAPACK calls batched
+    so would reach :data:`_LAPACK_SPLIT` (and could hang, see there), the same by ``lax.map`` over
+    batches that stay below it (each matrix's LAPACK call is the same one: the same values)."""
+    in_axes = (in_axes,) * len(args) if isinstance(in_axes, int) else in_axes
+    size = next(jnp.shape(x)[d] for x, d in zip(args, in_axes) if d is not None)
+    held = [i for i, d in enumerate(in_axes) if d is not None]
+    one = [jax.ShapeDtypeStruct(tuple(n for j, n in enumerate(jnp.shape(args[i])) if j != in_axes[i]), args[i].dtype)
+           for i in held]  # fmt: skip
+
+    def inner(*mapped):
+        full = list(args)
+        for i, x in zip(held, mapped):
+            full[i] = x
+        return fn(*full)
+
+    work = _lapack_work(jax.make_jaxpr(inner)(*one).jaxpr)
+    floats = [j for j, a in enumerate(one) if jnp.issubdtype(a.dtype, jnp.inexact)]
+    if work and floats:  # a derivative's calls too (a solve's cotangents: as wide as its right-hand sides)
+
+        def pullback(*xs):
+            def f(*moving):
+                full = list(xs)
+                for j, x in zip(floats, moving):
+                    full[j] = x
+                return inner(*full)
+
+            out, back = jax.vjp(f, *(xs[j] for j in floats))
+            return back(out)
+
+        work = max(work, _lapack_work(jax.make_jaxpr(pullback)(*one).jaxpr))
+    if size * work < _LAPACK_SPLIT:
+        return jax.vmap(fn, in_axes, out_axes)(*args)
+    out = jax.lax.map(lambda xs: inner(*xs), [jnp.moveaxis(args[i], in_axes[i], 0) for i in held],
+                      batch_size=max(1, (_LAPACK_SPLIT - 1) // work))  # fmt: skip
+    return jax.tree.map(lambda y: jnp.moveaxis(y, 0, out_axes), out)
+
+
 def _pad(x: Array, W: int) -> Array:
     return jnp.pad(x, ((0, 0), (0, (-x.shape[1]) % W)), mode="edge")
 
@@ -539,7 +612,7 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
             if truncate:
                 x = jnp.where(dyn & (k % truncate == 0), jax.lax.stop_gradient(x), x)
             one = lambda x, lane: model.step(k + 1, x, lane, table[k])
-            return jax.vmap(one, (1, 1), 1)(x, lanes), None
+            return _vmap(one, (x, lanes), 1, 1), None
 
         return jax.lax.scan(body, x0, jnp.arange(L))[0]
 
@@ -705,8 +778,8 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     model = build(step_of, state_aval, lane_avals, glob_avals, m, dynamic, n_plant)
     x0 = jax.vmap(flatten)(carry).T
     per_lane = [x if i < n_plant else jnp.broadcast_to(x, (N, *jnp.shape(x))) for i, x in enumerate(lane_leaves)]
-    lanes = tuple(part.T for part in jax.vmap(model.lanes)(per_lane))
-    table = jax.vmap(lambda k: model.table_row(k, glob_leaves))(jnp.arange(n_steps, dtype=jnp.int32))
+    lanes = tuple(part.T for part in _vmap(lambda *leaves: model.lanes(list(leaves)), tuple(per_lane)))
+    table = _vmap(lambda k: model.table_row(k, glob_leaves), (jnp.arange(n_steps, dtype=jnp.int32),))
     x = advance(model, x0, lanes, table, truncate_every)
     final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x))(x.T)
     metrics = jax.vmap(lambda c: _metrics.masked(_metrics.finish(c.acc, n_steps * dt), c.diverged))(final)
