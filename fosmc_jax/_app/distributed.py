@@ -237,7 +237,7 @@ def supervise(argv: list[str], processes: Processes) -> int:
     state: dict[str, Any] = {"joined": None, "failed": None, "log": []}
     reader = threading.Thread(target=_forward, args=(child, state), daemon=True)
     reader.start()
-    printer = threading.Thread(target=_forward_stdout, args=(child,), daemon=True)
+    printer = threading.Thread(target=_forward_stdout, args=(child, state), daemon=True)
     printer.start()
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # the child gets it and ends as it does
     try:
@@ -257,8 +257,11 @@ def supervise(argv: list[str], processes: Processes) -> int:
             printer.join(timeout=5)
             code = child.returncode
             if code in (0, 1, 2, 130, 141) and state["failed"] is None:
-                return code
-            verdict = _who_died(state, wait=False) or (_not_joined(processes) if state["joined"] is None else None)
+                return 141 if state.get("broken_pipe") else code
+            if code < 0 and not state["log"] and state["failed"] is None:  # killed itself, JAX said nothing
+                verdict = f"this process's work ended by signal {-code} ({signal.Signals(-code).name})"
+            else:
+                verdict = _who_died(state, wait=False) or (_not_joined(processes) if state["joined"] is None else None)
             if verdict is None:
                 return code if code > 0 else 1
         if child.poll() is None:
@@ -282,14 +285,19 @@ def _die_with_parent() -> None:
         pass
 
 
-def _forward_stdout(child: subprocess.Popen) -> None:
+def _forward_stdout(child: subprocess.Popen, state: dict) -> None:
     """Copy the child's stdout to ours as it is, less gloo's line on its connections (which
-    would break ``--json``)."""
+    would break ``--json``); once our reader has gone (``| head``), read on and drop it, so
+    that the child never blocks on a full pipe."""
     out = sys.stdout.buffer
     for raw in child.stdout:
-        if not raw.startswith(b"[Gloo] "):
+        if raw.startswith(b"[Gloo] ") or state.get("broken_pipe"):
+            continue
+        try:
             out.write(raw)
             out.flush()
+        except BrokenPipeError:
+            state["broken_pipe"] = True
 
 
 def _forward(child: subprocess.Popen, state: dict) -> None:
