@@ -18,6 +18,7 @@ from test_interfaces import StatePD  # a user's law, defined once
 import fosmc_jax as fj
 from fosmc_jax import paper
 from fosmc_jax._simulator.checks import RULES, check_inputs
+from fosmc_jax._simulator.rollout import option_names
 
 OPTIONS = {"n_steps": 5, "integrator": "euler"}
 DT = 1e-3  # far below the nominal model's euler limit, 0.24 s
@@ -42,7 +43,7 @@ def inputs(dtype=jnp.float64, **changes):
 
 
 def check(plant, controller, reference, X0, dt, batch=False, **options):
-    return check_inputs(plant, controller, reference, X0, dt, batch, dict(OPTIONS, **options))
+    return check_inputs(plant, controller, reference, X0, dt, batch, dict(OPTIONS, **options), option_names(batch))
 
 
 def refused(match: str, *args, batch=False, **options) -> str:
@@ -246,7 +247,7 @@ def test_the_check_computes_the_stable_step_once_per_model(monkeypatch):
     monkeypatch.setattr(_checks, "stable_step", lambda *a: calls.append(a) or 1.0)
     _checks._stable_step.cache_clear()
     p = fj.build(None)
-    args = (p.plants, p.controller(), p.reference, p.X0s, p.dt, True, dict(p.options, keys=p.keys))
+    args = (p.plants, p.controller(), p.reference, p.X0s, p.dt, True, dict(p.options, keys=p.keys), option_names(True))
     for _ in range(3):
         check_inputs(*args)
     assert len(calls) == 1
