@@ -215,6 +215,19 @@ def test_processes_with_other_options_are_refused(tmp_path):
     assert not any((d / "out").exists() for d in dirs)
 
 
+def test_an_output_refused_on_process_0_ends_both_in_one_line(tmp_path):
+    """simulate --npz that process 0 cannot write (a file's path as its folder): refused before
+    any work, every process ends with status 2 and one line, at once (not after JAX's heartbeat)."""
+    dirs = folders(tmp_path, 2)
+    t = time.monotonic()
+    procs = across(["simulate", "--config", "sampled.toml", "--npz", "sampled.toml/x.npz"], dirs, timeout=120)
+    assert time.monotonic() - t < 60
+    assert [p.returncode for p in procs] == [2, 2]
+    err = [read(d, "stderr.txt") for d in dirs]
+    assert err[0].startswith("fosmc: error: --npz: ") and err[0].count("\n") == 1, err[0]
+    assert err[1] == "fosmc: error: process 0 refused the run (its error says why): every process ends\n", err[1]
+
+
 def test_joining_options_checked_in_one_line(tmp_path, capsys):
     """Incomplete or contradictory joining options, and joining after JAX has computed (as it
     has in this test process), are refused in one line naming the option."""

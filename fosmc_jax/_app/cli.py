@@ -21,6 +21,7 @@ import numpy as np
 from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
+from .._simulator import sharding
 from .._simulator.metrics import METRIC_NAMES, PERCENTILES, UNITS
 from . import commands, distributed
 from . import config as _config
@@ -56,24 +57,26 @@ def cmd_simulate(args) -> int:
     ``--npz`` and ``--plot`` are checked (writable, a figure format) before the simulation.
     The rollouts are printed from their arrays as they are formatted (no Python object per
     rollout held: a batch run in chunks prints as much as memory holds)."""
-    sampled = commands.config_of(args.config)["sample"]["count"] > 0
-    if args.plot:
-        from .plots import check_figure_path
-
-        try:
-            check_figure_path(args.plot)
-        except ValueError as e:
-            raise _config.ConfigError(f"--plot: {e}") from None
-    for option, path in (("--npz", args.npz), ("--plot", args.plot)):
-        if path:
-            commands.writable(path, option)
     across = _processes(args)
+    with distributed.agreeing(jax.process_count() > 1) as agree:  # a refusal here ends every process in one line
+        sampled = commands.config_of(args.config)["sample"]["count"] > 0
+        if args.plot:
+            from .plots import check_figure_path
+
+            try:
+                check_figure_path(args.plot)
+            except ValueError as e:
+                raise _config.ConfigError(f"--plot: {e}") from None
+        for option, path in (("--npz", args.npz), ("--plot", args.plot)):
+            if path and sharding.leads():  # process 0 alone writes
+                commands.writable(path, option)
+        agree(bytes(32))
     devices = None if distributed.Processes(**across).asked else args.devices  # per process: its own count
     r = commands.run_simulate(args.config, params=args.params, point=args.point, devices=devices,
                               keep_trace=bool(args.plot) and not sampled, records=False, draws=args.json,
                               chunk=args.chunk, checkpoint=args.checkpoint, resume=args.resume, log=_log,
                               **across)  # fmt: skip
-    if not _leads():  # process 0 alone prints and writes
+    if not sharding.leads():  # process 0 alone prints and writes
         return 0
     cfg, summary, index = r["config"], r["summary"], r["arrays"]
     n = len(index["plant_index"])
@@ -257,7 +260,7 @@ def cmd_tune(args) -> int:
     measure the objective does not use (total variation or ``chattering_hf``), labelled so."""
     r = commands.run_tune(args.config, steps=args.steps, out=args.out, resume=args.resume, force=args.force,
                           budget=args.budget, started=process_start(), log=_log, **_processes(args))  # fmt: skip
-    if not _leads():  # process 0 alone prints
+    if not sharding.leads():  # process 0 alone prints
         return 0
     optimised = (r["objective"]["error_metric"], r["objective"]["chattering_metric"])
     rows = [(name, commands.metric_label(name)) for name in optimised]
@@ -281,7 +284,7 @@ def cmd_front(args) -> int:
                                 candidates=args.candidates, steps=args.steps, seed=args.seed,
                                 compare=tuple(args.compare), force=args.force, resume=args.resume,
                                 replay=args.replay, started=start, log=_log, **_processes(args))  # fmt: skip
-    if not _leads():
+    if not sharding.leads():
         return 0
     _log(
         f"front: {len(result['points'])} points in {time.perf_counter() - start:.1f} s (wall time from the process's "
@@ -297,11 +300,6 @@ def _processes(args) -> dict:
     """The options that join a command's process to the others (``run_*``'s keywords)."""
     return {"distributed": args.distributed, "coordinator": args.coordinator, "num_processes": args.num_processes,
             "process_id": args.process_id, "join_timeout": args.join_timeout}  # fmt: skip
-
-
-def _leads() -> bool:
-    """Whether this process prints a command's results: process 0 of a run across processes."""
-    return jax.process_index() == 0
 
 
 def _add_processes(p: argparse.ArgumentParser) -> None:

@@ -109,12 +109,7 @@ def join(processes: Processes) -> bool:
         return False
     if jax.distributed.is_initialized():
         return jax.process_count() > 1
-    from jax._src import xla_bridge
-
     option = "--distributed" if processes.distributed else "--coordinator"
-    if xla_bridge.backends_are_initialized():
-        raise ConfigError(f"{option}: JAX has already computed in this process: joining other processes must come "
-                          "first (call run_front/run_tune/run_simulate with it in a fresh process)")  # fmt: skip
     kwargs = {} if processes.distributed else dict(coordinator_address=processes.coordinator,
                                                    num_processes=processes.num_processes,
                                                    process_id=processes.process_id)  # fmt: skip
@@ -123,6 +118,11 @@ def join(processes: Processes) -> bool:
     try:
         jax.distributed.initialize(**kwargs, initialization_timeout=timeout, heartbeat_timeout_seconds=HEARTBEAT_S)
     except (RuntimeError, ValueError, TypeError) as e:
+        if "must be called before" in str(e):  # JAX's own check that no backend has started yet
+            raise ConfigError(
+                f"{option}: JAX has already computed in this process: joining other processes must "
+                "come first (call run_front/run_tune/run_simulate with it in a fresh process)"
+            ) from None
         raise ConfigError(f"{option}: {str(e).strip().splitlines()[0]}") from None
     _tell(f"joined {jax.process_index()} {jax.process_count()}")
     return jax.process_count() > 1
@@ -143,7 +143,7 @@ def digest(options: dict[str, Any], files: tuple[str | Path | None, ...] = ()) -
 def agreeing(across: bool) -> Iterator[Callable[[bytes], None]]:
     """The checks of a run's inputs, then ``agree(digest)`` (:func:`digest`) inside the block:
     every process's digest is compared with process 0's before any work, and a process whose
-    checks failed (a :class:`ConfigError` in the block before ``agree``) tells the others, so
+    checks failed (an exception in the block before ``agree``) tells the others, so
     that every process of the run ends with one line: its own error, or which process differs
     or refused. Nothing happens in one process."""
     state = {"agreed": not across}
@@ -155,7 +155,7 @@ def agreeing(across: bool) -> Iterator[Callable[[bytes], None]]:
 
     try:
         yield agree
-    except ConfigError:
+    except Exception:  # a ConfigError, or any other error of the checks (a file that cannot be read)
         if not state["agreed"]:
             state["agreed"] = True
             _compare(b"\0" * 32, failed=True)
@@ -268,6 +268,7 @@ def supervise(argv: list[str], processes: Processes) -> int:
             child.kill()
             child.wait()
         reader.join(timeout=5)
+        printer.join(timeout=5)  # the child's last lines of stdout before the verdict
         print(f"fosmc: error: {verdict}", file=sys.stderr, flush=True)
         return 1
     finally:
