@@ -15,8 +15,8 @@ import pytest
 
 import fosmc_jax as fj
 from fosmc_jax import paper
+from fosmc_jax._simulator import linear_path as _linear_path
 from fosmc_jax._simulator import native as _native
-from fosmc_jax._simulator import rollout as _simulator
 
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
 
@@ -137,7 +137,7 @@ def test_scan_loop_equals_vmap_of_simulate():
     (and under reverse-mode derivatives); the cases above run the kernel where it is."""
     plants, ctrl, ref, X0s = setup()
     opts = dict(n_steps=300, integrator="rk4", switching="ratio")
-    scan = jax.jit(functools.partial(_simulator._linear_batch, **opts))(plants, ctrl, ref, X0s, 1e-3)
+    scan = jax.jit(functools.partial(_linear_path._linear_batch, **opts))(plants, ctrl, ref, X0s, 1e-3)
     assert_close(scan, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
 
 
