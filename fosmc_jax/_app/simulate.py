@@ -102,7 +102,8 @@ def run_simulate(
         if across and devices not in (None, jax.device_count()):
             raise ConfigError(f"--devices: a run across processes splits the batch over every process's devices "
                               f"({jax.device_count()}); set each process's count with JAX_NUM_CPU_DEVICES")  # fmt: skip
-        options = {"command": "simulate", "config": config_of(config), "params": params, "point": point,
+        cfg = config_of(config)
+        options = {"command": "simulate", "config": cfg, "params": params, "point": point,
                    "keep_trace": keep_trace, "records": records, "draws": draws, "chunk": chunk}  # fmt: skip
         agree(digest(options, (params,)))
     if resume and checkpoint is None:
@@ -112,7 +113,6 @@ def run_simulate(
         if not resume and checkpoint.exists() and any(checkpoint.iterdir()):
             raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
                               "there; or give another folder)")  # fmt: skip
-    cfg = config_of(config)
     devices = (jax.device_count() if across else jax.local_device_count()) if devices is None else devices
     if params:
         cfg = _config.with_params(cfg, params, point)
