@@ -20,6 +20,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._design.gains import closed_loop_matrix, gain_from_poles, input_matrix_product
+from .._design.linalg import inv3
 from .._plants.reference import desired_state, feedforward
 from .kind import Kind, Param, Space
 
@@ -57,7 +58,7 @@ class Derived(NamedTuple):
 def derive(ctrl: FOSMCParams) -> Derived:
     """K from the poles, (CB)^-1, and CA + CBK = C (A + BK)."""
     K = gain_from_poles(ctrl.a_rows, ctrl.b_rows, ctrl.poles)
-    CB_inv = jnp.linalg.inv(input_matrix_product(ctrl.C, ctrl.b_rows))
+    CB_inv = inv3(input_matrix_product(ctrl.C, ctrl.b_rows))
     S = ctrl.C @ closed_loop_matrix(ctrl.a_rows, ctrl.b_rows, K)
     return Derived(K, CB_inv, S)
 

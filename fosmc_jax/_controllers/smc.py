@@ -15,6 +15,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._design.gains import input_matrix_product
+from .._design.linalg import solve3
 from .kind import Kind, Param, Space
 from .surface import SurfaceParams, surface_of, surface_terms
 
@@ -40,7 +41,7 @@ class SMC:
     def update(self, state: SMCState, Y: Array, r: Array, t: Array) -> tuple[Array, SMCState]:
         s, U_eq = surface_terms(self.surface, Y, r)
         CB = input_matrix_product(self.surface.C, self.surface.b_rows)
-        return U_eq - jnp.linalg.solve(CB, self.k * jnp.clip(s / self.phi, -1.0, 1.0)), SMCState(s)
+        return U_eq - solve3(CB, self.k * jnp.clip(s / self.phi, -1.0, 1.0)), SMCState(s)
 
     def sliding_variable(self, state: SMCState) -> Array:
         return state.s

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._design.gains import input_matrix_product
+from .._design.linalg import solve3
 from .fosmc import safe_sqrt
 from .kind import Kind, Param, Space
 from .surface import SurfaceParams, surface_of, surface_terms
@@ -53,7 +54,7 @@ class SuperTwisting:
     def update(self, state: STState, Y: Array, r: Array, t: Array) -> tuple[Array, STState]:
         s, U_eq = surface_terms(self.surface, Y, r)
         CB = input_matrix_product(self.surface.C, self.surface.b_rows)
-        U = U_eq - jnp.linalg.solve(CB, self.k1 * _signed_sqrt(s) - state.v)
+        U = U_eq - solve3(CB, self.k1 * _signed_sqrt(s) - state.v)
         v = state.v - self.period * self.k2 * jnp.sign(s)
         return U, STState(v, s)
 

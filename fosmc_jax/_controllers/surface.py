@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._design.gains import input_matrix_product
+from .._design.linalg import solve3
 from .._plants.reference import desired_state
 
 
@@ -41,7 +42,7 @@ def surface_terms(p: SurfaceParams, Y: Array, r: Array) -> tuple[Array, Array]:
     X_d = desired_state(r)
     dX_d = jnp.stack([r[1], r[2], r[3]], axis=1).reshape(9)
     CB = input_matrix_product(p.C, p.b_rows)
-    U_eq = jnp.linalg.solve(CB, p.C @ dX_d - p.C @ nominal_rates(p.a_rows, Y))
+    U_eq = solve3(CB, p.C @ dX_d - p.C @ nominal_rates(p.a_rows, Y))
     return p.C @ (Y - X_d), U_eq
 
 

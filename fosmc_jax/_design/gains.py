@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .linalg import solve3
 from .paper import ROWS
 
 
@@ -61,7 +62,7 @@ def gain_from_poles(a_rows: Array, b_rows: Array, poles: Array) -> Array:
     target = jnp.zeros_like(a_rows)
     for j in range(3):
         target = target.at[j, 3 * j : 3 * j + 3].set(-coeffs[j].astype(a_rows.dtype))
-    return jnp.linalg.solve(b_rows, target - a_rows)
+    return solve3(b_rows, target - a_rows)
 
 
 def closed_loop_matrix(a_rows: Array, b_rows: Array, K: Array) -> Array:

@@ -46,6 +46,7 @@ from jax import Array
 
 from .._design import paper as _paper
 from .._design.gains import BoxBound, box_norm_bound
+from .._design.linalg import solve3
 from .reference import Cycloid, desired_state
 
 #: Payload range of the paper's simulations (kg): "no load (0 kg) and maximum load (10 kg)".
@@ -349,7 +350,7 @@ def forward_dynamics(params: ArmParams, payload: Array, theta: Array, dtheta: Ar
     p = cast_params(params, theta.dtype)
     M = mass_matrix(p, payload, theta)
     n = coriolis_matrix(p, payload, theta, dtheta) @ dtheta + gravity(p, payload, theta) + p.F * dtheta
-    return jnp.linalg.solve(M, tau - (n + coulomb_friction(p, dtheta)))
+    return solve3(M, tau - (n + coulomb_friction(p, dtheta)))
 
 
 # ---------------------------------------------------------------------------- closed form
@@ -636,10 +637,10 @@ def third_order_rows(arm: Arm, X: Array) -> tuple[Array, Array]:
     slope = jnp.zeros(3, X.dtype) if p.Fc is None else p.Fc / p.v_coulomb
     phi = jnp.diag(slope * _tanh_over(x))  # phi q' = Fc tanh(q'/v_c)
     dphi = jnp.diag(slope * (1 - jnp.tanh(x) ** 2))  # d/dq' of Fc tanh(q'/v_c)
-    a_q = -jnp.linalg.solve(M, r[:, None] * G_bar)
-    a_dq = -jnp.linalg.solve(M, r[:, None] * (C + F + phi) + jnp.diag(kb) + dc_dq + dG(p, m, q))
-    a_ddq = -jnp.linalg.solve(M, r[:, None] * M + Mdot + dc_ddq + F + dphi)
-    b = jnp.linalg.solve(M, jnp.diag(k))
+    a_q = -solve3(M, r[:, None] * G_bar)
+    a_dq = -solve3(M, r[:, None] * (C + F + phi) + jnp.diag(kb) + dc_dq + dG(p, m, q))
+    a_ddq = -solve3(M, r[:, None] * M + Mdot + dc_ddq + F + dphi)
+    b = solve3(M, jnp.diag(k))
     a = jnp.stack([a_q, a_dq, a_ddq], axis=2).reshape(3, 9)
     return a, b
 

@@ -14,6 +14,8 @@ from typing import NamedTuple
 import jax.numpy as jnp
 from jax import Array
 
+from .._design.linalg import solve3
+
 
 class Cycloid(NamedTuple):
     """The paper's rest-to-rest reference (30).
@@ -72,4 +74,4 @@ def feedforward(a_rows: Array, b_rows: Array, derivatives: Array) -> Array:
     Rows 1, 2, 4, 5, 7, 8 of (10) hold for any smooth X_d; rows 3, 6, 9 give
     theta_d''' = A_r X_d + B_bar Omega, so Omega = B_bar^-1 (theta_d''' - A_r X_d).
     """
-    return jnp.linalg.solve(b_rows, derivatives[3] - a_rows @ desired_state(derivatives))
+    return solve3(b_rows, derivatives[3] - a_rows @ desired_state(derivatives))

@@ -37,6 +37,7 @@ from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, 
 from .._controllers.smc import SMC
 from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
 from .._design.gains import input_matrix_product
+from .._design.linalg import inv3
 from .._loop.digital import DigitalLoop
 from .._plants.arm import Arm, ArmParams, cast_params
 from .._plants.reference import desired_state
@@ -92,7 +93,7 @@ def _law_rows(law, dtype) -> Array:
         rows = (c.C, d.S, d.CB_inv, d.K, c.gamma, c.delta)
     else:
         C, a_rows, b_rows = _surface_of(law)
-        CB_inv = jnp.linalg.inv(input_matrix_product(C, b_rows))
+        CB_inv = inv3(input_matrix_product(C, b_rows))
         gains = (law.k, law.phi) if type(law) is SMC else (law.k1, law.k2)
         rows = (C, a_rows, CB_inv, jnp.zeros(27), *gains)
     period = getattr(law, "period", 0.0)
