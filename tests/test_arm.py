@@ -265,3 +265,27 @@ def test_params_physically_plausible():
         assert I[0] + I[1] >= I[2] and I[1] + I[2] >= I[0] and I[0] + I[2] >= I[1]
     assert P.c2 < P.l2 and P.c3 < P.l3
     assert isinstance(P, ArmParams)
+
+
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_the_observation_carried_into_the_next_stage_changes_no_value(monkeypatch, integrator):
+    """The simulator reuses each step's observation (its theta'') in the next step's first
+    stage (``Arm.derivative_observed``): the same values as computing it again."""
+    from fosmc_jax._simulator import step
+
+    arm, ctrl, ref, X0 = Arm(P, jnp.asarray(3.0)), _controller(), _reference(), _X0()
+    state = arm.init(X0 + 0.1)
+    U, t = jnp.asarray([1.0, -2.0, 0.5]), jnp.asarray(0.3)
+    for a, b in zip(jax.tree.leaves(arm.derivative_observed(state, arm.observe(state, t), U, t)),
+                    jax.tree.leaves(arm.derivative(state, U, t))):  # fmt: skip
+        np.testing.assert_array_equal(a, b)
+    run = lambda: fj.simulate(arm, fj.FOSMC(ctrl), ref, X0, 1e-3, n_steps=60, integrator=integrator)
+    carries = lambda: step.start(arm, fj.FOSMC(ctrl), ref, X0, None, 1e6).X is not None
+    carried, reused = run(), carries()
+    jax.clear_caches()
+    monkeypatch.setattr(step, "reuses_observation", lambda plant: False)
+    again = run()
+    assert reused and not carries()  # the two runs differ in what they carry
+    for a, b in zip(jax.tree.leaves(carried.metrics), jax.tree.leaves(again.metrics)):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(np.isfinite(carried.metrics.rms_error))

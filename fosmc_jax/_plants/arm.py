@@ -539,9 +539,17 @@ class Arm(NamedTuple):
 
     def derivative(self, state: ArmState, U: Array, t: Array = 0.0) -> ArmState:
         """Time derivative of the state under motor voltages ``U`` (3,), V, at time ``t`` (s)."""
+        return self._derivative(state, _accelerations(self.params, self.payload, state, t), U)
+
+    def derivative_observed(self, state: ArmState, X: Array, U: Array, t: Array = 0.0) -> ArmState:
+        """:meth:`derivative` with theta'' read from ``X`` = :meth:`observe` of ``state`` at ``t``
+        (the closed form, the step's dearest part, once per step instead of twice with Euler)."""
+        return self._derivative(state, (X[2], X[5], X[8]), U)
+
+    def _derivative(self, state: ArmState, ddtheta: tuple, U: Array) -> ArmState:
         p = cast_params(self.params, state.theta[0].dtype)
         di = tuple((U[j] - p.R[j] * state.current[j] - p.Kb[j] * state.dtheta[j]) / p.L[j] for j in range(3))
-        return ArmState(state.dtheta, _accelerations(self.params, self.payload, state, t), di)
+        return ArmState(state.dtheta, ddtheta, di)
 
 
 def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[tuple, tuple]:

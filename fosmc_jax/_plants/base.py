@@ -9,6 +9,11 @@ of the sample or of the integrator's stage, the reference's own clock (t_k = k d
 t_k + dt/2, ...). Every other plant (:class:`LinearPlant`, a user's plant) keeps the
 two-argument ``observe(state)`` and ``derivative(state, U)``: :func:`observe_at` and
 :func:`derivative_at` call whichever the plant has. ``init(X0)`` is at t = 0.
+
+Optionally, ``derivative_observed(state, X, U[, t])``: the derivative given the observation X of
+the same state and time, for a plant whose observation holds part of its derivative (the arm's
+theta''): the simulator then reuses each step's observation in the next step's first stage
+(:func:`reuses_observation`); the values are those of ``derivative``.
 """
 
 from __future__ import annotations
@@ -48,6 +53,20 @@ def derivative_at(plant: Any, state: Any, U: Array, t: Array) -> Any:
     """d state/dt of ``plant`` under ``U`` at time ``t`` (s): ``plant.derivative(state, U, t)``
     for a time-varying plant, ``plant.derivative(state, U)`` otherwise."""
     return plant.derivative(state, U, t) if time_varying(plant) else plant.derivative(state, U)
+
+
+def reuses_observation(plant: Any) -> bool:
+    """Whether ``plant`` has ``derivative_observed(state, X, U[, t])``: its derivative given its
+    observation X = ``observe(state[, t])`` at the same time, for a plant whose observation
+    holds part of its derivative (the arm's theta''). The simulator then carries each step's
+    observation into the next step's first stage, where it would otherwise be computed again."""
+    return callable(getattr(plant, "derivative_observed", None))
+
+
+def derivative_observed_at(plant: Any, state: Any, X: Array, U: Array, t: Array) -> Any:
+    """:func:`derivative_at` from the observation ``X`` of ``state`` at ``t``
+    (:func:`reuses_observation`)."""
+    return plant.derivative_observed(state, X, U, t) if time_varying(plant) else plant.derivative_observed(state, X, U)
 
 
 def check_plant(plant: Any) -> None:

@@ -40,7 +40,7 @@ from jax import Array
 
 from .._controllers.base import ContinuousLaw, HasSlidingVariable, SampledLoop, check_controller
 from .._controllers.fosmc import FOSMC, FOSMCParams
-from .._plants.base import check_plant, derivative_at, observe_at
+from .._plants.base import check_plant, derivative_at, derivative_observed_at, observe_at, reuses_observation
 from .._plants.reference import desired_state
 from . import metrics as _metrics
 
@@ -88,7 +88,7 @@ class Result(NamedTuple):
 
 
 #: The carries' fields through which a state's derivative flows to the next step (``truncate_every``).
-_DYNAMIC = ("plant_state", "ctrl_state", "U")
+_DYNAMIC = ("plant_state", "ctrl_state", "U", "X")
 
 
 class _Carry(NamedTuple):
@@ -96,18 +96,20 @@ class _Carry(NamedTuple):
     plant_state: Any
     ctrl_state: Any
     U: Array  # the applied control held over the coming step
+    X: Array | None  # the plant's observation now, for the coming step's first stage (None: not reused)
     acc: _metrics.Accumulator
     diverged: Array
     diverged_at: Array
 
 
-def _euler(f, t, y, dt):
-    return jax.tree.map(lambda a, da: a + dt * da, y, f(t, y))
+def _euler(f, t, y, dt, k1=None):
+    """y + dt f(t, y); ``k1``: f(t, y) where the caller has it (:func:`_rk4` the same)."""
+    return jax.tree.map(lambda a, da: a + dt * da, y, f(t, y) if k1 is None else k1)
 
 
-def _rk4(f, t, y, dt):
+def _rk4(f, t, y, dt, k1=None):
     axpy = lambda a, x, y: jax.tree.map(lambda xi, yi: yi + a * xi, x, y)
-    k1 = f(t, y)
+    k1 = f(t, y) if k1 is None else k1
     k2 = f(t + dt / 2, axpy(dt / 2, k1, y))
     k3 = f(t + dt / 2, axpy(dt / 2, k2, y))
     k4 = f(t + dt, axpy(dt, k3, y))
@@ -193,19 +195,24 @@ def closed_loop_step(plant, ctrl, reference, dt: Array, integrator: str, diverge
     a = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
     theta = slice(0, 9, 3)
     stepper = _STEPPERS[integrator]
+    reuse = reuses_observation(plant)
 
-    def integrate(plant_state, ctrl_state, U, t):
+    def integrate(plant_state, ctrl_state, U, t, X):
+        # the first stage from the carried observation X of (plant_state, t), where the plant
+        # can use it (the arm: its closed-form accelerations once per step instead of twice)
+        first = None if X is None else derivative_observed_at(plant, plant_state, X, U, t)
         if not flows:
-            return stepper(lambda t, y: derivative_at(plant, y, U, t), t, plant_state, dt), ctrl_state
+            return stepper(lambda t, y: derivative_at(plant, y, U, t), t, plant_state, dt, first), ctrl_state
 
         def f(t, y):
             ps, cs = y
             return derivative_at(plant, ps, U, t), ctrl.derivative(cs, observe_at(plant, ps, t), reference(t), t)
 
-        return stepper(f, t, (plant_state, ctrl_state), dt)
+        k1 = None if X is None else (first, ctrl.derivative(ctrl_state, X, reference(t), t))
+        return stepper(f, t, (plant_state, ctrl_state), dt, k1)
 
     def step(c: _Carry, sample: bool) -> _Carry:
-        plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt)
+        plant_state, ctrl_state = integrate(c.plant_state, c.ctrl_state, c.U, c.k.astype(dtype) * dt, c.X)
         k = c.k + 1
         t = k.astype(dtype) * dt
         X = observe_at(plant, plant_state, t)
@@ -215,11 +222,11 @@ def closed_loop_step(plant, ctrl, reference, dt: Array, integrator: str, diverge
             U, ctrl_state = ctrl.update(ctrl_state, X, r, t)
         ok = _finite_and_bounded((plant_state, ctrl_state, X, U), X, divergence_bound)
         acc = _metrics.add(c.acc, X[theta] - r[0], U, c.U, a, u_max)
-        kept, diverged, diverged_at = _guard(
-            c.diverged, c.diverged_at, ok, t, (c.plant_state, c.ctrl_state, c.U, c.acc),
-            (plant_state, ctrl_state, U, acc),
+        (plant_state, ctrl_state, U, X, acc), diverged, diverged_at = _guard(
+            c.diverged, c.diverged_at, ok, t, (c.plant_state, c.ctrl_state, c.U, c.X, c.acc),
+            (plant_state, ctrl_state, U, X if reuse else None, acc),
         )  # fmt: skip
-        return _Carry(k, *kept, diverged, diverged_at)
+        return _Carry(k, plant_state, ctrl_state, U, X, acc, diverged, diverged_at)
 
     return step
 
@@ -239,6 +246,7 @@ def start(plant, ctrl, reference, X0: Array, key, divergence_bound) -> _Carry:
         plant_state,
         ctrl_state,
         U,
+        X if reuses_observation(plant) else None,
         _metrics.start(X[0::3] - r[0], U, _u_max(ctrl)),
         bad,
         jnp.where(bad, jnp.zeros((), dtype), jnp.asarray(jnp.inf, dtype)),
