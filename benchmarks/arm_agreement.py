@@ -5,7 +5,7 @@ quote, in one command:
     python benchmarks/arm_agreement.py            # about 2 minutes on 2 cores
 
 Cases: the paper's arm case in the ideal loop (Table 1 set 1, payloads 0, 5, 10 kg x 2
-offsets, 0.2 s), and the realistic preset (fosmc_jax/_app/presets/realistic_arm.toml: the digital
+offsets, 0.2 s), and the realistic preset (fosmc_jax/_problems/presets/realistic_arm.toml: the digital
 loop, 0.3 s, 2 offsets) with the FOSMC, SMC and super-twisting, and its float32 variants. Per
 case: the largest difference of any metric between the kernel and vmap(simulate), relative to
 that metric's largest |value| over the batch; for float32 digital loops also each path's
@@ -13,8 +13,6 @@ largest relative distance from the float64 loop (the "truth" both approximate).
 """
 
 from __future__ import annotations
-
-import copy
 
 import jax
 import numpy as np
@@ -24,14 +22,14 @@ jax.config.update("jax_enable_x64", True)
 import fosmc_jax as fj  # noqa: E402
 from fosmc_jax import config as _config  # noqa: E402
 
-PRESET = "fosmc_jax/_app/presets/realistic_arm.toml"
+PRESET = "fosmc_jax/_problems/presets/realistic_arm.toml"
 IDEAL = {"controller.sample_period": 0.0, "controller.delay_samples": 0, "sensors.encoder_counts": [0, 0, 0],
          "sensors.derivatives": "measured", "actuator.u_max": None}  # fmt: skip
 
 
 def build(base: str | None, t_final: float, **changes):
     cfg = _config.load(base) if base else _config.resolve({"plant": {"kind": "arm", "payloads": [0.0, 5.0, 10.0]}})
-    cfg = copy.deepcopy(cfg)
+    cfg = cfg.as_dict()
     cfg["sim"]["t_final"] = t_final
     cfg["sim"]["initial_offset"] = [[0.0] * 9, [0.01, 0, 0, -0.02, 0, 0, 0.03, 0, 0]]
     for key, value in changes.items():

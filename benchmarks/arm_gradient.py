@@ -62,7 +62,7 @@ def problems(path: Path, steps: int):
 
     from fosmc_jax import config as _config
 
-    cfg = _config.load(path)
+    cfg = _config.load(path).as_dict()
     offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (OFFSETS, 9))  # bench.problem(64)'s
     cfg["plant"]["payloads"] = np.linspace(0.0, 10.0, PAYLOADS).tolist()
     cfg["sim"].update(integrator="rk4", precision="float64", t_final=steps * cfg["sim"]["dt"],

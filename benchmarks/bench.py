@@ -304,7 +304,7 @@ ARM_STEPS = 1000
 ARM_CFLAGS = ["-O3", "-march=native", "-fno-math-errno", "-fschedule-insns", "-fsched-pressure", "-fopenmp"]
 #: Largest relative difference of the package's and the anchor's mean rms error of joint 1.
 ARM_RMS_TOL = {"float32": 1e-4, "float64": 1e-9}
-#: The realistic preset (the package's own copy, fosmc_jax/_app/presets/realistic_arm.toml, is the
+#: The realistic preset (the package's own copy, fosmc_jax/_problems/presets/realistic_arm.toml, is the
 #: same file: tests/test_digital_loop.py checks it).
 PRESET = Path(__file__).resolve().parents[1] / "tuning" / "configs" / "realistic_arm.toml"
 #: simulate_batch's static options (compiled in); the others are traced arguments of the compiled call.
@@ -345,7 +345,7 @@ def realistic(batch: int, dtype, steps: int):
     from fosmc_jax import config as _config
 
     P, O = split(batch)
-    cfg = _config.load(PRESET)
+    cfg = _config.load(PRESET).as_dict()
     cfg["plant"]["payloads"] = np.linspace(0.0, 10.0, P).tolist()
     offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (O, 9)) * (O > 1)
     cfg["sim"].update(t_final=steps * DT, precision=np.dtype(dtype).name, initial_offset=offsets.tolist())

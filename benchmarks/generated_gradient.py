@@ -50,10 +50,10 @@ def build(shape: str, steps: int | None):
     from fosmc_jax import config as _config
 
     if shape == "digital":
-        cfg = _config.load("realistic_arm")
+        cfg = _config.load("realistic_arm").as_dict()
         payloads, offsets, integrator, precision, default_steps = 8, 8, "rk4", "float64", 4000
     else:
-        cfg = _config.load(ROOT / "tuning" / "configs" / "arm_ideal_set2.toml")
+        cfg = _config.load(ROOT / "tuning" / "configs" / "arm_ideal_set2.toml").as_dict()
         if shape == "ideal":
             payloads, offsets, integrator, precision, default_steps = 8, 8, "rk4", "float64", 4000
         else:

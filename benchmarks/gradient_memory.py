@@ -39,7 +39,7 @@ def main() -> None:
     import fosmc_jax as fj
     from fosmc_jax import config as _config
 
-    cfg = _config.load(ROOT / "tuning" / "configs" / "arm_ideal_set2.toml")
+    cfg = _config.load(ROOT / "tuning" / "configs" / "arm_ideal_set2.toml").as_dict()
     cfg["plant"]["payloads"] = np.linspace(0, 10, args.payloads).tolist()
     cfg["sim"].update(integrator="rk4", precision="float64", t_final=args.steps * cfg["sim"]["dt"],
                       initial_offset=np.random.default_rng(1).uniform(-0.05, 0.05, (64, 9)).tolist())  # fmt: skip

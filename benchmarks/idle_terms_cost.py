@@ -26,7 +26,7 @@ def measure(variant: str) -> tuple[float, float]:
         import fosmc_jax._simulator.rollout as rollout
 
         rollout.without_idle_terms = lambda plant: plant
-    cfg = fj.config.load(fj.config.PRESETS["realistic_arm"])
+    cfg = fj.config.load(fj.config.PRESETS["realistic_arm"]).as_dict()
     cfg["plant"]["payloads"] = np.linspace(0.0, 10.0, 16).tolist()
     cfg["sim"]["t_final"] = 1.0
     problem = fj.build(cfg)

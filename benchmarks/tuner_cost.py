@@ -52,10 +52,7 @@ def config(path: str, t_final: float | None) -> dict:
     from fosmc_jax import config as _config
 
     cfg = _config.load(path)
-    if t_final:
-        cfg["sim"]["t_final"] = t_final
-        cfg = _config.resolve(cfg)
-    return cfg
+    return _config.replace(cfg, sim={"t_final": t_final}) if t_final else cfg
 
 
 def rollouts(problem) -> int:

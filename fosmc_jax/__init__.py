@@ -14,7 +14,6 @@ from ._app.commands import (
     run_simulate,
     run_tune,
 )
-from ._app.config import ConfigError, build
 from ._certificate.hitting import Certificate
 from ._controllers.base import ContinuousLaw, ControlLaw, HasSlidingVariable, SampledLoop
 from ._controllers.fosmc import (
@@ -53,6 +52,7 @@ from ._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm
 from ._plants.base import Plant
 from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
+from ._problems import ConfigError, build
 from ._simulator.cache import use_compilation_cache
 from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
 from ._simulator.native import available as kernel_available

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._design import paper as _paper
 from fosmc_jax._io import jsonable

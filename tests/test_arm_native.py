@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
+from fosmc_jax import _problems as _config
 from fosmc_jax import paper
-from fosmc_jax._app import config as _config
 from fosmc_jax._plants.arm import ARM_PARAMS, arm_sweep
 from fosmc_jax._simulator import arm_native as _arm_native
 from fosmc_jax._simulator import native as _native
@@ -151,7 +151,7 @@ def preset(t_final=0.3, **changes):
     """The realistic preset (DigitalLoop around the DiscreteFOSMC: 2.6M-count encoder,
     differenced rates, one-sample delay, 24 V) with two initial offsets and ``changes``
     ({"section.key": value})."""
-    cfg = _config.load("fosmc_jax/_app/presets/realistic_arm.toml")
+    cfg = _config.load("fosmc_jax/_problems/presets/realistic_arm.toml").as_dict()
     cfg["sim"]["t_final"] = t_final
     cfg["sim"]["initial_offset"] = [[0.0] * 9, [0.01, 0, 0, -0.02, 0, 0, 0.03, 0, 0]]
     for key, value in changes.items():

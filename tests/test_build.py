@@ -155,8 +155,9 @@ def test_the_gradient_on_the_realistic_preset_equals_central_differences():
     is switched off here: its derivative is the straight-through one (taken as 1, the
     tuner's surrogate), so with it the gradient is not the difference quotient's limit
     (0.2-16% apart per joint at this horizon; docs/api.md)."""
-    cfg = fj.config.load("realistic_arm")
-    cfg["sim"]["t_final"], cfg["sensors"]["encoder_counts"] = 0.1, [0, 0, 0]
+    cfg = fj.config.replace(
+        fj.config.load("realistic_arm"), sim={"t_final": 0.1}, sensors={"encoder_counts": [0, 0, 0]}
+    )
     problem = fj.build(cfg)
     delta0 = np.asarray(problem.params()["delta"])
 

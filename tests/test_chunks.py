@@ -1,6 +1,6 @@
 """A batch larger than memory holds at once (issue 34, item 2): ``fosmc simulate`` runs it in
 chunks of one shape (``fosmc_jax/_app/chunks.py``) sized from the memory estimate
-(:func:`fosmc_jax._app.memory.plan`), with the unchunked run's results, or refuses in one line,
+(:func:`fosmc_jax._problems.memory.plan`), with the unchunked run's results, or refuses in one line,
 before anything is drawn, a batch whose draws and outputs cannot fit however it is chunked.
 
 The default tier checks the chunks' order without compiling (a stand-in simulator), the plan
@@ -23,11 +23,12 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from fosmc_jax._app import chunks, memory
+from fosmc_jax import _problems as _config
+from fosmc_jax._app import chunks
 from fosmc_jax._app import commands as C
-from fosmc_jax._app import config as _config
 from fosmc_jax._app import simulate as S
 from fosmc_jax._app.cli import main
+from fosmc_jax._problems import memory
 from fosmc_jax._simulator.metrics import METRIC_NAMES, Metrics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -383,7 +384,7 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
         "\n") == 1  # fmt: skip
     code, err = run("--checkpoint", folder, "--resume", "--devices", 1, "--chunk", 0)
     assert code == 2 and err.startswith("fosmc: error: --chunk: expected a positive integer (rollouts), got 0")
-    other = dict(cfg, sim={**cfg["sim"], "t_final": 0.02})
+    other = _config.replace(cfg, sim={"t_final": 0.02})
     with pytest.raises(_config.ConfigError, match=rf"^--resume: {folder} holds chunks of another config's run"):
         S._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
     with pytest.raises(_config.ConfigError, match=r"run on 1 device\(s\) .*: give --devices 1, or give another"):

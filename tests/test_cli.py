@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._design import paper as _paper
 from fosmc_jax._simulator.metrics import METRIC_NAMES

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 
 
@@ -150,7 +150,7 @@ def test_resolve_returns_a_config_or_raises_config_error(cfg):
         _check_error(e, cfg)
         assert isinstance(e, ValueError)
         return
-    assert isinstance(out, dict) and set(out) == set(_config.SCHEMA)
+    assert isinstance(out, _config.Config) and set(out) == set(_config.SCHEMA)
 
 
 @FAST

@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
+from fosmc_jax import _problems as C
 from fosmc_jax._app import cli
-from fosmc_jax._app import config as C
 from fosmc_jax._design import paper
 from fosmc_jax._plants.arm import ArmParams, rows_over
 from fosmc_jax._plants.reference import desired_state
+from fosmc_jax._problems import design as design_of_config
 
 # not the paper's reference nor its payload range, and a relative range on the friction: the
 # design must follow all three (8 corners of F's range)
@@ -42,9 +43,9 @@ def rows_at(cfg: dict, params: ArmParams, rng) -> np.ndarray:
     arm.payload_range x 81 random instants of the configured reference (the shapes of the design
     grid, so nothing is compiled again)."""
     reference = C.reference_of(cfg, jnp.float64)
-    times = jnp.asarray(rng.uniform(0.0, cfg["trajectory"]["duration"], C.ARM_MODEL_TIMES))
+    times = jnp.asarray(rng.uniform(0.0, cfg["trajectory"]["duration"], design_of_config.ARM_MODEL_TIMES))
     states = jax.vmap(lambda t: desired_state(reference(t)))(times)
-    payloads = jnp.asarray(rng.uniform(*cfg["arm"]["payload_range"], C.ARM_MODEL_PAYLOADS))
+    payloads = jnp.asarray(rng.uniform(*cfg["arm"]["payload_range"], design_of_config.ARM_MODEL_PAYLOADS))
     a, b = rows_over(params, payloads, states)
     return np.concatenate([np.asarray(a), np.asarray(b)], axis=-1)
 
@@ -67,7 +68,7 @@ def test_from_arm_needs_an_arm_and_replaces_the_papers_rows_refusing_them_in_one
 def test_from_paper_leaves_the_design_unchanged_and_derives_nothing():
     """The default config's controller, box and K are the paper's, exactly; an arm config with
     the default from = "paper" still designs on the paper's rows, and no arm rows are derived."""
-    misses = C._arm_model.cache_info().misses
+    misses = design_of_config._arm_model.cache_info().misses
     cfg = C.resolve({})
     assert cfg["model"]["from"] == "paper"
     ctrl = C.controller_of(cfg, jnp.float64)
@@ -81,7 +82,7 @@ def test_from_paper_leaves_the_design_unchanged_and_derives_nothing():
     arm = fj.build({**ARM, "model": {"from": "paper"}})
     np.testing.assert_array_equal(arm.base.a_rows, paper.A_ROWS)
     np.testing.assert_array_equal(arm.base.b_rows, paper.B_ROWS)
-    assert C._arm_model.cache_info().misses == misses
+    assert design_of_config._arm_model.cache_info().misses == misses
 
 
 def test_the_controller_is_designed_on_the_arms_rows(arm_cfg):
@@ -129,7 +130,7 @@ def test_the_rows_follow_the_configured_reference_and_are_derived_once(arm_cfg):
     """Resolving the config again, its tuning problems and its held-out batch (fosmc front:
     another arm seed, other payloads) reuse the derived model, the same arrays; the paper's
     reference gives another one."""
-    misses = C._arm_model.cache_info().misses
+    misses = design_of_config._arm_model.cache_info().misses
     design = C.design_model(arm_cfg)
     again = C.resolve(copy.deepcopy(arm_cfg))
     assert C.design_model(again) is design
@@ -139,7 +140,7 @@ def test_the_rows_follow_the_configured_reference_and_are_derived_once(arm_cfg):
     held = fj.config.held_out_config(arm_cfg)
     assert held["plant"]["payloads"] != arm_cfg["plant"]["payloads"]
     assert C.design_model(held) is design
-    assert C._arm_model.cache_info().misses == misses
+    assert design_of_config._arm_model.cache_info().misses == misses
     papers = C.design_model(C.resolve({**ARM, "trajectory": {}}))
     assert np.abs(papers.A_rows - design.A_rows).max() > 1e-3
 
@@ -171,7 +172,7 @@ def test_only_entries_that_move_the_rows_make_design_corners():
     widths = {"Fc": 0.3, "F": 0.2, "tau_sin": 0.5, "f_sin": 0.5, "samples": 2}
     arm = {"Fc": [1.0, 0.0, 0.0], "tau_sin": [0.5, 0.5, 0.5], "uncertainty": widths}
     cfg = fj.config.resolve({"plant": {"kind": "arm", "payloads": [0.0]}, "arm": arm})
-    arms, which = C._design_arms(cfg["arm"], cfg["arm"]["uncertainty"])
+    arms, which = design_of_config._design_arms(cfg["arm"], cfg["arm"]["uncertainty"])
     assert len(arms) == 1 + 2**4 and "the 16 corners" in which
     Fc = np.array([np.asarray(a.Fc) for a in arms])
     np.testing.assert_allclose(sorted(set(Fc[:, 0])), [0.7, 1.0, 1.3])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._loop.digital import SensorMemory, measure, quantize
 
@@ -365,7 +365,7 @@ def test_report_realistic_blocks_equal_committed_tables():
         block = report[report.index(begin) + len(begin) : report.index(end)]
         assert block == (root / "tuning/results/reproduction" / f"{name}.md").read_text(), name
     preset = root / "tuning/configs/realistic_arm.toml"
-    assert _config.load(preset) == _config.load(root / "fosmc_jax/_app/presets/realistic_arm.toml")
+    assert _config.load(preset) == _config.load(root / "fosmc_jax/_problems/presets/realistic_arm.toml")
 
 
 @pytest.mark.slow

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from fosmc_jax._app import commands
-from fosmc_jax._app.config import ConfigError
+from fosmc_jax._problems import ConfigError
 
 FRONT = '[plant]\nuncertainty = "sample"\nsamples = 3\n[sim]\nt_final = 0.3\ndt = 2e-3\nintegrator = "euler"\n'
 #: Four plants: the tuner's loss splits them over the two processes' devices (and sums across them);

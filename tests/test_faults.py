@@ -26,12 +26,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import fosmc_jax as fj
+from fosmc_jax import _problems as _config
 from fosmc_jax._app import commands as C
-from fosmc_jax._app import config as _config
-from fosmc_jax._app import memory, study
 from fosmc_jax._app import reproduce as R
+from fosmc_jax._app import study
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import check_writable, write_text
+from fosmc_jax._problems import memory
 from fosmc_jax._simulator.checks import check_inputs
 from fosmc_jax._simulator.rollout import option_names
 
@@ -199,7 +200,7 @@ def test_front_budget_and_seed_are_accepted_exactly_when_in_range(budget, seed):
 @given(t_final=NUMBERS, dt=NUMBERS)
 def test_reproduce_horizon_follows_the_config_rules(t_final, dt):
     """--t-final and --dt of reproduce are refused exactly when [sim] t_final and dt would be
-    (:func:`fosmc_jax._app.config.check_horizon`), named as the options; the linear plant, so
+    (:func:`fosmc_jax._problems.check_horizon`), named as the options; the linear plant, so
     that the realistic loop's own rule does not enter."""
 
     def stub(*thunks):

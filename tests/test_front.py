@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app import study as front_study
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
@@ -291,13 +291,13 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
 
 def test_held_out_batch_has_the_payloads_and_seeds_training_did_not_see():
     cfg = _config.resolve({"plant": {"kind": "arm", "payloads": [0.0, 10.0]}})
-    held = front_study.held_out_config(cfg)
+    held = _config.held_out_config(cfg)
     assert held["plant"]["payloads"] == [1.0, 3.0, 5.0, 7.0, 9.0]
     assert held["sensors"]["seed"] == cfg["sensors"]["seed"] + 1
     cfg = _config.resolve({"plant": {"kind": "arm", "payloads": [1.0, 5.0]}})
-    assert front_study.held_out_config(cfg)["plant"]["payloads"] == [3.0, 7.0, 9.0]
+    assert _config.held_out_config(cfg)["plant"]["payloads"] == [3.0, 7.0, 9.0]
     cfg = _config.resolve(TINY)  # linear, sampled box: fresh samples
-    assert front_study.held_out_config(cfg)["plant"]["seed"] == cfg["plant"]["seed"] + 1
+    assert _config.held_out_config(cfg)["plant"]["seed"] == cfg["plant"]["seed"] + 1
 
 
 @pytest.mark.parametrize("peer", ["nsga2", "optuna_nsga2"])

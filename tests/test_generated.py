@@ -229,7 +229,7 @@ def test_the_mode_is_checked():
 
 def _arm(cfg="realistic_arm", steps=300, **sim):
     c = fj.config.load(cfg)
-    c["sim"].update(t_final=steps * c["sim"]["dt"], **sim)
+    c = fj.config.replace(c, sim={"t_final": steps * c.sim.dt, **sim})
     return fj.build(c)
 
 
@@ -346,7 +346,7 @@ def test_the_arms_gradients_of_3072_rollouts_for_8_parameter_sets_call_no_lapack
     program (lowered, not run: the hang is one of threads, a run on many cores may pass) holds no
     LAPACK call that jaxlib could split over threads
     (:func:`test_batched_lapack_calls_stay_below_jaxlibs_split_and_keep_their_values`)."""
-    c = fj.config.load("tuning/configs/arm_ideal_set2.toml")
+    c = fj.config.load("tuning/configs/arm_ideal_set2.toml").as_dict()
     c["plant"]["payloads"] = np.linspace(0, 10, 64).tolist()
     c["plant"].pop("uncertainty", None)
     offsets = np.random.default_rng(1).uniform(-0.05, 0.05, (48, 9)).tolist()

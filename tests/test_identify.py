@@ -372,7 +372,7 @@ def closed_loop_log():
     on the hidden arm, simulated at dt = 2.5e-4 s (the fit integrates at the sample period: not
     the simulator's own steps), logged as a drive logs: the encoder's reading, the voltage it
     computed at each sample (applied one sample later) and the motor currents."""
-    cfg = fj.config.load("realistic_arm")
+    cfg = fj.config.load("realistic_arm").as_dict()
     cfg["arm"].update(HIDDEN)
     cfg["plant"]["payloads"] = [PAYLOAD]
     cfg["sim"].update(t_final=3.0, dt=2.5e-4, save_every=4)

@@ -18,6 +18,7 @@ LAYERS = (
     "_loop",
     "_simulator",
     "_certificate",
+    "_problems",
     "_search",
     "_firmware",
     "_app",

@@ -240,7 +240,7 @@ def test_tuners_split_over_the_devices_as_on_one():
         import jax, numpy as np
         jax.config.update("jax_enable_x64", True)
         assert jax.device_count() == 2
-        from fosmc_jax._app import config as _config
+        from fosmc_jax import _problems as _config
         from fosmc_jax._search import front as _front
         from fosmc_jax._search import tune as _tuning
         cfg = _config.resolve({"plant": {"uncertainty": "sample", "samples": 2},

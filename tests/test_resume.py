@@ -16,7 +16,7 @@ import time
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import jsonable
 from fosmc_jax._search import front as F
@@ -182,7 +182,7 @@ def finished(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     cfg = _config.load(config)
-    front = {"axes": list(F.AXES), "points": [], "stages": {"replay": {}}, "config": jsonable(cfg)}
+    front = {"axes": list(F.AXES), "points": [], "stages": {"replay": {}}, "config": jsonable(cfg.as_dict())}
     (out / "front.json").write_text(json.dumps(front, indent=1))
     (out / "front.png").write_bytes(b"png")
     (out / "checkpoint.npz").write_bytes(b"npz")

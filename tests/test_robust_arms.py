@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._search import tune as T
 
 # 3 sampled arms (torque constants +-50%: clearly different arms) x 2 payloads, 0.1 s of Euler

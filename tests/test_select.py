@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax.search as fs
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 
 try:  # Python >= 3.11

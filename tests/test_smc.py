@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._app import config as _config
+from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 
 P = fj.paper

@@ -8,8 +8,8 @@ import warnings
 import pytest
 
 import fosmc_jax as fj
+from fosmc_jax import _problems as _config
 from fosmc_jax._app import commands as C
-from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import versions
 

@@ -196,12 +196,13 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
     gradient is finite and below 1e5 in norm (no exponential growth: the whole horizon's
     reached 1e226 on the realistic preset; the sign law's ideal loop gives 5.5e3 in gamma), and
     five Adam steps reach a lower training loss."""
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import _problems as _config
     from fosmc_jax._search.front import global_stage
 
     cfg = _config.load(path)
-    cfg["sim"]["t_final"] = min(cfg["sim"]["t_final"], 1.0)
-    cfg["tune"]["train_t_final"] = min(cfg["tune"]["train_t_final"], 1.0)
+    cfg = _config.replace(
+        cfg, sim={"t_final": min(cfg.sim.t_final, 1.0)}, tune={"train_t_final": min(cfg.tune.train_t_final, 1.0)}
+    )
     _, train, p0 = _config.tuning_problems(cfg)
     obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
     start, _ = global_stage(train, obj, p0, 16, free=tuple(cfg["tune"]["params"]), log=lambda _: None)
@@ -285,7 +286,7 @@ def test_lbfgs_resumes_to_the_uninterrupted_run_and_refuses_adams_checkpoint(tmp
 
 
 def test_the_config_names_the_optimizer_and_refuses_others():
-    from fosmc_jax._app import config as _config
+    from fosmc_jax import _problems as _config
 
     assert _config.resolve({"tune": {"optimizer": "lbfgs"}})["tune"]["optimizer"] == "lbfgs"
     with pytest.raises(fj.ConfigError, match="tune.optimizer"):

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
+from fosmc_jax import _problems as _config
 from fosmc_jax import search as fs
-from fosmc_jax._app import config as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._search import front as F
 from fosmc_jax._search import tune as T
@@ -87,7 +87,7 @@ def front(request, tmp_path_factory):
     cfg = _config.load(path)
     plain, train, p0 = _config.tuning_problems(cfg)
     res = F.run(train, plain, p0, F.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None)
-    (tmp / "front.json").write_text(json.dumps({**res, "config": cfg}))
+    (tmp / "front.json").write_text(json.dumps({**res, "config": cfg.as_dict()}))
     return kind, path, tmp / "front.json", res, (train, p0, cfg)
 
 

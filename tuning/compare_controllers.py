@@ -58,7 +58,7 @@ def log(msg: str) -> None:
 
 def study(cfg: dict, kind: str, budget: float, seed: int) -> dict:
     """One kind's ``fosmc front`` (its points with held-out metrics) and its defaults' metrics."""
-    cfg = _config.resolve(dict(cfg, controller=dict(cfg["controller"], kind=kind)))
+    cfg = _config.replace(cfg, controller={"kind": kind})
     t0 = time.perf_counter()
     front = _config.study(cfg, fs.FrontSettings(budget=budget, seed=seed), log=lambda s: log(f"{kind}: {s}"))
     wall = time.perf_counter() - t0

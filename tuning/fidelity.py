@@ -46,7 +46,6 @@ config, the command and loads at the top). Progress lines go to stdout.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import os
 import shlex
@@ -109,7 +108,7 @@ EXTRA = {"unseen": _unseen, "unseen_reference": _unseen_reference}
 def load_config(spec: str) -> tuple[str, dict, str]:
     """(name, resolved config, where it comes from) of a TOML path or an :data:`EXTRA` name."""
     if spec in EXTRA:
-        cfg = EXTRA[spec](_config.load(PRESET))
+        cfg = EXTRA[spec](_config.load(PRESET).as_dict())
         return spec, _config.resolve(cfg), f"{PRESET.relative_to(ROOT)} edited by {EXTRA[spec].__name__}()"
     path = Path(spec)
     return path.stem, _config.load(path), str(path)
@@ -140,7 +139,7 @@ def rungs(cfg: dict) -> list[dict]:
 def rung_config(cfg: dict, rung: dict) -> tuple[dict, list[str]]:
     """The resolved config of a rung, and the warnings resolving it gave (the integrator's
     stability limit)."""
-    c = copy.deepcopy(cfg)
+    c = cfg.as_dict()
     c["sim"]["dt"], c["sim"]["t_final"] = rung["dt"], rung["t_final"]
     c["tune"]["train_dt"] = c["tune"]["train_t_final"] = 0.0
     with warnings.catch_warnings(record=True) as caught:
@@ -247,7 +246,7 @@ def study(spec: str, n: int, seed: int, log) -> dict:
     T_s = cfg["controller"]["sample_period"]
     log(f"{name}: {source}; {cfg['plant']['payloads']} kg, T = {T_s} s, dt = {cfg['sim']['dt']} s, "
         f"t_final = {cfg['sim']['t_final']} s, {cfg['sim']['integrator']}; {n} candidates (seed {seed})")  # fmt: skip
-    result = {"name": name, "source": source, "config": cfg, "candidates": n, "seed": seed,
+    result = {"name": name, "source": source, "config": cfg.as_dict(), "candidates": n, "seed": seed,
               "grid_per_axis": grid_size(n, fs.FrontSettings().grid_share, len(space.params)), "factors": z, "rungs": []}  # fmt: skip
     plain_m = None
     for rung in rungs(cfg):

@@ -19,7 +19,6 @@ worst payload's rms_error as a ratio to the point's training one, and the points
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import pathlib
 
@@ -69,9 +68,7 @@ def payload_check(cfg: dict, front_json: str, payloads: list[float]) -> None:
     p0 = _config.tuning_problems(cfg)[2]
     params = type(p0)(*(np.array([p["params"][k] for p in pts]) for k in p0._fields))
     trained = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
-    cfg = copy.deepcopy(cfg)
-    cfg["plant"]["payloads"] = payloads
-    plain = _config.tuning_problems(_config.resolve(cfg))[0]
+    plain = _config.tuning_problems(_config.replace(cfg, plant={"payloads": payloads}))[0]
     run = jax.jit(jax.vmap(lambda p: plain.simulate(p, checkpoint_every=0)))
     errors, diverged = [], 0
     for i in range(0, len(pts), 16):  # chunks of 16, the last padded: one compilation

@@ -32,7 +32,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--t-final", type=float, default=2.0, help="the log's length, s (default 2)")
     args = ap.parse_args()
-    cfg = fj.config.load("realistic_arm")
+    cfg = fj.config.load("realistic_arm").as_dict()
     cfg["arm"].update(HIDDEN)
     cfg["plant"]["payloads"] = [PAYLOAD]
     cfg["sim"].update(t_final=args.t_final, dt=2.5e-4)

@@ -70,7 +70,7 @@ def hidden_arm(seed: int) -> dict:
 
 def write_log(arm: dict, path: Path) -> None:
     """The realistic preset's closed loop on ``arm`` at PAYLOAD for 4 s, logged to an NPZ file."""
-    cfg = fj.config.load("realistic_arm")
+    cfg = fj.config.load("realistic_arm").as_dict()
     cfg["arm"].update(arm)
     cfg["plant"]["payloads"] = [PAYLOAD]
     m = round(cfg["controller"]["sample_period"] / cfg["sim"]["dt"])
@@ -85,7 +85,7 @@ def write_log(arm: dict, path: Path) -> None:
 
 def config_with(arm: dict) -> dict:
     """The realistic preset (payloads 0 and 10 kg) with ``arm``'s [arm] entries."""
-    cfg = fj.config.load("realistic_arm")
+    cfg = fj.config.load("realistic_arm").as_dict()
     cfg["arm"].update(copy.deepcopy(arm))
     return fj.config.resolve(cfg)
 

@@ -22,7 +22,6 @@ and :func:`plain_metrics` are shared with tuning/baselines.py and tuning/gradien
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import pathlib
 import platform
@@ -55,13 +54,11 @@ def load_problems(config=CONFIG, train_dt: float | None = 1e-3, t_final: float |
     them (``train`` uses ``train_dt``; ``t_final`` overrides both horizons), and p0."""
     cfg = _config.load(config)
     if t_final is not None:
-        cfg["sim"]["t_final"] = t_final
+        cfg = _config.replace(cfg, sim={"t_final": t_final})
     built = _config.build(cfg)
     plain = fs.Problem(built.plants, built.base, built.reference, built.X0s, built.dt,
                        dict(built.options, save_every=0))  # fmt: skip
-    tcfg = copy.deepcopy(cfg)
-    if train_dt:
-        tcfg["sim"]["dt"] = train_dt
+    tcfg = _config.replace(cfg, sim={"dt": train_dt}) if train_dt else cfg
     tb = _config.build(tcfg)
     train = fs.Problem(tb.plants, tb.base, tb.reference, tb.X0s, tb.dt,
                        dict(tb.options, save_every=0, checkpoint_every=cfg["tune"]["remat_steps"]))  # fmt: skip

@@ -58,9 +58,7 @@ def log(msg: str) -> None:
 def preset(t_final: float | None) -> dict:
     """The preset's config, with ``t_final`` (s) when given."""
     cfg = fj.config.load(PRESET)
-    if t_final is not None:
-        cfg["sim"]["t_final"] = t_final
-    return cfg
+    return cfg if t_final is None else fj.config.replace(cfg, sim={"t_final": t_final})
 
 
 def monte_carlo(cfg: dict, samples: int, seed: int) -> dict:

@@ -2,7 +2,7 @@
 
 For every config in tuning/configs/*.toml that ``fosmc tune`` accepts (those that fail to load
 or that tune refuses are listed as skipped) and each gradient window W (s; 0 = the whole
-training horizon; ``cfg["tune"]["gradient_window"] = W`` before
+training horizon; ``tune.gradient_window = W`` (``fc.replace``) before
 ``_config.tuning_problems``), at two points, p0 (the config's parameters) and tune's start (the
 best of the global stage of ``tune.global_candidates``, as ``run_tune`` computes it: same
 problem, objective and seed, computed once per config), in tune's internal coordinates u (15
@@ -222,8 +222,7 @@ def problems(cfg: dict, w: float):
     here (truncate_every 0 set on the training problem), whatever 0 means to the package: it
     meant the whole horizon when the study ran, and became "automatic" (20 controller samples on
     a quantizing or differencing digital loop) in commit b55b8f5."""
-    c = copy.deepcopy(cfg)
-    c["tune"]["gradient_window"] = w
+    c = _config.replace(cfg, tune={"gradient_window": w})
     plain, train, p0 = _config.tuning_problems(c)
     if w == 0:
         train = train._replace(options=dict(train.options, truncate_every=0))
@@ -232,7 +231,7 @@ def problems(cfg: dict, w: float):
 
 def setup(cfg: dict) -> dict:
     """What run_tune computes before its optimizer: problems, objective, tune's start."""
-    c = copy.deepcopy(cfg)
+    c = cfg
     plain, train, p0 = problems(c, 0.0)
     m = fs.evaluate(train, p0)["metrics"]
     obj = fs.objective_of(c["tune"], m)

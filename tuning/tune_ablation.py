@@ -18,7 +18,6 @@ Writes tuning/results/tune_ablation.{json,md}.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import os
 import pathlib
@@ -53,8 +52,7 @@ def main(argv=None) -> None:
     out = HERE / "results" / "tune_ablation.json"
     rows = json.loads(out.read_text()) if args.only and out.exists() else {}  # --only: replace those rows
     for name in args.only or VARIANTS:
-        cfg = copy.deepcopy(base)
-        cfg["tune"].update(VARIANTS[name])
+        cfg = _config.replace(base, tune=VARIANTS[name])
         load, t0 = os.getloadavg()[0], time.perf_counter()
         r = fj.run_tune(_config.resolve(cfg), log=lambda msg: print(f"{name}: {msg}", flush=True))
         wall = time.perf_counter() - t0

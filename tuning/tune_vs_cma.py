@@ -64,7 +64,6 @@ Progress lines go to stderr.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 import os
@@ -389,10 +388,9 @@ def readouts(s: dict, raced: dict, u_flat: np.ndarray, times: tuple[float, ...])
 
 def study_config(name: str, cfg: dict, args) -> dict:
     t_cfg = time.perf_counter()
-    cfg = copy.deepcopy(cfg)
-    tcfg = cfg["tune"]
     if args.quick:
-        tcfg["global_candidates"] = min(tcfg["global_candidates"], QUICK_GLOBAL)
+        cfg = _config.replace(cfg, tune={"global_candidates": min(cfg.tune.global_candidates, QUICK_GLOBAL)})
+    tcfg = cfg["tune"]
     plain, train, p0 = _config.tuning_problems(cfg)  # as run_tune
     m = fs.evaluate(train, p0)["metrics"]
     obj = fs.objective_of(tcfg, m)

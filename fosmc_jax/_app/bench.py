@@ -12,10 +12,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _problems as problems
 from .._firmware import identify as identification
 from .._loop.digital import quantize
 from .._plants.arm import Arm, ArmParams
-from . import config as _config
 
 
 def identification_log(
@@ -37,22 +37,21 @@ def identification_log(
     ``path`` when given (``.npz``, else CSV: :func:`fosmc_jax._firmware.identify.write_log`);
     ``fosmc identify --delay D`` with the same D reads it as it was simulated. A config that
     is no such loop is a ``ConfigError``."""
-    cfg = _config.as_config(config)
+    cfg = problems.as_config(config)
     ctl = cfg["controller"]
     if cfg["plant"]["kind"] != "arm":
-        raise _config.ConfigError(f"plant.kind: a log of an experiment needs the arm, got '{cfg['plant']['kind']}'")
+        raise problems.ConfigError(f"plant.kind: a log of an experiment needs the arm, got '{cfg['plant']['kind']}'")
     if not ctl["sample_period"] > 0:
-        raise _config.ConfigError("controller.sample_period: a log of an experiment needs a digital loop (a drive "
+        raise problems.ConfigError("controller.sample_period: a log of an experiment needs a digital loop (a drive "
                                   "sampling at a period > 0), got 0 (the ideal loop)")  # fmt: skip
     delay = ctl["delay_samples"] if delay is None else delay
     if not (isinstance(delay, (int, np.integer)) and not isinstance(delay, bool) and delay >= 0):
         raise ValueError(f"delay: expected a non-negative integer (samples), got {delay!r}")
     if currents and (cfg["arm"]["uncertainty"]["samples"] or (cfg["sample"]["count"] and cfg["sample"]["payloads"])):
-        raise _config.ConfigError("currents: the first rollout's arm is drawn ([arm.uncertainty] samples or [sample] "
+        raise problems.ConfigError("currents: the first rollout's arm is drawn ([arm.uncertainty] samples or [sample] "
                                   "payloads), and its currents need that arm: log without currents")  # fmt: skip
-    cfg["sim"]["save_every"] = _config.sample_steps(cfg)
-    cfg = _config.resolve(cfg)
-    trace = _config.build(cfg).simulate().trace
+    cfg = problems.replace(cfg, sim={"save_every": problems.sample_steps(cfg)})
+    trace = problems.build(cfg).simulate().trace
     t, X, U = (np.asarray(a[0]) for a in (trace.t, trace.X, trace.U))
     theta = np.asarray(quantize(jnp.asarray(X[:, 0::3]), jnp.asarray(cfg["sensors"]["encoder_counts"], float)))
     u = np.concatenate([U[delay:], np.repeat(U[-1:], min(delay, len(U)), axis=0)])[: len(U)]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from .. import _problems as problems
 from .._design import paper as _paper
-from . import config as _config
 from .shared import (
     Config,
     Log,
@@ -36,9 +36,9 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
     sources = ("paper", "arm") if cfg["plant"]["kind"] == "arm" else (used,)
     designs, summaries = {}, {}
     for source in sources:
-        designs[source] = _config.design_model(cfg, source)
+        designs[source] = problems.design_model(cfg, source)
         log(f"fosmc bounds: the {source} model ({designs[source].sampled}): alpha, beta by vertex enumeration ...")
-        summaries[source] = _config.design_summary(cfg, source)
+        summaries[source] = problems.design_summary(cfg, source)
 
     def quantities(d) -> dict[str, Any]:
         return {
@@ -65,7 +65,7 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
     if "arm" in designs:
         arm = designs["arm"]
         out["models"] = {source: quantities(d) for source, d in summaries.items()}
-        out["box"] = dict(zip(_config.BOX_KEYS, arm.box))
+        out["box"] = dict(zip(problems.BOX_KEYS, arm.box))
         out["nominal_A_rows"], out["nominal_B_rows"] = arm.A_rows, arm.B_rows
         out["arm_model"] = arm.sampled
     return out

@@ -23,7 +23,7 @@ from .._certificate.hitting import (
 )
 from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS
-from .config import ConfigError, arm_params_of, box_of, controller_of, design_summary, reference_of
+from .._problems import ConfigError, arm_params_of, box_of, controller_of, design_summary, reference_of
 from .shared import Config, Log, _is_integer, _quiet, _with_x64, config_of
 
 
@@ -43,7 +43,7 @@ def certify(
     n_payloads: int = 11,
     seed: int = 0,
 ) -> Certificate:
-    """Check the hitting condition (20) numerically for a resolved config (``_config.resolve``)
+    """Check the hitting condition (20) numerically for a resolved config (``problems.resolve``)
     of the paper's ideal loop (a digital loop's config is refused with a ``ConfigError``).
 
     Sampled points (defaults: ``n_times`` 81, ``n_z`` 200 on the linear plant, 21 and 30 on the

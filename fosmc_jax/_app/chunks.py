@@ -1,5 +1,5 @@
 """A batch run in chunks (``fosmc simulate`` on a batch larger than memory holds at once,
-:func:`fosmc_jax._app.memory.plan`): the same compiled program on chunks of one shape, the last
+:func:`fosmc_jax._problems.memory.plan`): the same compiled program on chunks of one shape, the last
 padded, every rollout's metrics written into arrays of the whole batch.
 
 A batch's rollouts are flattened plant, offset, realization (paired: pair, realization) first

@@ -18,13 +18,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from .. import _problems as problems
 from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
 from .._simulator import sharding
 from .._simulator.metrics import METRIC_NAMES, PERCENTILES, UNITS
 from . import commands, distributed
-from . import config as _config
 
 _IMPORTED = time.perf_counter()  # process_start's fallback
 
@@ -66,7 +66,7 @@ def cmd_simulate(args) -> int:
             try:
                 check_figure_path(args.plot)
             except ValueError as e:
-                raise _config.ConfigError(f"--plot: {e}") from None
+                raise problems.ConfigError(f"--plot: {e}") from None
         for option, path in (("--npz", args.npz), ("--plot", args.plot)):
             if path and sharding.leads():  # process 0 alone writes
                 commands.writable(path, option)
@@ -181,7 +181,7 @@ def cmd_bounds(args) -> int:
     hint = "; [model] from = 'arm' designs on the arm's" if "models" in d and d["model"] == "paper" else ""
     print(f"model: {d['model']} (K, CB and the bounds below: {d['model_detail']}{hint})")
     if "box" in d:
-        a_rows, b_rows, box = d["nominal_A_rows"], d["nominal_B_rows"], [d["box"][k] for k in _config.BOX_KEYS]
+        a_rows, b_rows, box = d["nominal_A_rows"], d["nominal_B_rows"], [d["box"][k] for k in problems.BOX_KEYS]
         print(f"The arm's box ({d['arm_model']}) beside the paper's Appendix box")
         print("and nominal (29); rows 3, 6, 9 of A (columns 1-9) and B (columns 1-3):")
         print(f"  {'entry':<8}{'arm lower':>11}{'arm upper':>11}{'arm nominal':>12}   "
@@ -325,7 +325,7 @@ def cmd_select(args) -> int:
         r = select(args.front, max_error=args.max_error, max_chattering=args.max_chattering)
         toml = controller_toml(r["params"])
     except ValueError as e:
-        raise _config.ConfigError(str(e)) from None
+        raise problems.ConfigError(str(e)) from None
     if args.json:
         print(json.dumps(jsonable(r), indent=1))
         return 0
@@ -603,7 +603,7 @@ def main(argv: list[str] | None = None) -> int:
     if processes.asked and not os.environ.get(distributed.CHILD):
         try:
             processes.checked()
-        except _config.ConfigError as e:
+        except problems.ConfigError as e:
             print(f"fosmc: error: {e}", file=sys.stderr)
             return 2
         return distributed.supervise(argv, processes)  # the work in a child: its faults in one line
@@ -634,7 +634,7 @@ def main(argv: list[str] | None = None) -> int:
         code = args.func(args)
         sys.stdout.flush()  # a reader that went away shows here, not at the interpreter's exit
         return code
-    except _config.ConfigError as e:
+    except problems.ConfigError as e:
         print(f"fosmc: error: {e}", file=sys.stderr)
         return 2
     except BrokenPipeError:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from .._io import jsonable
-from .config import ConfigError
+from .._problems import ConfigError
 
 #: ``--join-timeout``'s default, s: JAX's own (300 s) is long for a run typed at a terminal.
 JOIN_TIMEOUT_S = 120.0

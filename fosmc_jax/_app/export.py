@@ -8,8 +8,8 @@ from typing import Any
 
 import numpy as np
 
-from . import config as _config
-from .config import ConfigError
+from .. import _problems as problems
+from .._problems import ConfigError
 from .shared import (
     Config,
     Log,
@@ -89,7 +89,7 @@ def run_export(
             if isinstance(data, dict) and isinstance(data.get("points"), list):
                 raise ConfigError(f"--point: {params} is a front of {len(data['points'])} points: name the one to "
                                   "export with --point I (e.g. the one `fosmc select` names)")  # fmt: skip
-        cfg = _config.with_params(cfg, params, point)
+        cfg = problems.with_params(cfg, params, point)
     if cfg["controller"]["kind"] not in _export.EXPORTED_KINDS:
         raise ConfigError(f"controller.kind: fosmc export writes {', '.join(_export.EXPORTED_KINDS)}, got "
                           f"{cfg['controller']['kind']!r}")  # fmt: skip
@@ -97,8 +97,9 @@ def run_export(
         raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
                           "drive's period, e.g. 1e-3): the ideal loop reads the exact state at every step and "
                           "integrates the law with the plant, which no drive does")  # fmt: skip
-    cfg["sim"]["precision"] = "float64"  # the constants in full precision; rounded to `precision` when written
-    problem = _config.build(cfg)
+    # the constants in full precision; rounded to `precision` when written
+    cfg = problems.replace(cfg, sim={"precision": "float64"})
+    problem = problems.build(cfg)
     loop = problem.controller()
     if given:  # as Problem.simulate takes them: names and shapes (Problem.controller), then signs and ranges
         try:
@@ -110,10 +111,10 @@ def run_export(
         except ValueError as e:  # named as the option: params.delta, not controller.law.params.delta
             message = re.sub(r"^controller\.law\.(params\.)?(?=\w+:)", "params.", str(e))
             raise ConfigError(message if message.startswith("params") else f"params: {message}") from None
-    design = _config.design_model(cfg)
+    design = problems.design_model(cfg)
     if design.source == "arm":
         model = "the model derived from the configured [arm] along the reference"
-    elif all(cfg["model"][k] == _config.defaults()["model"][k] for k in ("A_rows", "B_rows")):
+    elif all(cfg["model"][k] == problems.defaults()["model"][k] for k in ("A_rows", "B_rows")):
         model = _export.PAPER_MODEL
     else:
         model = "the config's nominal model ([model] A_rows, B_rows)"

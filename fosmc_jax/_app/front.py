@@ -7,8 +7,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .._problems import ConfigError
 from .._simulator import sharding
-from .config import ConfigError
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
@@ -88,7 +88,7 @@ def run_front(
         cfg, out = _checked_front(config, out, points, budget, candidates, steps, seed, compare, force, resume, replay,
                                   lead)  # fmt: skip
         files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
-        agree(digest({"command": "front", "config": cfg, "out": out, "points": points, "budget": budget,
+        agree(digest({"command": "front", "config": cfg.as_dict(), "out": out, "points": points, "budget": budget,
                       "candidates": candidates, "steps": steps, "seed": seed, "compare": list(compare),
                       "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
     if lead:

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from .. import _problems as problems
 from .._io import jsonable, stamped, write_text
-from . import config as _config
-from .config import ConfigError
+from .._problems import ConfigError
 from .shared import (
     Config,
     Log,
@@ -114,15 +114,13 @@ def run_identify(
             seed=int(seed),
             resolution=tuple(np.where(counts > 0, 2 * np.pi / np.maximum(counts, 1), 0.0)),
         )
-        arm = _config.arm_params_of(cfg, np.float64)
+        arm = problems.arm_params_of(cfg, np.float64)
         result = identification.identify(arm, float(payload), record, names, settings, progress=log)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
-    check = {**cfg, "arm": {**cfg["arm"], **fitted}, "plant": {**cfg["plant"], "kind": "arm",
-                                                              "payloads": [result["payload"]]}}  # fmt: skip
     try:
-        _config.resolve(check)
+        problems.replace(cfg, arm=fitted, plant={"kind": "arm", "payloads": [result["payload"]]})
         config_check = "ok"
     except ConfigError as e:
         config_check = str(e)
@@ -143,7 +141,7 @@ def run_identify(
         header += f"\nWARNING: not a valid config as it stands: {config_check}"
     toml = identification.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
     report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
-                      "config": cfg})  # fmt: skip
+                      "config": cfg.as_dict()})  # fmt: skip
     if out is not None:
         try:
             out.mkdir(parents=True, exist_ok=True)

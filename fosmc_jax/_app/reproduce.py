@@ -9,7 +9,6 @@ paper does not show. Figures are drawn by :mod:`fosmc_jax._reproduce_plots`.
 from __future__ import annotations
 
 import concurrent.futures
-import copy
 import csv
 import functools
 import io
@@ -23,16 +22,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _problems as problems
 from .._controllers.fosmc import FOSMC, FOSMCParams
 from .._design import paper
 from .._design.gains import summarize
 from .._io import write_text
 from .._plants.linear import LinearPlant, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
+from .._problems import ConfigError
 from .._simulator.metrics import METRIC_NAMES, UNITS
 from .._simulator.rollout import simulate, simulate_batch
-from . import config as _config
-from .config import ConfigError
 from .shared import Log, _fresh_out, _quiet, _with_x64, writable
 
 SWITCHINGS = ("sign", "set 1", "set 2", "set 3")
@@ -157,26 +156,22 @@ def run_cases(
 
 #: The realistic digital loop (sample rate, encoder, difference estimator, delay, voltage
 #: limit), with the sources of its numbers; ``tuning/configs/realistic_arm.toml`` is this file.
-REALISTIC_PRESET = Path(__file__).parent / "presets" / "realistic_arm.toml"
+REALISTIC_PRESET = problems.PRESETS["realistic_arm"]
 #: The trade-off sweep: delta as multiples of Table 1 set 1, and the poles (33) sped up.
 DELTA_SCALES = (3.0, 1.0, 0.3, 0.1, 0.03, 0.01, 0.003, 0.001)
 POLE_SPEEDUPS = (1.0, 3.0, 10.0, 30.0, 100.0)
 
 
-def realistic_config(t_final: float | None = None) -> dict:
+def realistic_config(t_final: float | None = None) -> problems.Config:
     """The resolved realistic preset (optionally with a shorter horizon)."""
-    cfg = _config.load(REALISTIC_PRESET)
-    if t_final is not None:
-        cfg["sim"]["t_final"] = t_final
-    return cfg
+    cfg = problems.load(REALISTIC_PRESET)
+    return cfg if t_final is None else problems.replace(cfg, sim={"t_final": t_final})
 
 
-def _run(cfg: dict, params: list[FOSMCParams], switching: str, realistic: bool, save_every: int = 0):
+def _run(cfg: problems.Config, params: list[FOSMCParams], switching: str, realistic: bool, save_every: int = 0):
     """Every (params x payload) of ``cfg``'s arm, each run in the ideal loop or the config's
     digital loop: one vmapped call, results with a leading axis (len(params) * P)."""
-    cfg = copy.deepcopy(cfg)
-    cfg["controller"]["switching"] = switching
-    problem = _config.build(cfg)
+    problem = problems.build(problems.replace(cfg, controller={"switching": switching}))
     make = problem.make if realistic else functools.partial(FOSMC, switching=switching)
     if not save_every:  # metrics only: the arm's kernel
         keys = None if problem.keys is None else problem.keys[:1]
@@ -204,7 +199,7 @@ def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None]
     for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
         start = time.perf_counter()
         params = [_controller(paper.DELTA_SETS[k], dtype) for k in sets]
-        result = _run(cfg, params, switching, True, save_every=_config.sample_steps(cfg))
+        result = _run(cfg, params, switching, True, save_every=problems.sample_steps(cfg))
         i = 0
         for k in sets:
             for load in payloads:
@@ -497,10 +492,10 @@ def run_reproduce(
         raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
     if integrator not in ("euler", "rk4"):
         raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
-    _config.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
+    problems.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
     if plant == "arm":  # the realistic loop's horizon too (its period, its delay), before any case runs
         try:
-            _config.resolve(realistic_config(t_final))
+            problems.resolve(realistic_config(t_final))
         except ConfigError as e:
             raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
     if report:

@@ -13,10 +13,10 @@ from typing import Any
 import jax
 import numpy as np
 
+from .. import _problems as problems
 from .._io import check_writable
+from .._problems import ConfigError
 from .._simulator.metrics import UNITS
-from . import config as _config
-from .config import ConfigError
 
 Config = str | Path | dict | None
 Log = Callable[[str], None]
@@ -36,9 +36,9 @@ def _with_x64(f):
 
 
 def config_of(config: Config) -> dict[str, Any]:
-    """The resolved config (:func:`fosmc_jax._app.config.as_config`: a TOML path, a preset's
+    """The resolved config (:func:`fosmc_jax._problems.as_config`: a TOML path, a preset's
     name, a user dict, a resolved config, or ``None`` for the paper's defaults)."""
-    return _config.as_config(config)
+    return problems.as_config(config)
 
 
 def _fresh_out(out: str | Path, flags: bool, hint: str) -> Path:
@@ -80,7 +80,7 @@ def one_plant(cfg: dict) -> str | None:
     plant = cfg["plant"]
     if plant["kind"] == "arm":
         payloads = sorted(set(plant["payloads"]))
-        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or _config.arm_varies(cfg)
+        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or problems.arm_varies(cfg)
         return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 and not varied else None
     if plant["uncertainty"] == "none":
         return "the nominal linear model"

@@ -12,13 +12,13 @@ from typing import Any
 import jax
 import numpy as np
 
+from .. import _problems as problems
 from .._io import jsonable, stamped, write_text
+from .._problems import ConfigError, memory
 from .._simulator import sharding
 from .._simulator.metrics import METRIC_NAMES, Metrics, batch_summary
 from .._simulator.rollout import simulate_batch
-from . import chunks, memory
-from . import config as _config
-from .config import ConfigError
+from . import chunks
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
@@ -76,7 +76,7 @@ def run_simulate(
     sampled arm).
 
     A batch larger than memory holds at once runs in chunks of one shape (the last padded), of
-    as many rollouts as fit beside what the whole run holds (:func:`fosmc_jax._app.memory.plan`;
+    as many rollouts as fit beside what the whole run holds (:func:`fosmc_jax._problems.memory.plan`;
     ``chunk``: at most that many), with the same results; a ``log`` line after the first chunk
     and then every 10 s says how far it is. One whose draws and outputs cannot fit, chunked or
     not, is refused (:class:`ConfigError` naming the key to lower, with the estimate and the
@@ -103,7 +103,7 @@ def run_simulate(
             raise ConfigError(f"--devices: a run across processes splits the batch over every process's devices "
                               f"({jax.device_count()}); set each process's count with JAX_NUM_CPU_DEVICES")  # fmt: skip
         cfg = config_of(config)
-        options = {"command": "simulate", "config": cfg, "params": params, "point": point,
+        options = {"command": "simulate", "config": cfg.as_dict(), "params": params, "point": point,
                    "keep_trace": keep_trace, "records": records, "draws": draws, "chunk": chunk}  # fmt: skip
         agree(digest(options, (params,)))
     if resume and checkpoint is None:
@@ -115,13 +115,13 @@ def run_simulate(
                               "there; or give another folder)")  # fmt: skip
     devices = (jax.device_count() if across else jax.local_device_count()) if devices is None else devices
     if params:
-        cfg = _config.with_params(cfg, params, point)
+        cfg = problems.with_params(cfg, params, point)
     elif point is not None:
         raise ConfigError("--point: needs --params FRONT.json")
-    n = _config.n_steps(cfg)
+    n = problems.n_steps(cfg)
     if keep_trace and not cfg["sim"]["save_every"]:
-        m = _config.sample_steps(cfg)
-        cfg["sim"]["save_every"] = max(1, n // 4000 // m) * m
+        m = problems.sample_steps(cfg)
+        cfg = problems.replace(cfg, sim={"save_every": max(1, n // 4000 // m) * m})
     if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
         raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
     if cfg["sim"]["save_every"] and (chunk is not None or checkpoint is not None):
@@ -134,7 +134,7 @@ def run_simulate(
     if checkpoint is not None:
         size = _checkpoint_chunk(checkpoint, cfg, devices, size, chunk, resume)
     size = size if chunk is None else min(size, chunk)
-    problem = _config.problem_of(cfg)
+    problem = problems.problem_of(cfg)
     n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
     paired = cfg["sim"]["pairing"] == "paired"
     per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
@@ -169,17 +169,17 @@ def run_simulate(
     r = np.arange(n_rollouts)
     arrays.update(plant_index=r // (per_plant * n_real), realization_index=r % n_real,
                   offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
-    if _config.arm_varies(cfg):  # [arm.uncertainty]: which sampled arm each rollout ran (arm-major, then payload)
+    if problems.arm_varies(cfg):  # [arm.uncertainty]: which sampled arm each rollout ran (arm-major, then payload)
         payloads = cfg["sample"]["count"] if cfg["sample"]["payloads"] else len(cfg["plant"]["payloads"])
         arrays["arm_index"] = arrays["plant_index"] // (1 if paired else payloads)
-    drawn, extra = _config.draws(cfg) if draws else {}, {}
+    drawn, extra = problems.draws(cfg) if draws else {}, {}
     if cfg["sample"]["count"] and draws:
         extra["sampled"] = {k: v.tolist() for k, v in drawn.items() if k != "arms"}
     if "arms" in drawn:  # each sampled arm's parameters
         n_arms = len(drawn["arms"]["F"])
         extra["arms"] = [{k: v[i].tolist() for k, v in drawn["arms"].items()} for i in range(n_arms)]
     body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
-    out = stamped({**body, "summary": summary, **extra, "config": cfg})
+    out = stamped({**body, "summary": summary, **extra, "config": cfg.as_dict()})
     return dict(out, trace=result.trace) if keep_trace else out
 
 
@@ -191,7 +191,7 @@ def _checkpoint_chunk(folder: Path, cfg: dict, devices: int, size: int, chunk: i
     naming what differs otherwise: another config's chunks, or another device count's, which
     differ to rounding, would not be this run's results)."""
     plan_path = folder / "plan.json"
-    meta = stamped({"config": json.loads(json.dumps(jsonable(cfg))), "devices": devices})
+    meta = stamped({"config": json.loads(json.dumps(jsonable(cfg.as_dict()))), "devices": devices})
     if not (resume and plan_path.exists()):
         chunk = min(size, chunks.CHECKPOINT_CHUNK, chunk or size)
         write_text(plan_path, json.dumps(jsonable({**meta, "chunk": chunk}), indent=1))

@@ -6,7 +6,6 @@ and what ``--replay`` redoes (:func:`replayed`)."""
 
 from __future__ import annotations
 
-import copy
 import json
 import time
 from collections.abc import Callable
@@ -17,58 +16,25 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _problems as problems
 from .._design import paper
 from .._io import jsonable, write_text
 from .._search import tune as tuner
 from .._search.front import Evaluator, Settings, point_of, replay_settings, run
 from .._simulator import sharding
-from . import config as _config
 
 
-def held_out_config(cfg: dict) -> dict:
-    """The config's batch with what training did not see: arm payloads between and beside the
-    training ones (at 0.1, 0.3, ..., 0.9 of ``arm.payload_range``: 1, 3, 5, 7, 9 kg on the
-    paper's arm, unless trained on; 2.5, 5, 7.5 kg until a front point tuned on 0 and 10 kg was
-    found to lose a joint at 1 and 8 kg, tuning/README.md), fresh box samples (linear
-    ``sample`` / ``vertices``), fresh sampled arms (``[arm.uncertainty]``), fresh ``[sample]``
-    draws and noise seeds."""
-    held = copy.deepcopy(cfg)
-    plant = held["plant"]
-    if plant["kind"] == "arm":
-        lo, hi = held["arm"]["payload_range"]
-        fresh = [p for p in (lo + (hi - lo) * f for f in (0.1, 0.3, 0.5, 0.7, 0.9)) if p not in plant["payloads"]]
-        plant["payloads"] = fresh or [(plant["payloads"][0] + (lo + hi) / 2) / 2]
-        held["arm"]["uncertainty"]["seed"] += 1
-    elif plant["uncertainty"] in ("sample", "vertices"):
-        plant["seed"] += 1
-    held["sample"]["seed"] += 1
-    held["sensors"]["seed"] += 1
-    return _config.resolve(held)
-
-
-def held_out_batch(held: dict) -> dict:
-    """What :func:`held_out_config`'s batch ``held`` draws, for a result file: the plant's kind,
-    payloads and box seed, the seeds of its sampled arms and ``[sample]`` draws."""
-    unc = held["arm"]["uncertainty"]
-    return {**{k: held["plant"][k] for k in ("kind", "payloads", "seed")},
-            "arm_samples": unc["samples"] if held["plant"]["kind"] == "arm" else 0,
-            "arm_seed": unc["seed"], "sample_seed": held["sample"]["seed"]}  # fmt: skip
-
-
-def references(cfg: dict, chunk: int, plain: Evaluator | None = None) -> dict[str, dict]:
+def references(front: problems.FrontProblems, chunk: int, plain: Evaluator) -> dict[str, dict]:
     """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
     sets (the config's switching) and SGN, with the config's gamma and poles, on the config's
-    batch; Table 1's through ``plain`` (the config's plain problem, its evaluator compiled
-    once for the study) when the config's kind is the FOSMC."""
+    batch (``front.references``); Table 1's through ``plain`` (the config's plain problem, its
+    evaluator compiled once for the study) when the config's kind is the FOSMC."""
     out = {}
-    for label, switching, sets in (("Table 1", cfg["controller"]["switching"], (0, 1, 2)), ("SGN", "sign", (0,))):
-        c = copy.deepcopy(cfg)
-        c["controller"].update(switching=switching, kind="fosmc")
-        if label == "Table 1" and plain is not None and cfg["controller"]["kind"] == "fosmc":
-            problem, p0 = plain, tuner.Tunable(*(getattr(plain.problem.base, k) for k in tuner.PARAM_NAMES))
-        else:
-            problem, _, p0 = _config.tuning_problems(c)
-            problem = Evaluator(problem)
+    for label, sets in (("Table 1", (0, 1, 2)), ("SGN", (0,))):
+        reference = front.references[label]
+        problem = plain if reference is None else Evaluator(reference)
+        base = problem.problem.base
+        p0 = tuner.Tunable(*(getattr(base, k) for k in tuner.PARAM_NAMES))
         ps = tuner.Tunable(jnp.stack([jnp.asarray(paper.DELTA_SETS[k], p0.delta.dtype) for k in sets]),
                        jnp.stack([p0.gamma] * len(sets)), jnp.stack([p0.poles] * len(sets)))  # fmt: skip
         m = problem(ps, chunk if problem is plain else len(sets), log=lambda _: None)
@@ -90,9 +56,9 @@ def finished(out: Path | None, name: str, cfg: dict, command: str, log: Callable
     try:
         done = json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise _config.ConfigError(f"--resume: cannot read {path}: {e}") from None
-    if done.get("config") != json.loads(json.dumps(jsonable(cfg))):
-        raise _config.ConfigError(f"--resume: {path} is a complete run of another config: give its config, or "
+        raise problems.ConfigError(f"--resume: cannot read {path}: {e}") from None
+    if done.get("config") != json.loads(json.dumps(jsonable(cfg.as_dict()))):
+        raise problems.ConfigError(f"--resume: {path} is a complete run of another config: give its config, or "
                                   "--force to start afresh")  # fmt: skip
     log(f"{command}: {path} is complete (nothing to resume): left as it is; --force starts afresh")
     return done
@@ -112,11 +78,11 @@ def replayed(path: str | Path) -> tuple[dict, Settings]:
     ``ConfigError`` naming ``--replay`` for a file that is not such a front."""
     try:
         data = json.loads(Path(path).read_text())
-        return _config.as_config(data["config"]), replay_settings(data["stages"])
+        return problems.as_config(data["config"]), replay_settings(data["stages"])
     except (KeyError, TypeError, AttributeError):
-        raise _config.ConfigError(f"--replay: {path} is not a fosmc front front.json (no config or stages)") from None
+        raise problems.ConfigError(f"--replay: {path} is not a fosmc front front.json (no config or stages)") from None
     except (OSError, ValueError) as e:
-        raise _config.ConfigError(f"--replay: {path}: {str(e).splitlines()[0]}") from None
+        raise problems.ConfigError(f"--replay: {path}: {str(e).splitlines()[0]}") from None
 
 
 #: Seconds kept at the end of ``fosmc front``'s budget for writing front.json and drawing front.png.
@@ -140,10 +106,11 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
         return done
     if not resume:
         start_afresh(out, "front.json", "checkpoint.npz")
-    plain, train, p0 = _config.tuning_problems(cfg)
-    plain = Evaluator(plain)  # compiled once: for the references and the search
-    refs = references(cfg, settings.chunk, plain)
-    held = Evaluator(_config.tuning_problems(held_out_config(cfg))[0])
+    front = problems.front_problems(cfg)
+    train, p0 = front.train, front.p0
+    plain = Evaluator(front.plain)  # compiled once: for the references and the search
+    refs = references(front, settings.chunk, plain)
+    held = Evaluator(front.held_out)
     one = jax.tree.map(lambda x: jnp.broadcast_to(x, (settings.chunk,) + jnp.shape(x)), p0)
     held(one, settings.chunk, log=lambda _: None)  # compiled
     held_s = np.inf
@@ -162,8 +129,8 @@ def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: boo
     for i, pt in enumerate(result["points"]):
         pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)["metrics"]
     result["references"] = refs
-    result["held_out_batch"] = held_out_batch(held_out_config(cfg))
-    result["config"] = cfg
+    result["held_out_batch"] = front.held_out_batch
+    result["config"] = cfg.as_dict()
     if out is not None and sharding.leads():
         from .plots import plot_front
 

@@ -11,11 +11,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from .. import _problems as problems
 from .._io import jsonable, stamped, write_text
+from .._problems import ConfigError
 from .._simulator import sharding
 from .._simulator.metrics import UNITS
-from . import config as _config
-from .config import ConfigError
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
     Config,
@@ -66,7 +66,7 @@ def run_tune(
     ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
     {"params", "metrics", ...}, "start": {"params", "global_candidates"}, "final": {...},
     "held_out": {"metrics", ...}, "held_out_batch", "objective", "history", "config"}``
-    (``held_out``: the final parameters on :func:`fosmc_jax._app.study.held_out_config`'s
+    (``held_out``: the final parameters on :func:`fosmc_jax._problems.held_out_config`'s
     batch, fresh payloads, sampled arms and draws, as ``fosmc front`` evaluates its points),
     ``params`` by the kind's names (e.g. ``{"k": [...], "phi": [...]}``). On a batch of one
     plant (:func:`one_plant`: the default config's nominal model) it warns (``UserWarning``)
@@ -88,7 +88,7 @@ def run_tune(
     with agreeing(across) as agree:
         cfg, out = _checked_tune(config, steps, out, resume, force, budget, lead)
         files = (out / "checkpoint.npz", out / "result.json") if resume and out is not None else ()
-        agree(digest({"command": "tune", "config": cfg, "out": out, "resume": resume, "force": force,
+        agree(digest({"command": "tune", "config": cfg.as_dict(), "out": out, "resume": resume, "force": force,
                       "budget": budget}, files))  # fmt: skip
     if out is not None:
         if resume and (done := study.finished(out, "result.json", cfg, "tune", log)) is not None:
@@ -111,11 +111,11 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
     if budget is not None and not (_is_real(budget) and math.isfinite(budget) and budget > 0):
         raise ConfigError(f"--budget: expected a positive, finite number of seconds, got {budget}")
     cfg = config_of(config)
-    tcfg = cfg["tune"]
     if steps is not None:
         if steps < 1:
             raise ConfigError(f"--steps: expected a positive integer, got {steps}")
-        tcfg["steps"] = steps
+        cfg = problems.replace(cfg, tune={"steps": steps})
+    tcfg = cfg["tune"]
     kind = cfg["controller"]["kind"]
     names = tuner.SPACES[kind].names
     if not set(tcfg["params"]) <= set(names):
@@ -133,15 +133,14 @@ def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, start
           log: Log) -> dict[str, Any]:  # fmt: skip
     """``run_tune``'s work, its inputs checked."""
     from .._search import tune as tuner
-    from . import study
 
     tcfg = cfg["tune"]
-    plain, problem, p0 = _config.tuning_problems(cfg)
+    plain, problem, p0 = problems.tuning_problems(cfg)
     if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
     floor = None
     if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
-        d = _config.design_summary(cfg)
+        d = problems.design_summary(cfg)
         floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
@@ -188,8 +187,8 @@ def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, start
     final_params = tuner.to_physical(u, plain.base, floor)
     final = tuner.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
-    held = study.held_out_config(cfg)
-    held_out = tuner.evaluate(_config.tuning_problems(held)[0], final_params)
+    held = problems.held_out_config(cfg)
+    held_out = tuner.evaluate(problems.tuning_problems(held)[0], final_params)
     log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
         f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
         f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip
@@ -202,10 +201,10 @@ def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, start
         },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
         "held_out": held_out,
-        "held_out_batch": study.held_out_batch(held),
+        "held_out_batch": problems.held_out_batch(held),
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},
-        "config": cfg,
+        "config": cfg.as_dict(),
     })  # fmt: skip
     if out is not None and lead:
         from .plots import plot_tuning

@@ -55,6 +55,28 @@ from .._controllers.smc import SMCGains as SMCGains
 from .._controllers.super_twisting import STGains as STGains
 from .._design.gains import gain_from_poles, gamma_bounds
 from .._io import atomic_write
+from .._problems.schema import (  # the config's vocabulary of the tuner's choices
+    CHATTERING_METRICS as CHATTERING_METRICS,
+)
+from .._problems.schema import (
+    ERROR_METRICS as ERROR_METRICS,
+)
+from .._problems.schema import (
+    FORMS as FORMS,
+)
+from .._problems.schema import (
+    MODES as MODES,
+)
+from .._problems.schema import (
+    OPTIMIZERS as OPTIMIZERS,
+)
+from .._problems.schema import (
+    SCALES as SCALES,
+)
+from .._problems.schema import (
+    WORST_CASE as WORST_CASE,
+)
+from .._problems.tables import Tune
 from .._simulator import sharding
 from .._simulator.metrics import mean_over_survivors
 from .._simulator.problem import Problem
@@ -62,8 +84,6 @@ from .._simulator.sharding import replicated
 
 #: The FOSMC's tunable parameters (a kind's are ``SPACES[kind].names``).
 PARAM_NAMES = ("delta", "gamma", "poles")
-WORST_CASE = ("none", "max", "cvar")
-MODES = ("auto", "reverse", "forward")
 
 
 #: A kind's parameter set (its :class:`Space`'s ``values``: the FOSMC's :class:`Tunable`, SMC's
@@ -116,12 +136,6 @@ def to_physical(u: Params, base: Any, floor: GammaFloor | None = None) -> Params
     return p
 
 
-FORMS = ("weighted", "error_bound", "chattering_bound")
-SCALES = ("log", "linear")
-ERROR_METRICS = ("rms_error", "max_abs_error")
-CHATTERING_METRICS = ("chattering_hf", "chattering")
-
-
 class Objective(NamedTuple):
     """Form, weights, metrics and scales of the objective (see module docstring)."""
 
@@ -142,15 +156,16 @@ class Objective(NamedTuple):
     bound_weight: float = 100.0
 
 
-def objective_of(tune: dict, metrics: dict) -> Objective:
-    """The :class:`Objective` of a config's ``[tune]`` table, its scales the batch means of
-    ``metrics`` (a dict of per-joint means, as :func:`evaluate` returns) at the start."""
+def objective_of(tune: Tune, metrics: dict) -> Objective:
+    """The :class:`Objective` of a resolved config's ``[tune]`` table (``cfg.tune``), its scales
+    the batch means of ``metrics`` (a dict of per-joint means, as :func:`evaluate` returns) at
+    the start."""
     return Objective(
-        tune["weight_error"], tune["weight_chattering"],
-        float(np.mean(metrics[tune["error_metric"]])), float(np.mean(metrics[tune["chattering_metric"]])),
-        tune["worst_case"], tune["worst_weight"], tune["cvar_alpha"], tune["penalty"], tune["objective"],
-        tune["scale"], tune["error_metric"], tune["chattering_metric"], tune["error_bound"],
-        tune["chattering_bound"], tune["bound_weight"],
+        tune.weight_error, tune.weight_chattering,
+        float(np.mean(metrics[tune.error_metric])), float(np.mean(metrics[tune.chattering_metric])),
+        tune.worst_case, tune.worst_weight, tune.cvar_alpha, tune.penalty, tune.objective,
+        tune.scale, tune.error_metric, tune.chattering_metric, tune.error_bound,
+        tune.chattering_bound, tune.bound_weight,
     )  # fmt: skip
 
 
@@ -217,7 +232,6 @@ class Settings(NamedTuple):
     optimizer: str = "adam"  # or "lbfgs": L-BFGS directions with a backtracking line search
 
 
-OPTIMIZERS = ("adam", "lbfgs")
 #: L-BFGS's line search: Armijo's sufficient decrease, the step's factor after a rejected trial
 #: and after an accepted step, the trials per step, the longest step (2-norm in u: a factor e on
 #: one parameter) and the curvature pairs kept

@@ -21,8 +21,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._plants.arm import ArmParams
 from .._simulator.metrics import METRIC_NAMES
+from .tables import Config
 
 #: Floats of one rollout's working set and outputs: its plant state (9) and metric accumulators
 #: (3 per metric) while it runs, then its metrics (3 per metric) with ``diverged`` and
@@ -78,25 +78,27 @@ ADVICE = {
 }
 
 
-def _box_vertices(cfg: dict) -> float:
+def _box_vertices(cfg: Config) -> float:
     """How many vertices the linear box has (2^m, m its entries of non-zero width)."""
-    box = cfg["plant"]["box"]
-    m = sum(int(np.sum(np.asarray(box[f"{x}_upper"]) > np.asarray(box[f"{x}_lower"]))) for x in ("A", "B"))
+    box = cfg.plant.box
+    pairs = ((box.A_lower, box.A_upper), (box.B_lower, box.B_upper))
+    m = sum(int(np.sum(np.asarray(upper) > np.asarray(lower))) for lower, upper in pairs)
     return 2.0**m
 
 
-def _arms(cfg: dict) -> tuple[int, str]:
+def _arms(cfg: Config) -> tuple[int, str]:
     """How many sampled arms ``[arm.uncertainty]`` draws (1: none), and the key that sets it."""
-    unc, arm = cfg["arm"]["uncertainty"], cfg["arm"]
-    live = sum(int(np.sum(np.broadcast_to(np.asarray(unc[k], float), np.shape(arm[k])) > 0)) for k in ArmParams._fields)
+    unc = cfg.arm.uncertainty
+    live = sum(int(np.sum(np.broadcast_to(np.asarray(w, float), np.shape(x)) > 0))
+               for w, x in zip(unc.widths, cfg.arm.params))  # fmt: skip
     if not live:
         return 1, "arm.uncertainty.samples"
-    if unc["sampling"] == "uniform":
-        return unc["samples"], "arm.uncertainty.samples"
+    if unc.sampling == "uniform":
+        return unc.samples, "arm.uncertainty.samples"
     corners = 2**live
-    if not unc["samples"] or unc["samples"] >= corners:
+    if not unc.samples or unc.samples >= corners:
         return corners, "arm.uncertainty.sampling"  # every corner of the varying entries
-    return unc["samples"], "arm.uncertainty.samples"
+    return unc.samples, "arm.uncertainty.samples"
 
 
 class Batch(NamedTuple):
@@ -119,30 +121,29 @@ class Batch(NamedTuple):
     words: str
 
 
-def batch(cfg: dict) -> Batch:
+def batch(cfg: Config) -> Batch:
     """:class:`Batch` of a resolved config (counts only: nothing is drawn)."""
-    item = np.dtype(cfg["sim"]["precision"]).itemsize
-    plant, sample, sim = cfg["plant"], cfg["sample"], cfg["sim"]
+    item = np.dtype(cfg.sim.precision).itemsize
+    plant, sample, sim = cfg.plant, cfg.sample, cfg.sim
     plant_factors: dict[str, float] = {}  # key -> the count of plants it sets
     arms = 0
-    if plant["kind"] == "arm":
-        entries = sum(int(np.size(cfg["arm"][k])) for k in ArmParams._fields)
+    if plant.kind == "arm":
+        entries = sum(int(np.size(x)) for x in cfg.arm.params)
         arms, arm_key = _arms(cfg)
         plant_factors[arm_key] = arms
-        plant_factors["sample.count" if sample["payloads"] else "plant.payloads"] = (
-            sample["count"] if sample["payloads"] else len(plant["payloads"])
+        plant_factors["sample.count" if sample.payloads else "plant.payloads"] = (
+            sample.count if sample.payloads else len(plant.payloads)
         )
         drawn = 2 * arms * entries * 8  # the draws and the sampled arms, float64
     else:
         entries, drawn = LINEAR_ENTRIES, 0
-        samples = plant["samples"] if plant["uncertainty"] in ("sample", "vertices") else 1
-        plant_factors["plant.samples"] = (
-            min(samples, _box_vertices(cfg)) if plant["uncertainty"] == "vertices" else samples
-        )
-    offsets = sample["count"] if any(sample["offsets"]) else len(np.atleast_2d(sim["initial_offset"]))
-    offset_key = "sample.count" if any(sample["offsets"]) else "sim.initial_offset"
-    realizations = cfg["sensors"]["realizations"] if cfg["controller"]["sample_period"] else 1
-    if sim["pairing"] == "paired":  # the i-th plant with the i-th initial state
+        samples = plant.samples if plant.uncertainty in ("sample", "vertices") else 1
+        vertices = plant.uncertainty == "vertices"
+        plant_factors["plant.samples"] = min(samples, _box_vertices(cfg)) if vertices else samples
+    offsets = sample.count if any(sample.offsets) else len(np.atleast_2d(sim.initial_offset))
+    offset_key = "sample.count" if any(sample.offsets) else "sim.initial_offset"
+    realizations = cfg.sensors.realizations if cfg.controller.sample_period else 1
+    if sim.pairing == "paired":  # the i-th plant with the i-th initial state
         plants = max(*plant_factors.values(), offsets)
         rollouts = plants * realizations
     else:
@@ -150,18 +151,18 @@ def batch(cfg: dict) -> Batch:
         rollouts = plants * offsets * realizations
     factors = {**plant_factors, offset_key: max(offsets, plant_factors.get(offset_key, 0)),
                "sensors.realizations": realizations}  # fmt: skip
-    n_steps = max(1, round(sim["t_final"] / sim["dt"]))
-    trace = TRACE_FLOATS * (n_steps // sim["save_every"] + 1) if sim["save_every"] else 0
+    n_steps = max(1, round(sim.t_final / sim.dt))
+    trace = TRACE_FLOATS * (n_steps // sim.save_every + 1) if sim.save_every else 0
     key = max(factors, key=lambda k: factors[k])
     if trace and rollouts * trace > rollouts * ROLLOUT_FLOATS + plants * entries:
         key = "sim.save_every"
     words = f"{rollouts:.4g} rollout(s) of {plants:.4g} plant(s)" + (f", a trace of {trace // TRACE_FLOATS} samples"
                                                                        if trace else "")  # fmt: skip
-    sampled = sample["count"] * ((1 if sample["payloads"] else 0) + (9 if any(sample["offsets"]) else 0))
+    sampled = sample.count * ((1 if sample.payloads else 0) + (9 if any(sample.offsets) else 0))
     return Batch(rollouts, plants, offsets, arms, sampled, trace, entries, item, drawn, key, words)
 
 
-def estimate(cfg: dict) -> Estimate:
+def estimate(cfg: Config) -> Estimate:
     """The memory a resolved config's batch needs at least (see the module's docstring), from
     its plants (P), initial states (O), noise realizations (R), horizon and trace."""
     b = batch(cfg)
@@ -169,7 +170,7 @@ def estimate(cfg: dict) -> Estimate:
     return Estimate(int(min(total, 2**62)), b.words, b.key)
 
 
-def held(cfg: dict, *, records: bool = False, draws: bool = False) -> float:
+def held(cfg: Config, *, records: bool = False, draws: bool = False) -> float:
     """Bytes ``fosmc simulate`` holds for a resolved config's whole batch, however it is run in
     chunks: the drawn arms, plants and initial states (float64 and the run's precision), every
     rollout's outputs, and with ``records`` their records, with ``draws`` the draws as lists
@@ -182,7 +183,7 @@ def held(cfg: dict, *, records: bool = False, draws: bool = False) -> float:
     return total
 
 
-def plan(cfg: dict, *, records: bool = False, draws: bool = False,
+def plan(cfg: Config, *, records: bool = False, draws: bool = False,
          available: tuple[int | None, str] | None = None) -> tuple[int, str | None]:  # fmt: skip
     """(rollouts per chunk, None) for ``fosmc simulate`` on a resolved config: the whole batch
     where it fits in :func:`limit` (or ``available``) less :data:`RESERVE` and what the run
@@ -258,7 +259,7 @@ def limit() -> tuple[int | None, str]:
     return min(found) if found else (None, "unknown")
 
 
-def refusal(cfg: dict, available: tuple[int | None, str] | None = None) -> str | None:
+def refusal(cfg: Config, available: tuple[int | None, str] | None = None) -> str | None:
     """The one-line refusal of a batch whose :func:`estimate` exceeds :func:`limit` (or
     ``available``), naming the key to lower first; None when it fits (or no limit is known)."""
     need = estimate(cfg)
