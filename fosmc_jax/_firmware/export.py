@@ -1,28 +1,31 @@
 """The digital loop's controller as dependency-free C99 (libm only), for a drive's firmware.
 
-:func:`export_c` writes the sampled law of a :class:`fosmc_jax.DigitalLoop` (the FOSMC's
-:class:`fosmc_jax.DiscreteFOSMC`, :class:`fosmc_jax.SMC` or :class:`fosmc_jax.SuperTwisting`)
-with its sensors' estimator, its computation delay and its voltage limit as a header and a
-source file: the constants of the loop as it was simulated (the law's matrices and gains, the
-boundary layers, T, d, u_max, the encoder's resolution), a state struct (the integral, the
-estimator's memory, the delay line, the sample counter), ``<name>_init`` from the initial
-state, ``<name>_update`` from one sample's measurement and reference sample to the applied
-voltages, and the reference generators (the cycloid (30), the sinusoid). At sample j the C does
-what :meth:`fosmc_jax.DigitalLoop.update` does (fosmc_jax/_loop/digital.py):
+:func:`export_c` writes one sample of a :class:`fosmc_jax.DigitalLoop` (its sensors' estimator,
+its sampled law, its computation delay and its voltage limit) as a header and a source file,
+printed from the package's own JAX functions by the kernels' jaxpr printer with a scalar C99
+target (:mod:`.c99`): ``<name>_update`` is the jaxpr of :meth:`fosmc_jax.DigitalLoop.update` on
+the loop's concrete parameters, whose constants (the law's matrices and gains, the boundary
+layers, T, u_max, the encoder's resolution) are folded into the code, ``<name>_init`` that of
+:meth:`fosmc_jax.DigitalLoop.init`, ``<name>_reference_at`` that of the reference (the cycloid
+(30), the sinusoid, or any reference that prints). At sample j the C does what the package's
+loop does (fosmc_jax/_loop/digital.py), in its order of operations:
 
     Y_j = the measurement (encoder counts -> angles; backward differences, or measured rates)
-    U_j = the law (23) / SMC / super-twisting from Y_j and X_d(t_j), its state advanced
+    U_j = the law's update from Y_j and X_d(t_j) (e.g. (23)), its state advanced
     V_j = clip(U_{j-d}, -u_max, u_max)  (0 for j < d)
 
-with the constants the package derived for the simulation (:func:`fosmc_jax._controllers.fosmc.derive`),
-not re-derived here. The generated code has no heap, no globals beyond ``static const``
-constants, and keeps time as an integer sample counter; it compiles with ``-std=c99 -Wall
--Wextra -Werror -pedantic`` in float32 and float64 (tests/test_export.py runs it in closed loop
-with the package's arm and compares it with the package's own rollout).
+Any sampled law exports whose update prints (every primitive it uses known to
+:mod:`fosmc_jax._simulator.codegen`); the state struct is the loop's state flattened (the
+law's state, the estimator's memory, the delay line, the sample counter). The generated code
+has no heap, no globals beyond ``static const`` constants, and keeps time as an integer sample
+counter; it compiles with ``-std=c99 -Wall -Wextra -Werror -pedantic`` in float32 and float64
+(tests/test_export.py runs it in closed loop with the package's arm and compares it with the
+package's own rollout).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import shutil
@@ -33,33 +36,44 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from .._controllers.fosmc import DiscreteFOSMC, derive
-from .._controllers.smc import SMC
-from .._controllers.super_twisting import SuperTwisting
-from .._design.gains import input_matrix_product
 from .._io import __version__, write_text
 from .._loop.digital import DigitalLoop
 from .._plants.reference import Cycloid, Sinusoid
+from .._simulator import codegen
+from . import c99
 
 #: The precisions of the generated code's ``real`` type.
 PRECISIONS = ("float32", "float64")
 #: The flags the generated code is written for (and checked with, where a compiler is found).
 STRICT_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic")
-
-_KIND_OF = {DiscreteFOSMC: "fosmc", SMC: "smc", SuperTwisting: "super_twisting"}
-#: The controller kinds (``[controller] kind``) whose sampled law has a C form.
-EXPORTED_KINDS = tuple(_KIND_OF.values())
-_LONG_NAME = {
-    "fosmc": "full-order sliding mode (FOSMC) tracking controller",
-    "smc": "conventional sliding mode controller (boundary layer)",
-    "super_twisting": "super-twisting controller",
-}
+#: The package's controller kinds with a sampled law (all of them print). :func:`export_c` itself
+#: takes any loop whose sample step prints; this names the kinds for a command's first check.
+EXPORTED_KINDS = ("fosmc", "smc", "super_twisting")
 #: The phrase for the paper's design model, (29): ``export_c``'s ``model`` for its rows.
 PAPER_MODEL = "the paper's nominal model (29)"
-_SWITCHING = {"sign": "SGN(s)", "ratio": "s / (|s| + delta), (28)", "sat": "clip(s / delta, -1, 1)",
-              "tanh": "tanh(s / delta)"}  # fmt: skip
+#: What each part of the loop's state (fosmc_jax._loop.digital.LoopState) is, for the struct's comments.
+_STATE = {
+    "law": "the law's state",
+    "memory": "the estimator's memory (the last measured angles and rates)",
+    "pending": "the delay line: voltages computed, not yet applied, oldest first",
+}
+#: What a parameter of one of these names is, for the list of the folded constants.
+_NOTES = {
+    "C": "the sliding surface C of (15)",
+    "a_rows": "A_r: rows 3, 6, 9 of A of {model}",
+    "b_rows": "B_bar: rows 3, 6, 9 of B of {model}",
+    "poles": "the poles of A + BK per joint, placed by K of (16) (1/s)",
+    "gamma": "gamma of (23)",
+    "delta": "the boundary layers delta of f(s)",
+    "counts": "encoder counts per revolution (0: exact angles)",
+    "u_max": "the amplifiers' limit (V)",
+    "period": "the sample period T (s)",
+}
+#: The reference struct's rows: the angle (rad) and its first three derivatives.
+_ROWS = ("theta", "dtheta", "ddtheta", "dddtheta")
 
 
 def export_c(
@@ -73,18 +87,20 @@ def export_c(
 ) -> dict[str, str]:
     """The C99 files of ``loop``'s controller: ``{"<name>.h": text, "<name>.c": text}``.
 
-    ``loop``: a :class:`fosmc_jax.DigitalLoop` around a :class:`fosmc_jax.DiscreteFOSMC`,
-    :class:`fosmc_jax.SMC` or :class:`fosmc_jax.SuperTwisting` (``problem.controller(params)``
-    of a config with ``controller.sample_period`` > 0), with concrete values; ``reference``:
-    its :class:`fosmc_jax.Cycloid` (30) or :class:`fosmc_jax.Sinusoid` (``problem.reference``),
-    exported as ``<name>_reference_at``. ``precision``: the C ``real`` type, ``float32`` or
-    ``float64`` (the constants are the loop's values rounded to it). ``name``: the prefix of
-    every public C identifier and of the files (a C identifier). ``source``: lines for the
-    files' head comment (where the constants come from). ``model``: the design model whose
-    rows the law holds (its ``a_rows``, ``b_rows``, which K and (CB)^-1 are designed on), in
-    words, for the comments: :data:`PAPER_MODEL` for the paper's (29), or e.g. "the design
-    model derived from the configured [arm]" (default: "the law's design model", named no
-    further). One-line ``ValueError`` for what has no C form.
+    ``loop``: a :class:`fosmc_jax.DigitalLoop` (``problem.controller(params)`` of a config with
+    ``controller.sample_period`` > 0), with concrete values, around any sampled law whose update
+    prints (:class:`fosmc_jax.DiscreteFOSMC`, :class:`fosmc_jax.SMC`,
+    :class:`fosmc_jax.SuperTwisting`, a registered kind's); its sensors' noise is the
+    simulation's and is not exported. ``reference``: a reference ``t -> (4, 3)``
+    (``problem.reference``, e.g. a :class:`fosmc_jax.Cycloid` (30)), exported as
+    ``<name>_reference_at``. ``precision``: the C ``real`` type, ``float32`` or ``float64`` (the
+    constants are folded in the loop's precision and rounded to it once). ``name``: the prefix
+    of every public C identifier and of the files (a C identifier). ``source``: lines for the
+    files' head comment (where the constants come from). ``model``: the design model whose rows
+    the law holds (its ``a_rows``, ``b_rows``, which K and (CB)^-1 are designed on), in words,
+    for the comments: :data:`PAPER_MODEL` for the paper's (29), or e.g. "the design model
+    derived from the configured [arm]" (default: "the law's design model", named no further).
+    One-line ``ValueError`` for what has no C form (naming the primitive that does not print).
     """
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {', '.join(PRECISIONS)}, got {precision!r}")
@@ -93,13 +109,9 @@ def export_c(
     if not isinstance(loop, DigitalLoop):
         raise ValueError(f"export: expected the digital loop's controller (fosmc_jax.DigitalLoop; a config with "
                          f"controller.sample_period > 0), got {type(loop).__name__}")  # fmt: skip
-    kind = _KIND_OF.get(type(loop.law))
-    if kind is None:
-        raise ValueError(f"export: the law {type(loop.law).__name__} has no C form (exported: "
-                         f"{', '.join(k.__name__ for k in _KIND_OF)})")  # fmt: skip
-    if not isinstance(reference, (Cycloid, Sinusoid)):
-        raise ValueError(f"export: the reference must be a Cycloid or a Sinusoid, got {type(reference).__name__}")
-    g = _Generator(loop, reference, kind, precision, name, source, model or "the law's design model")
+    if not callable(reference):
+        raise ValueError(f"export: the reference must be a function of t giving (4, 3), got {type(reference).__name__}")
+    g = _Generator(loop, reference, precision, name, source, model or "the law's design model")
     return {f"{name}.h": g.header(), f"{name}.c": g.source()}
 
 
@@ -167,73 +179,151 @@ def _np(x) -> np.ndarray:
     return np.asarray(jax.device_get(x), dtype=np.float64)
 
 
+def _key(entry) -> str:
+    for attr in ("name", "key", "idx"):
+        if hasattr(entry, attr):
+            return str(getattr(entry, attr))
+    return str(entry)
+
+
+def _dotted(path) -> str:
+    return ".".join(_key(entry) for entry in path)
+
+
+class _Field:
+    """One leaf of the loop's state in the C struct: its member ``cname``, what it is, its shape
+    and its C type."""
+
+    def __init__(self, path, aval, real: str):
+        self.dotted = _dotted(path)
+        self.cname = re.sub(r"\W", "_", self.dotted.replace(".", "_"))
+        self.shape, self.dtype = tuple(aval.shape), aval.dtype
+        if jnp.issubdtype(aval.dtype, jnp.floating):
+            self.ctype = real
+        elif self.dotted == "j":
+            self.ctype = "uint32_t"
+        else:
+            self.ctype = "int" if aval.dtype == jnp.bool_ else "int32_t"
+
+    def size(self) -> int:
+        return int(np.prod(self.shape, dtype=int))
+
+    def lvalues(self, at: str = "st->") -> list[str]:
+        """The C lvalues of its elements, row-major."""
+        return [at + self.cname + "".join(f"[{i}]" for i in np.unravel_index(k, self.shape)) if self.shape
+                else at + self.cname for k in range(self.size())]  # fmt: skip
+
+    def declaration(self) -> str:
+        dims = "".join(f"[{n}]" for n in self.shape)
+        part = self.dotted.split(".")[0]
+        what = {"j": "the sample counter: the coming sample is at t_j = j T"}.get(part) or _STATE.get(part, "")
+        return f"    {self.ctype} {self.cname}{dims}; /* {self.dotted}{': ' + what if what else ''} */"
+
+
 class _Generator:
     """The text of both files for one loop (see :func:`export_c`)."""
 
-    def __init__(self, loop: DigitalLoop, reference, kind: str, precision: str, name: str, source: str, model: str):
-        self.loop, self.reference, self.kind, self.name, self.origin = loop, reference, kind, name, source
-        self.model = model
+    def __init__(self, loop: DigitalLoop, reference, precision: str, name: str, source: str, model: str):
+        self.noise = loop.sensors.noise_std is not None
+        loop = dataclasses.replace(loop, sensors=dataclasses.replace(loop.sensors, noise_std=None))
+        self.loop, self.reference, self.name, self.origin, self.model = loop, reference, name, source, model
         self.f32 = precision == "float32"
         self.precision = precision
         self.P, self.M = name, name.upper()
-        law = loop.law
+        self.real = f"{name}_real"
+        self.target = c99.C99(self.real, self.f32)
+        # The sample step and its state in double in float32 too: the loop's estimator differences
+        # the measured angles twice, and float's resolution at 1 rad (6e-8 rad) over T^2 = 1e-6 s^2
+        # would move the voltages by volts (docs/firmware.md, "Precision").
+        self.work = "double" if self.f32 else self.real
+        self.step = c99.C99(self.work, False)
         self.counts = _np(loop.sensors.counts)
         self.difference = loop.sensors.derivatives == "difference"
         self.encoder = bool(np.all(self.counts > 0))  # counts in: every joint has an encoder
         self.u_max = _np(loop.u_max)
         self.T = float(_np(loop.period))
         self.delay = int(loop.delay)
-        surface = law.params if kind == "fosmc" else law.surface
-        self.C, self.a_rows, self.b_rows = _np(surface.C), _np(surface.a_rows), _np(surface.b_rows)
-        if kind == "fosmc":
-            d = derive(law.params)
-            self.K, self.CB_inv, self.S = _np(d.K), _np(d.CB_inv), _np(d.S)
-            self.gamma, self.delta, self.poles = _np(law.params.gamma), _np(law.params.delta), _np(law.params.poles)
-            self.switching, self.law_form = law.switching, law.law
-        else:
-            self.CB_inv = np.linalg.inv(_np(input_matrix_product(surface.C, surface.b_rows)))
-            self.switching = None
-        if kind == "smc":
-            self.k, self.phi = _np(law.k), _np(law.phi)
-        if kind == "super_twisting":
-            self.k1, self.k2 = _np(law.k1), _np(law.k2)
-        self.B_inv = np.linalg.inv(self.b_rows)
         self.input_name = ("counts" if self.encoder else "theta") if self.difference else "measurement"
+        self.dtype = jnp.result_type(loop.period)  # the loop's float: its constants are folded in it
+        self.printed = self._print()
 
-    # ------------------------------------------------------------------------ literals
+    # ------------------------------------------------------------------------ printing
 
     def lit(self, x: float) -> str:
         """``x`` as a C literal of the real type: the shortest decimal that rounds back to it."""
-        x = float(x)
-        if np.isinf(x):
-            return "INFINITY" if x > 0 else "-INFINITY"
-        text = str(np.float32(x)) if self.f32 else repr(x)
-        if "e" not in text and "." not in text:
-            text += ".0"
-        return text + ("f" if self.f32 else "")
+        return self.target.literal(float(x))
 
-    def fn(self, libm: str) -> str:
-        """libm's function of the real type (``sqrtf`` for float32)."""
-        return libm + ("f" if self.f32 else "")
+    def _print(self) -> dict[str, list[str]]:
+        """The bodies of the printed functions, by function."""
+        loop, reference, dtype = self.loop, self.reference, self.dtype
+        scalar = jax.ShapeDtypeStruct((), dtype)
+        try:
+            r_aval = jax.eval_shape(reference, scalar)
+        except Exception as e:  # a reference JAX cannot trace
+            raise ValueError(f"export: the reference does not trace as a function of t: {e}".splitlines()[0]) from None
+        if getattr(r_aval, "shape", None) != (4, 3):
+            raise ValueError(f"export: the reference must give (4, 3) (the angle and 3 derivatives per joint), got "
+                             f"{getattr(r_aval, 'shape', type(r_aval).__name__)}")  # fmt: skip
+        x_aval = jax.ShapeDtypeStruct((9,), dtype)
+        # the key feeds the sensors' noise alone, which is not exported: a constant here
+        key = jax.random.key_data(jax.random.key(0))
+        start = lambda X0: loop.init(X0, reference(jnp.zeros((), dtype)), key)  # noqa: E731
+        state = jax.eval_shape(start, x_aval)
+        paths, self.treedef = jax.tree_util.tree_flatten_with_path(state._replace(key=None))
+        self.fields = [_Field(path, aval, self.work) for path, aval in paths]
+        leaf_avals = [aval for _, aval in paths]
 
-    def array(self, cname: str, values: np.ndarray, comment: str) -> list[str]:
-        values = np.asarray(values)
-        dims = "".join(f"[{n}]" for n in values.shape)
-        if values.ndim == 1:
-            body = _wrap([self.lit(v) for v in values], "    ", "    ")
-        else:
-            body = []
-            for i, row in enumerate(values):
-                entries = [self.lit(v) for v in row]
-                entries[0], entries[-1] = "{" + entries[0], entries[-1] + ("}," if i + 1 < len(values) else "}")
-                body += _wrap(entries, "    ", "     ")
-        return [*_comment(comment), f"static const {self.P}_real {cname}{dims} = {{", *body, "};", ""]
+        def init(X0):
+            return jax.tree.leaves(start(X0)._replace(key=None)), X0
+
+        def update(leaves, X, r, t):
+            U, state = loop.update(self.treedef.unflatten(leaves)._replace(key=key), X, r, t)
+            return U, jax.tree.leaves(state._replace(key=None))
+
+        st = [f.lvalues() for f in self.fields]
+        x0 = [f"st->x0[{k}]" for k in range(9)] if self.difference else None
+        if self.input_name == "measurement":
+            X = [f"measurement[{k}]" for k in range(9)]
+        else:  # the angles read now; the rates are those of the initial state, which the first sample reads
+            X = [f"theta[{k // 3}]" if k % 3 == 0 else f"st->x0[{k}]" for k in range(9)]
+        r = [f"r->{_ROWS[k // 3]}[{k % 3}]" for k in range(12)]
+        t = f"(({self.work})st->j * {self.lit(self.T).removesuffix('f')})"
+        law = type(loop.law).__name__
+        bodies = {}
+        try:
+            what = f"the sample step of {law} (DigitalLoop.update)"
+            bodies["update"] = self._statements(jax.make_jaxpr(update)(leaf_avals, x_aval, r_aval, scalar),
+                                                [*st, X, r, [t]], [[f"u[{i}]" for i in range(3)], *st],
+                                                self.step)  # fmt: skip
+            what = f"the initial state of {law} (DigitalLoop.init)"
+            bodies["init"] = self._statements(jax.make_jaxpr(init)(x_aval), [[f"x0[{k}]" for k in range(9)]],
+                                              [*st, x0], self.step)  # fmt: skip
+            what = f"the reference {type(reference).__name__}"
+            bodies["reference_at"] = self._statements(jax.make_jaxpr(reference)(scalar), [["t"]], [r])
+            vec = jax.ShapeDtypeStruct((3,), dtype)
+            what = "the cycloid (30)"
+            cycloid = jax.make_jaxpr(lambda a, b, tau, t: Cycloid(a, b, tau)(t))(vec, vec, scalar, scalar)
+            bodies["cycloid"] = self._statements(
+                cycloid, [[f"p->{f}[{i}]" for i in range(3)] for f in ("start", "end")] + [["p->duration"], ["t"]], [r]
+            )
+            what = "the sinusoid"
+            sinusoid = jax.make_jaxpr(lambda *a: Sinusoid(*a[:4])(a[4]))(vec, vec, vec, vec, scalar)
+            fields = ("offset", "amplitude", "frequency", "phase")
+            bodies["sinusoid"] = self._statements(
+                sinusoid, [[f"p->{f}[{i}]" for i in range(3)] for f in fields] + [["t"]], [r]
+            )
+        except codegen.Unsupported as e:
+            raise ValueError(f"export: {what} does not print as C: {e}") from None
+        return bodies
+
+    def _statements(self, closed, inputs, outputs, target: c99.C99 | None = None) -> list[str]:
+        return ["    " + line for line in c99.statements(closed, inputs, outputs, target or self.target)]
 
     # ------------------------------------------------------------------------ header
 
     def describe(self) -> list[str]:
         """What the files hold, for both head comments."""
-        P = self.P
+        P, law = self.P, self.loop.law
         listed = ", ".join(str(int(c)) for c in self.counts)
         if self.encoder:
             sensors = f"encoders of {listed} counts per revolution (counts in)"
@@ -246,12 +336,13 @@ class _Generator:
         limited = bool(np.any(np.isfinite(self.u_max)))
         limit = ("no voltage limit" if not limited
                  else f"voltages clipped to +-[{', '.join(f'{u:g}' for u in self.u_max)}] V")  # fmt: skip
-        law = f"The {_LONG_NAME[self.kind]}"
-        if self.kind == "fosmc":
-            law += f" (switching f(s) = {_SWITCHING[self.switching]}; law '{self.law_form}' (23))"
+        statics = [f"{f.name} '{getattr(law, f.name)}'" for f in dataclasses.fields(law)
+                   if isinstance(getattr(law, f.name), str)] if dataclasses.is_dataclass(law) else []  # fmt: skip
+        kind = f"fosmc_jax.{type(law).__name__}" + (f" ({', '.join(statics)})" if statics else "")
         design = f"  designed on {self.model} (A_r, B_bar: its rows 3, 6, 9 of A, B),"
         lines = [
-            *textwrap.wrap(law + ", as the digital loop of fosmc_jax (fosmc_jax.DigitalLoop) runs it:", 96),
+            *textwrap.wrap(f"The sampled law {kind} in the digital loop of fosmc_jax (fosmc_jax.DigitalLoop), printed "
+                           "from their JAX functions (fosmc_jax/_loop/digital.py and the law's file):", 96),
             *textwrap.wrap(design, 96, subsequent_indent="    "),
             f"  sample period T = {self.T:g} s ({1 / self.T:g} Hz), computation delay d = {self.delay} sample(s),",
             f"  {sensors},",
@@ -260,13 +351,13 @@ class _Generator:
             f"At sample j (t_j = j T): {P}_update reads the measurement Y_j and the reference sample X_d(t_j),",
             f"computes U_j and returns the voltages to apply now, U_{{j-d}}{' clipped' if limited else ''} (0 V while "
             "j < d), held until sample j + 1.",
-        ]
-        if self.loop.sensors.noise_std is not None:
+        ]  # fmt: skip
+        if self.noise:
             lines.append("(The config's sensors.noise_std models the sensors in simulation: nothing of it is here.)")
         return lines
 
     def header(self) -> str:
-        P, M, r = self.P, self.M, f"{self.P}_real"
+        P, M, r = self.P, self.M, self.real
         head = [
             f"{P}.h: generated by fosmc_jax {__version__} (`fosmc export`, {self.precision}). Do not edit: "
             "export again.",
@@ -299,24 +390,15 @@ class _Generator:
             f"    {r} theta[3], dtheta[3], ddtheta[3], dddtheta[3];",
             f"}} {P}_reference;",
             "",
-            f"/* The controller's state: what {P}_update remembers from one sample to the next. */",
+            f"/* The controller's state: what {P}_update remembers from one sample to the next, the loop's",
+            " * state of fosmc_jax (fosmc_jax._loop.digital.LoopState) flattened, each member named by its path. */",
             "typedef struct {",
-            "    uint32_t j; /* the sample counter: the coming sample is at t_j = j T */",
         ]
-        if self.kind == "fosmc":
-            out.append(f"    {r} w[3]; /* the integral w of (14), summed: w_(j+1) = w_j + T (CA + CBK) Z_j */")
-        if self.kind == "super_twisting":
-            out.append(f"    {r} v[3]; /* the integral term v, summed: v_(j+1) = v_j - T k2 sign(s_j) */")
+        counter = [f for f in self.fields if f.dotted == "j"]
+        out += [f.declaration() for f in counter + [f for f in self.fields if f.dotted != "j"] if f.size()]
         if self.difference:
-            if self.encoder:
-                out.append("    int32_t counts[3]; /* the estimator's memory: the last counts, */")
-            else:
-                out.append(f"    {r} theta[3]; /* the estimator's memory: the last angles (rad), */")
-            out.append(f"    {r} dtheta[3]; /* the last rates (rad/s) */")
-            out.append(f"    {r} ddtheta[3]; /* and accelerations (rad/s^2); after init: the initial state's */")
-        if self.delay:
-            out.append(f"    {r} pending[{M}_DELAY_SAMPLES][3]; /* the delay line: voltages computed, not yet "
-                       "applied, oldest first */")  # fmt: skip
+            out.append(f"    {self.work} x0[9]; /* the initial state, whose rates the first sample reads (the "
+                       "estimator starts from the exact state) */")  # fmt: skip
         out += [f"}} {P}_state;", ""]
         out += [
             "/* The cycloid (30): from start to end (rad) in duration (s), at rest before and after. */",
@@ -374,401 +456,77 @@ class _Generator:
 
     # ------------------------------------------------------------------------ source
 
-    def constants(self) -> list[str]:
-        out = []
-        if self.kind == "fosmc":
-            out += self.array("C_SURFACE", self.C, "The sliding surface C of (15); columns [theta_1, theta_1', "
-                              "theta_1'', theta_2, ...], as every 9-vector here.")  # fmt: skip
-            out += self.array("CA_PLUS_CBK", self.S, "CA + CBK = C (A + BK): the integrand of w in (14), with K "
-                              "of (16) placing the poles below.")  # fmt: skip
-            if self.law_form == "equivalent":
-                out += self.array("K_GAIN", self.K, "K of (16): the nominal equivalent control K Z of the law "
-                                  "'equivalent'.")  # fmt: skip
-            out += self.array("CB_INV", self.CB_inv, "(CB)^-1 of (23).")
-            out += self.array("GAMMA", self.gamma, "gamma of (23): rho = gamma_1 ||Z|| + gamma_2 ||X_d|| + "
-                              "gamma_3 ||Omega||.")  # fmt: skip
-            if self.switching != "sign":
-                out += self.array("DELTA", self.delta, f"delta: the boundary layers of f(s) = "
-                                  f"{_SWITCHING[self.switching]}.")  # fmt: skip
-        else:
-            out += self.array("C_SURFACE", self.C, "The sliding surface s = C Z; columns [theta_1, theta_1', "
-                              "theta_1'', theta_2, ...], as every 9-vector here.")  # fmt: skip
-            out += self.array("CB_INV", self.CB_inv, f"(CB)^-1, B the input rows of {self.model}.")
-        out += self.array("A_R", self.a_rows, f"A_r: rows 3, 6, 9 of A of {self.model}.")
-        if self.kind == "fosmc":
-            out += self.array("B_BAR_INV", self.B_inv, f"B_bar^-1: the inverse of rows 3, 6, 9 of B of {self.model}.")
-        if self.kind == "smc":
-            out += self.array("K_SWITCH", self.k, "k: the switching gains (V-scaled).")
-            out += self.array("PHI", self.phi, "phi: the boundary-layer widths of sat(s / phi).")
-        if self.kind == "super_twisting":
-            out += self.array("K1", self.k1, "k1: the gains of |s|^(1/2) sign(s).")
-            out += self.array("K2", self.k2, "k2: the gains of the integral term, v' = -k2 sign(s).")
-        if self.encoder:
-            listed = ", ".join(str(int(c)) for c in self.counts)
-            out += self.array("RAD_PER_COUNT", 2 * np.pi / self.counts, "The encoders' resolution q = 2 pi / counts "
-                              f"per revolution (rad per count; {listed} counts).")  # fmt: skip
-        if np.any(np.isfinite(self.u_max)):
-            out += self.array("U_MAX", self.u_max, "The amplifiers' limit u_max (V).")
-        ref = self.reference
-        if isinstance(ref, Cycloid):
-            start, end, tau = _np(ref.start), _np(ref.end), float(_np(ref.duration))
-            out += [
-                "/* The exported trajectory: the cycloid (30). */",
-                f"static const {self.P}_cycloid_params TRAJECTORY = {{",
-                f"    {{{', '.join(self.lit(v) for v in start)}}}, /* start (rad) */",
-                f"    {{{', '.join(self.lit(v) for v in end)}}}, /* end (rad) */",
-                f"    {self.lit(tau)} /* duration (s) */",
-                "};",
-                "",
-            ]
-        else:
-            fields = ("offset", "amplitude", "frequency", "phase")
-            rows = [f"    {{{', '.join(self.lit(v) for v in _np(getattr(ref, f)))}}}, /* {f} */" for f in fields]
-            rows[-1] = rows[-1].replace("}, /*", "} /*")
-            out += ["/* The exported trajectory: a sinusoid. */",
-                    f"static const {self.P}_sinusoid_params TRAJECTORY = {{", *rows, "};", ""]  # fmt: skip
-        out += [f"static const {self.P}_real TWO_PI = {self.lit(2 * np.pi)};", ""]
+    def parameters(self) -> list[str]:
+        """The loop's and the reference's parameters, as folded into the code, for the head comment."""
+        out = [f"The parameters folded into the code below (rounded to {self.precision}), by their names in",
+               "fosmc_jax (the loop's fields, the reference's):"]  # fmt: skip
+        for prefix, tree in (("loop", self.loop), ("reference", self.reference)):
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
+                if not jnp.issubdtype(jnp.result_type(leaf), jnp.number):
+                    continue
+                values = np.asarray(jax.device_get(leaf))
+                note = _NOTES.get(_key(path[-1]), "").format(model=self.model) if path else ""
+                shape = f"({', '.join(map(str, values.shape))}{',' if values.ndim == 1 else ''})"
+                out.append(f"  {prefix}.{_dotted(path)} {shape}" + (f", {note}" if note else "") + ":")
+                items = [self.lit(v).removesuffix("f") for v in np.ravel(values.astype(np.float64))]
+                out += _wrap(items, "    ", "    ", width=96)
         return out
 
-    def helpers(self) -> list[str]:
-        r = f"{self.P}_real"
-        out = [
-            "/* y = M x for a 3 x 9 matrix M. */",
-            f"static void times9(const {r} M[3][9], const {r} x[9], {r} y[3])",
-            "{",
-            "    int i, k;",
-            "    for (i = 0; i < 3; i++) {",
-            "        y[i] = M[i][0] * x[0];",
-            "        for (k = 1; k < 9; k++)",
-            "            y[i] += M[i][k] * x[k];",
-            "    }",
-            "}",
-            "",
-            "/* y = M x for a 3 x 3 matrix M. */",
-            f"static void times3(const {r} M[3][3], const {r} x[3], {r} y[3])",
-            "{",
-            "    int i;",
-            "    for (i = 0; i < 3; i++)",
-            "        y[i] = M[i][0] * x[0] + M[i][1] * x[1] + M[i][2] * x[2];",
-            "}",
-            "",
-        ]
-        if self.kind == "fosmc":
-            out += [
-                "/* The Euclidean norm of x (n entries). */",
-                f"static {r} norm(const {r} *x, int n)",
-                "{",
-                f"    {r} sum = x[0] * x[0];",
-                "    int k;",
-                "    for (k = 1; k < n; k++)",
-                "        sum += x[k] * x[k];",
-                f"    return {self.fn('sqrt')}(sum);",
-                "}",
-                "",
-            ]
-        if self.kind != "smc" and (self.kind == "super_twisting" or self.switching == "sign"):
-            out += [
-                "/* sign(x): -1, 0 or 1. */",
-                f"static {r} sign(const {r} x)",
-                "{",
-                f"    return x > {self.lit(0)} ? {self.lit(1)} : x < {self.lit(0)} ? {self.lit(-1)} : {self.lit(0)};",
-                "}",
-                "",
-            ]
-        clip = self.kind == "smc" or (self.kind == "fosmc" and self.switching == "sat")
-        if clip or np.any(np.isfinite(self.u_max)):
-            out += [
-                "/* x clipped to [lo, hi]. */",
-                f"static {r} clip(const {r} x, const {r} lo, const {r} hi)",
-                "{",
-                "    return x < lo ? lo : x > hi ? hi : x;",
-                "}",
-                "",
-            ]
-        if self.kind == "fosmc":
-            body = {
-                "sign": "    (void)delta; /* SGN has no boundary layer */\n    return sign(s);",
-                "ratio": f"    return s / ({self.fn('fabs')}(s) + delta);",
-                "sat": f"    return clip(s / delta, {self.lit(-1)}, {self.lit(1)});",
-                "tanh": f"    return {self.fn('tanh')}(s / delta);",
-            }[self.switching]
-            out += [
-                f"/* The switching function f(s) = {_SWITCHING[self.switching]}. */",
-                f"static {r} switching(const {r} s, const {r} delta)",
-                "{",
-                *body.split("\n"),
-                "}",
-                "",
-            ]
-        return out
-
-    def init(self) -> list[str]:
-        P, r = self.P, f"{self.P}_real"
-        joint = []  # per joint i
-        if self.kind == "fosmc":
-            joint.append(f"        st->w[i] = {self.lit(0)};")
-        if self.kind == "super_twisting":
-            joint.append(f"        st->v[i] = {self.lit(0)};")
-        if self.difference:
-            if self.encoder:
-                joint.append("        st->counts[i] = 0; /* read at the first sample */")
-            else:
-                joint.append("        st->theta[i] = x0[3 * i];")
-            joint += ["        st->dtheta[i] = x0[3 * i + 1];", "        st->ddtheta[i] = x0[3 * i + 2];"]
-        if self.delay:
-            joint += [
-                f"        for (k = 0; k < {self.M}_DELAY_SAMPLES; k++)",
-                f"            st->pending[k][i] = {self.lit(0)}; /* 0 V until the first computed voltage */",
-            ]
-        body = ["    st->j = 0;"]
-        if joint:
-            body = [f"    int i{', k' if self.delay else ''};", *body, "    for (i = 0; i < 3; i++) {", *joint, "    }"]
-        if not self.difference:
-            body.append("    (void)x0; /* measured rates: nothing of x0 is remembered */")
-        out = [f"void {P}_init({P}_state *st, const {r} x0[9])", "{", *body, "}", ""]
-        if self.encoder:
-            out += [
-                f"void {P}_angles(const int32_t counts[3], {r} theta[3])",
-                "{",
-                "    int i;",
-                "    for (i = 0; i < 3; i++)",
-                f"        theta[i] = ({r})counts[i] * RAD_PER_COUNT[i];",
-                "}",
-                "",
-            ]
-        return out
-
-    def measure(self) -> list[str]:
-        """The measurement Y (9,) from the update's input, advancing the estimator."""
-        M = self.M
-        if not self.difference:
-            return ["    for (k = 0; k < 9; k++)", "        y[k] = measurement[k];"]
-        angle = ("(" + f"{self.P}_real)counts[i] * RAD_PER_COUNT[i]") if self.encoder else "theta[i]"
-        out = [
-            "    for (i = 0; i < 3; i++) {",
-            f"        y[3 * i] = {angle};",
-            "        if (st->j == 0) { /* the first sample: the rates of the initial state (init) */",
-            "            y[3 * i + 1] = st->dtheta[i];",
-            "            y[3 * i + 2] = st->ddtheta[i];",
-            "        } else { /* backward differences */",
-        ]
-        if self.encoder:
-            out.append(f"            y[3 * i + 1] = ({self.P}_real)(counts[i] - st->counts[i]) * RAD_PER_COUNT[i] * "
-                       f"{M}_SAMPLE_RATE;")  # fmt: skip
-        else:
-            out.append(f"            y[3 * i + 1] = (y[3 * i] - st->theta[i]) * {M}_SAMPLE_RATE;")
-        out += [
-            f"            y[3 * i + 2] = (y[3 * i + 1] - st->dtheta[i]) * {M}_SAMPLE_RATE;",
-            "        }",
-            "        st->counts[i] = counts[i];" if self.encoder else "        st->theta[i] = y[3 * i];",
-            "        st->dtheta[i] = y[3 * i + 1];",
-            "        st->ddtheta[i] = y[3 * i + 2];",
-            "    }",
-        ]
-        return out
-
-    def law(self) -> list[str]:
-        """U (3,) from y and the reference terms, advancing the law's state."""
-        if self.kind == "fosmc":
-            out = [
-                "    /* Z = Y - X_d; s = C Z - w (14) */",
-                "    for (k = 0; k < 9; k++)",
-                "        z[k] = y[k] - x_d[k];",
-                "    times9(C_SURFACE, z, s);",
-                "    for (i = 0; i < 3; i++)",
-                "        s[i] -= st->w[i];",
-                "    /* U = Omega - (CB)^-1 rho f(s) (23), rho = gamma_1 ||Z|| + gamma_2 ||X_d||",
-                "     * + gamma_3 ||Omega|| */",
-                "    rho = GAMMA[0] * norm(z, 9) + GAMMA[1] * norm(x_d, 9) + GAMMA[2] * norm(omega, 3);",
-                "    for (i = 0; i < 3; i++)",
-                f"        f[i] = rho * switching(s[i], {'DELTA[i]' if self.switching != 'sign' else self.lit(0)});",
-                "    times3(CB_INV, f, tmp);",
-                "    for (i = 0; i < 3; i++)",
-                "        u_new[i] = omega[i] - tmp[i];",
-            ]
-            if self.law_form == "equivalent":
-                out += [
-                    "    /* the law 'equivalent': plus the nominal equivalent control K Z (18) */",
-                    "    times9(K_GAIN, z, tmp);",
-                    "    for (i = 0; i < 3; i++)",
-                    "        u_new[i] += tmp[i];",
-                ]
-            out += [
-                "    /* w_(j+1) = w_j + T (CA + CBK) Z_j: the integral of (14) as a sum */",
-                "    times9(CA_PLUS_CBK, z, tmp);",
-                "    for (i = 0; i < 3; i++)",
-                f"        st->w[i] += {self.M}_SAMPLE_PERIOD * tmp[i];",
-            ]
-            return out
-        out = [
-            *_comment(f"s = C Z and ce = C e, e = X_d' - N(Y), N(Y) the rates of {self.model} without input", 4),
-            "    times9(A_R, y, jerk);",
-            "    for (i = 0; i < 3; i++) {",
-            "        z[3 * i] = y[3 * i] - x_d[3 * i];",
-            "        z[3 * i + 1] = y[3 * i + 1] - x_d[3 * i + 1];",
-            "        z[3 * i + 2] = y[3 * i + 2] - x_d[3 * i + 2];",
-            "        e[3 * i] = r->dtheta[i] - y[3 * i + 1];",
-            "        e[3 * i + 1] = r->ddtheta[i] - y[3 * i + 2];",
-            "        e[3 * i + 2] = r->dddtheta[i] - jerk[i];",
-            "    }",
-            "    times9(C_SURFACE, z, s);",
-            "    times9(C_SURFACE, e, ce);",
-        ]
-        if self.kind == "smc":
-            out += [
-                "    /* U = U_eq - (CB)^-1 k sat(s / phi), U_eq = (CB)^-1 C (X_d' - N(Y)) */",
-                "    for (i = 0; i < 3; i++)",
-                f"        ce[i] -= K_SWITCH[i] * clip(s[i] / PHI[i], {self.lit(-1)}, {self.lit(1)});",
-                "    times3(CB_INV, ce, u_new);",
-            ]
-        else:
-            sqrt = self.fn("sqrt")
-            fabs = self.fn("fabs")
-            out += [
-                "    /* U = U_eq - (CB)^-1 (k1 |s|^(1/2) sign(s) - v), U_eq = (CB)^-1 C (X_d' - N(Y)) */",
-                "    for (i = 0; i < 3; i++)",
-                f"        ce[i] -= K1[i] * {sqrt}({fabs}(s[i])) * sign(s[i]) - st->v[i];",
-                "    times3(CB_INV, ce, u_new);",
-                "    /* v_(j+1) = v_j - T k2 sign(s_j) */",
-                "    for (i = 0; i < 3; i++)",
-                f"        st->v[i] -= {self.M}_SAMPLE_PERIOD * K2[i] * sign(s[i]);",
-            ]
-        return out
-
-    def update(self) -> list[str]:
-        P, M, r = self.P, self.M, f"{self.P}_real"
-        arg = {"counts": "const int32_t counts[3]", "theta": f"const {r} theta[3]",
-               "measurement": f"const {r} measurement[9]"}[self.input_name]  # fmt: skip
-        body = ["    /* the measurement Y_j */", *self.measure(), ""]
-        if self.kind == "fosmc":
-            body += _comment(f"X_d (6) and Omega = B_bar^-1 (theta_d''' - A_r X_d) (10): the input under which "
-                             f"{self.model} follows X_d", 4)  # fmt: skip
-        else:
-            body += ["    /* X_d (6) */"]
-        body += [
-            "    for (i = 0; i < 3; i++) {",
-            "        x_d[3 * i] = r->theta[i];",
-            "        x_d[3 * i + 1] = r->dtheta[i];",
-            "        x_d[3 * i + 2] = r->ddtheta[i];",
-            "    }",
-        ]
-        if self.kind == "fosmc":
-            body += [
-                "    times9(A_R, x_d, tmp);",
-                "    for (i = 0; i < 3; i++)",
-                "        tmp[i] = r->dddtheta[i] - tmp[i];",
-                "    times3(B_BAR_INV, tmp, omega);",
-            ]
-        body += ["", "    /* the law: U_j */", *self.law(), ""]
-        if self.delay:
-            body += [
-                f"    /* the computation delay: apply U_(j-d), computed d = {M}_DELAY_SAMPLES sample(s) ago */",
-                "    for (i = 0; i < 3; i++) {",
-                "        applied[i] = st->pending[0][i];",
-                f"        for (k = 0; k + 1 < {M}_DELAY_SAMPLES; k++)",
-                "            st->pending[k][i] = st->pending[k + 1][i];",
-                f"        st->pending[{M}_DELAY_SAMPLES - 1][i] = u_new[i];",
-                "    }",
-            ]
-            src = "applied"
-        else:
-            src = "u_new"
-        if np.any(np.isfinite(self.u_max)):
-            body += ["    /* the amplifiers' limit */", "    for (i = 0; i < 3; i++)",
-                     f"        u[i] = clip({src}[i], -U_MAX[i], U_MAX[i]);"]  # fmt: skip
-        else:
-            body += [
-                "    /* no voltage limit configured */",
-                "    for (i = 0; i < 3; i++)",
-                f"        u[i] = {src}[i];",
-            ]
-        body += ["    st->j++;"]
-        text = "\n".join(line.split("/*")[0] for line in body)  # the code, without its comments
-        sizes = {
-            "y": 9,
-            "x_d": 9,
-            "omega": 3,
-            "z": 9,
-            "e": 9,
-            "s": 3,
-            "f": 3,
-            "ce": 3,
-            "jerk": 3,
-            "tmp": 3,
-            "u_new": 3,
-            "applied": 3,
-        }
-        reals = [f"{n}[{k}]" for n, k in sizes.items() if re.search(rf"\b{n}\[", text)]
-        reals += ["rho"] if re.search(r"\brho\b", text) else []
-        ints = [n for n in ("i", "k") if re.search(rf"\b{n}\b", text)]
-        decl = [f"    {r} {', '.join(reals)};", f"    int {', '.join(ints)};", ""]
-        return [f"void {P}_update({P}_state *st, {arg}, const {P}_reference *r, {r} u[3])", "{", *decl, *body, "}", ""]
-
-    def references(self) -> list[str]:
-        P, M, r = self.P, self.M, f"{self.P}_real"
-        sin, cos = self.fn("sin"), self.fn("cos")
-        at = "cycloid" if isinstance(self.reference, Cycloid) else "sinusoid"
-        return [
-            f"void {P}_reference_at(uint32_t j, {P}_reference *r)",
-            "{",
-            f"    {P}_{at}(&TRAJECTORY, j, r);",
-            "}",
-            "",
-            "/* (30): theta_d = start + Delta / (2 pi) (w t - sin(w t)), w = 2 pi / tau, Delta = end - start, for",
-            " * 0 <= t < tau; end afterwards (theta_d''' jumps at 0 and tau). */",
-            f"void {P}_cycloid(const {P}_cycloid_params *p, uint32_t j, {P}_reference *r)",
-            "{",
-            f"    const {r} t = ({r})j * {M}_SAMPLE_PERIOD;",
-            f"    const {r} tau = p->duration, w = TWO_PI / tau;",
-            "    const int inside = t < tau;",
-            f"    const {r} wt = w * (inside ? t : tau);",
-            f"    const {r} sn = {sin}(wt), cs = {cos}(wt);",
-            "    int i;",
-            "    for (i = 0; i < 3; i++) {",
-            f"        const {r} delta = p->end[i] - p->start[i];",
-            "        r->theta[i] = p->start[i] + delta / TWO_PI * (wt - sn);",
-            f"        r->dtheta[i] = inside ? delta / tau * ({self.lit(1)} - cs) : {self.lit(0)};",
-            f"        r->ddtheta[i] = inside ? delta * w / tau * sn : {self.lit(0)};",
-            f"        r->dddtheta[i] = inside ? delta * w * w / tau * cs : {self.lit(0)};",
-            "    }",
-            "}",
-            "",
-            "/* theta_d = offset + amplitude sin(frequency t + phase) and its derivatives. */",
-            f"void {P}_sinusoid(const {P}_sinusoid_params *p, uint32_t j, {P}_reference *r)",
-            "{",
-            f"    const {r} t = ({r})j * {M}_SAMPLE_PERIOD;",
-            "    int i;",
-            "    for (i = 0; i < 3; i++) {",
-            f"        const {r} a = p->amplitude[i], w = p->frequency[i], x = w * t + p->phase[i];",
-            f"        const {r} sn = {sin}(x), cs = {cos}(x);",
-            "        r->theta[i] = p->offset[i] + a * sn;",
-            "        r->dtheta[i] = a * w * cs;",
-            "        r->ddtheta[i] = -a * w * w * sn;",
-            "        r->dddtheta[i] = -a * w * w * w * cs;",
-            "    }",
-            "}",
-            "",
-        ]
+    def function(self, signature: str, body: list[str], params: tuple[str, ...], before: list[str] = ()) -> list[str]:
+        text = "\n".join([*before, *body])
+        unused = [f"    (void){p};" for p in params if not re.search(rf"\b{p}\b", text)]
+        return [signature, "{", *unused, *before, *body, "}", ""]
 
     def source(self) -> str:
-        P = self.P
+        P, M, r = self.P, self.M, self.real
         head = [f"{P}.c: generated by fosmc_jax {__version__} (`fosmc export`, {self.precision}). Do not edit: "
-                "export again.", *_lines(self.origin), "", *self.describe()]  # fmt: skip
-        if self.kind == "fosmc":
-            head += ["", "The design behind the constants: K of (16) places the poles of A + BK per joint at"]
-            head += [f"  joint {i + 1}: {', '.join(f'{p:g}' for p in row)} (1/s)" for i, row in enumerate(self.poles)]
-        head += ["", "Equation numbers: the paper's (docs/paper.md of fosmc_jax)."]
+                "export again.", *_lines(self.origin), "", *self.describe(), "", *self.parameters(), "",
+                "Equation numbers: the paper's (docs/paper.md of fosmc_jax)."]  # fmt: skip
         out = ["/*", *[(" * " + line).rstrip() for line in head], " */", f'#include "{P}.h"', "",
                "#include <math.h>", ""]  # fmt: skip
-        out += ["/* ---------------------------------------------------------------- the exported constants */", ""]
-        out += self.constants()
-        out += ["/* ---------------------------------------------------------------- helpers */", ""]
-        out += self.helpers()
+        bodies = self.printed
+        text = lambda *names: "\n".join(line for name in names for line in bodies[name])  # noqa: E731
+        references = ("reference_at", "cycloid", "sinusoid")
+        if self.f32:  # the sample step's helpers in double, the references' in float
+            helpers = c99.prelude(text("update", "init"), self.work, False) + c99.prelude(text(*references), r, True)
+        else:
+            helpers = c99.prelude(text("update", "init", *references), r, False)
+        if self.encoder or helpers:
+            out += ["/* ---------------------------------------------------------------- helpers */", ""]
+        if self.encoder:
+            listed = ", ".join(str(int(c)) for c in self.counts)
+            out += _comment(f"The encoders' resolution q = 2 pi / counts per revolution (rad per count; {listed} "
+                            "counts).")  # fmt: skip
+            out += [f"static const {r} RAD_PER_COUNT[3] = {{",
+                    *_wrap([self.lit(2 * np.pi / c) for c in self.counts], "    ", "    "), "};", ""]  # fmt: skip
+        out += helpers
+        law = type(self.loop.law).__name__
         out += ["/* ---------------------------------------------------------------- the controller */", ""]
-        out += self.init()
-        out += self.update()
+        out += _comment(f"DigitalLoop.init: the estimator's memory and {law}'s state from x0 and the reference at "
+                        "t = 0, the counter at 0.")  # fmt: skip
+        out += self.function(f"void {P}_init({P}_state *st, const {r} x0[9])", bodies["init"], ("x0",))
+        if self.encoder:
+            out += [f"void {P}_angles(const int32_t counts[3], {r} theta[3])", "{", "    int i;",
+                    "    for (i = 0; i < 3; i++)", f"        theta[i] = ({r})counts[i] * RAD_PER_COUNT[i];", "}",
+                    ""]  # fmt: skip
+        arg = {"counts": "const int32_t counts[3]", "theta": f"const {r} theta[3]",
+               "measurement": f"const {r} measurement[9]"}[self.input_name]  # fmt: skip
+        before = [f"    {r} theta[3];", f"    {P}_angles(counts, theta);"] if self.input_name == "counts" else []
+        out += _comment(f"DigitalLoop.update: measure, {law}.update, delay, clip (the module's head comment), one "
+                        "statement per operation of the JAX model, in its order; t_j = j T.")  # fmt: skip
+        out += self.function(f"void {P}_update({P}_state *st, {arg}, const {P}_reference *r, {r} u[3])",
+                             bodies["update"], (self.input_name, "r"), before)  # fmt: skip
         out += ["/* ---------------------------------------------------------------- references */", ""]
-        out += self.references()
+        t = [f"    const {r} t = ({r})j * {M}_SAMPLE_PERIOD;"]
+        out += _comment(f"The exported trajectory ({type(self.reference).__name__}) at t_j = j T.")
+        out += self.function(f"void {P}_reference_at(uint32_t j, {P}_reference *r)", bodies["reference_at"], ("j",), t)
+        out += _comment("(30): theta_d = start + Delta / (2 pi) (w t - sin(w t)), w = 2 pi / tau, Delta = end - "
+                        "start, for 0 <= t < tau; end afterwards (theta_d''' jumps at 0 and tau).")  # fmt: skip
+        out += self.function(f"void {P}_cycloid(const {P}_cycloid_params *p, uint32_t j, {P}_reference *r)",
+                             bodies["cycloid"], ("p", "j"), t)  # fmt: skip
+        out += ["/* theta_d = offset + amplitude sin(frequency t + phase) and its derivatives. */"]
+        out += self.function(f"void {P}_sinusoid(const {P}_sinusoid_params *p, uint32_t j, {P}_reference *r)",
+                             bodies["sinusoid"], ("p", "j"), t)  # fmt: skip
         return "\n".join(out)
 
 

@@ -59,6 +59,26 @@ def literal(value, ctype: str = "T") -> str:
     return f"{ctype}({v!r})"
 
 
+class Target:
+    """The syntax the printer writes: this one, the kernels' C++ over SIMD lanes
+    (:file:`gen_kernel.h`'s types ``V`` and ``M`` and its helpers ``Bc``, ``Lib``, ``Max``, ...).
+
+    Another language subclasses it (the firmware's scalar C99, :mod:`fosmc_jax._firmware.c99`):
+    the type names of the declarations, the literals, and :meth:`rewrite`, which turns each of
+    the printer's C++ formats (before the operands go in) into the target's."""
+
+    #: The declared types of a float, a boolean (lane mask) and an integer value.
+    vector, mask, integer = "V", "M", "V"  # integers that vary are carried as floats here
+
+    def literal(self, value) -> str:
+        """``value`` (a Python bool, int or float) as a constant of the target."""
+        return literal(value)
+
+    def rewrite(self, fmt: str) -> str:
+        """The target's form of the printer's C++ format ``fmt`` (``{0}``... the operands)."""
+        return fmt
+
+
 # Elementwise primitives: name -> (result kind, C++ format over the operands as vectors).
 _FLOAT = {
     "add": "{0} + {1}", "add_any": "{0} + {1}", "sub": "{0} - {1}", "mul": "{0} * {1}", "div": "{0} / {1}",
@@ -146,8 +166,11 @@ def _jaxpr_and_consts(j) -> tuple[jcore.Jaxpr, list]:
 class Printer:
     """Prints jaxprs into the statements of one C++ function body (``lines``), with fresh names."""
 
-    def __init__(self, dtype, zeros: bool = False):
+    def __init__(self, dtype, zeros: bool = False, target: Target | None = None):
         self.zeros = zeros
+        self.target = target or Target()
+        self.t = self.target.rewrite
+        self.integer = False  # whether the equation being printed gives integers
         self.seen: dict[tuple[str, str], Atom] = {}
         self.lines: list[str] = []
         self.count = 0
@@ -161,7 +184,8 @@ class Printer:
             return self.seen[kind, expr]
         name = f"{'v' if kind == 'V' else 'm'}{self.count}"
         self.count += 1
-        self.lines.append(f"const {kind} {name} = {expr};")
+        ctype = self.target.mask if kind == "M" else self.target.integer if self.integer else self.target.vector
+        self.lines.append(f"const {ctype} {name} = {expr};")
         self.seen[kind, expr] = Atom(kind, name)
         return self.seen[kind, expr]
 
@@ -170,19 +194,19 @@ class Printer:
         if a.kind == "V":
             return a.expr
         if a.kind == "c":
-            return f"Bc({literal(a.value)})"
+            return self.t("Bc({0})").format(self.target.literal(a.value))
         raise Unsupported("a boolean where a number belongs")
 
     def mask(self, a: Atom) -> str:
         if a.kind == "M":
             return a.expr
         if a.kind == "c":
-            return "kTrue" if bool(a.value) else "kFalse"
+            return self.t("kTrue" if bool(a.value) else "kFalse")
         raise Unsupported("a number where a boolean belongs")
 
     def operand(self, a: Atom) -> str:
         """``a`` in arithmetic: a vector, or a scalar literal (V op T is lane by lane)."""
-        return literal(a.value) if a.kind == "c" else a.expr
+        return self.target.literal(a.value) if a.kind == "c" else a.expr
 
     # -- one equation at a time
 
@@ -222,18 +246,18 @@ class Printer:
             return self.fold(eqn, ins, avals_in)
         if name in _IDENTITY or name in ("copy", "copy_p"):
             return ins if eqn.primitive.multiple_results else [ins[0]]
-        integer = any(jnp.issubdtype(a.dtype, jnp.integer) for a in avals_out)
+        integer = self.integer = any(jnp.issubdtype(a.dtype, jnp.integer) for a in avals_out)
         for aval in avals_out:
             if jnp.issubdtype(aval.dtype, jnp.floating) and aval.dtype != self.dtype:
                 raise Unsupported(f"{name} in {aval.dtype} in a {self.dtype} model")
         if integer and name not in _INTEGER:
             raise Unsupported(f"{name} on integers that vary by rollout")
         if integer and name == "div":
-            return [self.elementwise("Lib({0} / {1}, LIB(trunc))", ins, "V")]
+            return [self.elementwise(self.t("Lib({0} / {1}, LIB(trunc))"), ins, "V")]
         if name in _MOVES:
             return self.move(eqn, ins, avals_in)
         if name in _FLOAT:
-            return [self.elementwise(_FLOAT[name], ins, "V")]
+            return [self.elementwise(self.t(_FLOAT[name]), ins, "V")]
         if name in _COMPARE:
             op = _COMPARE[name]
             return [[self.folded((a, b)) or self.fresh("M", f"{self.vec(a)} {op} {self.vec(b)}")
@@ -243,23 +267,24 @@ class Printer:
             return [[self.folded((a, b)) or self.fresh("M", f"{self.mask(a)} {op} {self.mask(b)}")
                      for a, b in zip(*self.broadcast(ins))]]  # fmt: skip
         if name == "not":
-            return [[self.folded((a,)) or self.fresh("M", f"~{self.mask(a)}") for a in ins[0]]]
+            return [[self.folded((a,)) or self.fresh("M", self.t("~{0}").format(self.mask(a))) for a in ins[0]]]
         if name in ("sin", "cos"):
             return [[self.folded((a,)) or self.sin_cos(a, name) for a in ins[0]]]
         if name == "integer_pow":
             return [[self.folded((a,)) or self.integer_pow(a, eqn.params["y"]) for a in ins[0]]]
         if name == "round":
             how = "nearbyint" if int(eqn.params["rounding_method"]) == 1 else "round"
-            return [self.elementwise(f"Lib({{0}}, LIB({how}))", ins, "V")]
+            return [self.elementwise(self.t(f"Lib({{0}}, LIB({how}))"), ins, "V")]
         if name == "is_finite":
-            return [[self.folded((a,)) or self.fresh("M", f"IsFinite({self.vec(a)})") for a in ins[0]]]
+            return [[self.folded((a,)) or self.fresh("M", self.t("IsFinite({0})").format(self.vec(a))) for a in ins[0]]]
         if name == "select_n":
             return [self.select(ins, avals_out[0])]
         if name == "convert_element_type":
             return [self.convert(ins[0], avals_in[0], avals_out[0])]
         if name == "clamp":
             lo, x, hi = self.broadcast(ins)
-            return [[self.fresh("V", f"Min(Max({self.vec(a)}, {self.vec(b)}), {self.vec(c)})") for b, a, c in
+            clamp = self.t("Min(Max({0}, {1}), {2})")
+            return [[self.fresh("V", clamp.format(self.vec(a), self.vec(b), self.vec(c))) for b, a, c in
                      zip(x, lo, hi)]]  # fmt: skip
         if name.startswith("reduce_") or name in ("argmax", "argmin"):
             return [self.reduce(name, ins[0], avals_in[0], eqn.params["axes"])]
@@ -299,8 +324,9 @@ class Printer:
         functional = not fmt.startswith(("{0}", "-"))
         cast = self.vec if functional else self.operand
         if fmt == "{0} / {1}" and self.zeros:  # a derivative divides by few values, many times: reciprocals
+            inverse = lambda b: self.fresh("V", self.t("Bc(1) / {0}").format(self.vec(b))).expr  # noqa: E731
             return [self.folded(args) or self.identity(fmt, args) or
-                    self.fresh(kind, f"{cast(args[0])} * {self.fresh('V', f'Bc(1) / {self.vec(args[1])}').expr}")
+                    self.fresh(kind, f"{cast(args[0])} * {inverse(args[1])}")
                     for args in zip(*self.broadcast(ins))]  # fmt: skip
         return [self.folded(args) or self.identity(fmt, args) or self.fresh(kind, fmt.format(*map(cast, args)))
                 for args in zip(*self.broadcast(ins))]  # fmt: skip
@@ -341,8 +367,8 @@ class Printer:
         if a.expr not in self.sincos:
             s, c = f"s{self.count}", f"c{self.count}"
             self.count += 1
-            self.lines.append(f"V {s}, {c};")
-            self.lines.append(f"SinCos({self.vec(a)}, &{s}, &{c});")
+            self.lines.append(f"{self.target.vector} {s}, {c};")
+            self.lines.append(self.t("SinCos({0}, &{1}, &{2});").format(self.vec(a), s, c))
             self.sincos[a.expr] = (s, c)
         return Atom("V", self.sincos[a.expr][0 if name == "sin" else 1])
 
@@ -351,14 +377,14 @@ class Printer:
         x, acc = a.expr, None
         n = abs(int(y))
         if n == 0:
-            return self.fresh("V", "Bc(1)")
+            return self.fresh("V", self.t("Bc(1)"))
         while n:
             if n & 1:
                 acc = x if acc is None else self.fresh("V", f"{acc} * {x}").expr
             n >>= 1
             if n:
                 x = self.fresh("V", f"{x} * {x}").expr
-        return self.fresh("V", f"Bc(1) / {acc}" if y < 0 else f"{acc}")
+        return self.fresh("V", self.t("Bc(1) / {0}").format(acc) if y < 0 else f"{acc}")
 
     def select(self, ins, aval) -> list[Atom]:
         pred, *cases = self.broadcast(ins)
@@ -373,18 +399,23 @@ class Printer:
             elif a == b or (a.kind == b.kind == "c" and a.value == b.value):
                 out.append(a)
             else:
-                m = self.mask(p) if p.kind == "M" else f"({p.expr} != Bc(0))"  # an integer index
+                m = self.mask(p) if p.kind == "M" else self.t("({0} != Bc(0))").format(p.expr)  # an integer index
                 out.append(self.fresh(kind, f"{m} ? {cast(b)} : {cast(a)}"))
         return out
 
     def convert(self, atoms, aval_in, aval_out) -> list[Atom]:
         if aval_out.dtype == jnp.bool_:
-            return [a if a.kind == "M" else self.folded((a,)) or self.fresh("M", f"{self.vec(a)} != Bc(0)")
+            nonzero = self.t("{0} != Bc(0)")
+            return [a if a.kind == "M" else self.folded((a,)) or self.fresh("M", nonzero.format(self.vec(a)))
                     for a in atoms]  # fmt: skip
         if aval_in.dtype == jnp.bool_:
-            return [self.folded((a,)) or self.fresh("V", f"{self.mask(a)} ? Bc(1) : Bc(0)") for a in atoms]
+            return [
+                self.folded((a,)) or self.fresh("V", self.t("{0} ? Bc(1) : Bc(0)").format(self.mask(a))) for a in atoms
+            ]
         if jnp.issubdtype(aval_out.dtype, jnp.integer) and jnp.issubdtype(aval_in.dtype, jnp.floating):
-            return [self.folded((a,)) or self.fresh("V", f"Lib({self.vec(a)}, LIB(trunc))") for a in atoms]
+            return [
+                self.folded((a,)) or self.fresh("V", self.t("Lib({0}, LIB(trunc))").format(self.vec(a))) for a in atoms
+            ]
         return atoms  # integers are floats here; float to float of the same width (others refused before)
 
     def move(self, eqn, ins, avals_in) -> list[list[Atom]]:
@@ -432,8 +463,8 @@ class Printer:
             for e in range(inner):
                 acc = ins[0][(shape[0] - 1) * inner + e]
                 for r in range(shape[0] - 2, -1, -1):
-                    acc = self.fresh("V", f"{self.vec(i)} == Bc({r}) ? {self.vec(ins[0][r * inner + e])} : "
-                                          f"{self.vec(acc)}")  # fmt: skip
+                    pick = self.t(f"{{0}} == Bc({r}) ? {{1}} : {{2}}")
+                    acc = self.fresh("V", pick.format(self.vec(i), self.vec(ins[0][r * inner + e]), self.vec(acc)))
                 out.append(acc)
         return out
 
@@ -476,12 +507,12 @@ class Printer:
             elif coef == -1:
                 parts.append(f"(-{a.expr})")
             else:
-                parts.append(f"{literal(coef)} * {a.expr}")
+                parts.append(f"{self.target.literal(coef)} * {a.expr}")
         if not parts:
             return _const(np.asarray(const, self.dtype))
         expr = " + ".join(parts)
         if const:
-            expr = f"{literal(const)} + {expr}"
+            expr = f"{self.target.literal(const)} + {expr}"
         return self.fresh("V", expr)
 
     def reduce(self, name: str, atoms, aval, axes) -> list[Atom]:
@@ -503,7 +534,9 @@ class Printer:
             cast = self.mask if logic else self.vec
             acc = cast(items[0])
             for a in items[1:]:
-                acc = f"{acc} {op} {cast(a)}" if op in ("&", "|", "*") else f"{op}({acc}, {cast(a)})"
+                acc = (
+                    f"{acc} {op} {cast(a)}" if op in ("&", "|", "*") else self.t(op + "({0}, {1})").format(acc, cast(a))
+                )
                 acc = self.fresh("M" if logic else "V", acc).expr
             out.append(Atom("M" if logic else "V", acc) if len(items) > 1 else self.fresh("M" if logic else "V", acc))
         return out
@@ -569,9 +602,10 @@ class Printer:
 _NAME = re.compile(r"\b[vmsc]\d+\b")
 
 
-def _live(lines: list[str]) -> list[str]:
+def _live(lines: list[str], vector: str = "V") -> list[str]:
     """``lines`` without the statements whose results nothing uses (the primal values a
-    vector-Jacobian product computes and does not need): a smaller file to compile."""
+    vector-Jacobian product computes and does not need): a smaller file to compile. ``vector``:
+    the float type's name (:attr:`Target.vector`), which declares a SinCos pair."""
     live: set[str] = set()
     kept = []
     for line in reversed(lines):
@@ -580,10 +614,10 @@ def _live(lines: list[str]) -> list[str]:
             if name not in live:
                 continue
             live.update(_NAME.findall(line.split(" = ", 1)[1]))
-        elif line.startswith("V s"):  # the declaration of a SinCos pair
+        elif line.startswith(f"{vector} s"):  # the declaration of a SinCos pair
             if not set(_NAME.findall(line)) & live:
                 continue
-        elif line.startswith("SinCos("):
+        elif line.startswith("SinCos"):  # SinCos(x, &s, &c), or a target's variant of it
             if not set(_NAME.findall(line)[-2:]) & live:
                 continue
             live.update(_NAME.findall(line)[:-2])
