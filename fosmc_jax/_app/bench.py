@@ -38,27 +38,27 @@ def identification_log(
     ``fosmc identify --delay D`` with the same D reads it as it was simulated. A config that
     is no such loop is a ``ConfigError``."""
     cfg = problems.as_config(config)
-    ctl = cfg["controller"]
-    if cfg["plant"]["kind"] != "arm":
-        raise problems.ConfigError(f"plant.kind: a log of an experiment needs the arm, got '{cfg['plant']['kind']}'")
-    if not ctl["sample_period"] > 0:
+    ctl = cfg.controller
+    if cfg.plant.kind != "arm":
+        raise problems.ConfigError(f"plant.kind: a log of an experiment needs the arm, got '{cfg.plant.kind}'")
+    if not ctl.sample_period > 0:
         raise problems.ConfigError("controller.sample_period: a log of an experiment needs a digital loop (a drive "
                                   "sampling at a period > 0), got 0 (the ideal loop)")  # fmt: skip
-    delay = ctl["delay_samples"] if delay is None else delay
+    delay = ctl.delay_samples if delay is None else delay
     if not (isinstance(delay, (int, np.integer)) and not isinstance(delay, bool) and delay >= 0):
         raise ValueError(f"delay: expected a non-negative integer (samples), got {delay!r}")
-    if currents and (cfg["arm"]["uncertainty"]["samples"] or (cfg["sample"]["count"] and cfg["sample"]["payloads"])):
+    if currents and (cfg.arm.uncertainty.samples or (cfg.sample.count and cfg.sample.payloads)):
         raise problems.ConfigError("currents: the first rollout's arm is drawn ([arm.uncertainty] samples or [sample] "
                                   "payloads), and its currents need that arm: log without currents")  # fmt: skip
     cfg = problems.replace(cfg, sim={"save_every": problems.sample_steps(cfg)})
     trace = problems.build(cfg).simulate().trace
     t, X, U = (np.asarray(a[0]) for a in (trace.t, trace.X, trace.U))
-    theta = np.asarray(quantize(jnp.asarray(X[:, 0::3]), jnp.asarray(cfg["sensors"]["encoder_counts"], float)))
+    theta = np.asarray(quantize(jnp.asarray(X[:, 0::3]), jnp.asarray(cfg.sensors.encoder_counts, float)))
     u = np.concatenate([U[delay:], np.repeat(U[-1:], min(delay, len(U)), axis=0)])[: len(U)]
     current = None
     if currents:  # from the state, by the motor's equation, with the config's own arm and first payload
-        params = ArmParams(**{k: jnp.asarray(cfg["arm"][k], float) for k in ArmParams._fields})
-        arm = Arm(params, jnp.asarray(cfg["plant"]["payloads"][0], float))
+        params = ArmParams(*(jnp.asarray(x, float) for x in cfg.arm.params))
+        arm = Arm(params, jnp.asarray(cfg.plant.payloads[0], float))
         current = np.asarray(jax.vmap(lambda x: jnp.stack(arm.init(x).current))(jnp.asarray(X)))
     log = identification.check_log(identification.Log(t, theta, u, current))
     if path is not None:

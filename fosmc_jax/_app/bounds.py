@@ -7,7 +7,7 @@ from typing import Any
 from .. import _problems as problems
 from .._design import paper as _paper
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _quiet,
     _with_x64,
@@ -16,7 +16,7 @@ from .shared import (
 
 
 @_with_x64
-def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
+def run_bounds(config: ConfigInput = None, *, log: Log = _quiet) -> dict[str, Any]:
     """``fosmc bounds``: for the config's design model (``[model] from``, ``config.design_model``:
     the paper's rows and ``[plant.box]``, or the rows derived from ``[arm]``), alpha, beta (31)
     by exact vertex enumeration of its box, K placing the poles (16) (the K the simulated
@@ -32,8 +32,8 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
     ``"arm_model"``: where they come from.
     """
     cfg = config_of(config)
-    used = cfg["model"]["from"]
-    sources = ("paper", "arm") if cfg["plant"]["kind"] == "arm" else (used,)
+    used = cfg.model.source
+    sources = ("paper", "arm") if cfg.plant.kind == "arm" else (used,)
     designs, summaries = {}, {}
     for source in sources:
         designs[source] = problems.design_model(cfg, source)
@@ -55,7 +55,7 @@ def run_bounds(config: Config = None, *, log: Log = _quiet) -> dict[str, Any]:
         "model": used,
         "model_detail": designs[used].sampled,
         **quantities(summaries[used]),
-        "gamma": cfg["controller"]["gamma"],
+        "gamma": list(cfg.controller.gamma),
         "paper_printed": {
             "alpha": _paper.ALPHA_PRINTED,
             "beta": _paper.BETA_PRINTED,

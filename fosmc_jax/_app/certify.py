@@ -23,12 +23,21 @@ from .._certificate.hitting import (
 )
 from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS
-from .._problems import ConfigError, arm_params_of, box_of, controller_of, design_summary, reference_of
-from .shared import Config, Log, _is_integer, _quiet, _with_x64, config_of
+from .._problems import (
+    Config,
+    ConfigError,
+    arm_params_of,
+    as_config,
+    box_of,
+    controller_of,
+    design_summary,
+    reference_of,
+)
+from .shared import ConfigInput, Log, _is_integer, _quiet, _with_x64, config_of
 
 
 def certify(
-    cfg: dict,
+    config: ConfigInput,
     *,
     gamma=None,
     plant: str | None = None,
@@ -43,8 +52,9 @@ def certify(
     n_payloads: int = 11,
     seed: int = 0,
 ) -> Certificate:
-    """Check the hitting condition (20) numerically for a resolved config (``problems.resolve``)
-    of the paper's ideal loop (a digital loop's config is refused with a ``ConfigError``).
+    """Check the hitting condition (20) numerically for a config (a resolved
+    :class:`fosmc_jax.config.Config`, or any form ``fosmc_jax.config.as_config`` takes) of the
+    paper's ideal loop (a digital loop's config is refused with a ``ConfigError``).
 
     Sampled points (defaults: ``n_times`` 81, ``n_z`` 200 on the linear plant, 21 and 30 on the
     arm, whose rows cost a model evaluation per point): ``n_times`` instants evenly over
@@ -64,17 +74,18 @@ def certify(
     (``[model] from``). ``gamma`` (3,) overrides controller.gamma. Deterministic given ``seed``.
     Runs in float64.
     """
-    if cfg["controller"]["kind"] != "fosmc":
+    cfg = as_config(config)
+    if cfg.controller.kind != "fosmc":
         raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
-                          f"'{cfg['controller']['kind']}'")  # fmt: skip
-    if cfg["controller"]["sample_period"]:
+                          f"'{cfg.controller.kind}'")  # fmt: skip
+    if cfg.controller.sample_period:
         raise ConfigError(
             "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "
             "loop; a digital loop (sample_period > 0: sampling, sensors, delay, saturation) cannot be certified "
             "this way (set sample_period = 0)"
         )
-    plant = plant or cfg["plant"]["kind"]
-    law = law or cfg["controller"]["law"]
+    plant = plant or cfg.plant.kind
+    law = law or cfg.controller.law
     if plant not in ("linear", "arm"):
         raise ValueError(f"plant must be 'linear' or 'arm', got {plant!r}")
     if n_s < 26:
@@ -87,12 +98,12 @@ def certify(
         ctrl, ref = controller_of(cfg, jnp.float64, gamma), reference_of(cfg, jnp.float64)
         if s_norms is None:
             s_norms = (1.0,) if switching == "sign" else tuple(float(np.max(ctrl.delta)) * k for k in (0.1, 1, 10, 100))
-        times = np.linspace(0.0, cfg["sim"]["t_final"], n_times)
+        times = np.linspace(0.0, cfg.sim.t_final, n_times)
         Zs = z_samples(n_z, scales, rng)
         dirs = s_directions(n_s - 26, rng)
         S = np.concatenate([r * dirs for r in s_norms])
         envelope = {
-            "times": f"{n_times} evenly over [0, {cfg['sim']['t_final']:g}] s",
+            "times": f"{n_times} evenly over [0, {cfg.sim.t_final:g}] s",
             "Z": f"0, +-scale_i e_i and {n_z} uniform-radius points of the ellipsoid with semi-axes "
             f"{list(z_scales)} (theta rad, theta' rad/s, theta'' rad/s^2) per joint",
             "s": f"{len(dirs)} directions (26 sign patterns + {n_s - 26} random) x norms {list(s_norms)}",
@@ -138,7 +149,7 @@ def certify(
                 label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
                 points = evaluations = n_pts * codes.size
         else:
-            payload_range = tuple(cfg["arm"]["payload_range"])
+            payload_range = tuple(cfg.arm.payload_range)
             payloads = np.linspace(*payload_range, n_payloads)
             params = arm_params_of(cfg, jnp.float64)
             values = arm_values(ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law)  # (P, T, nZ, nS)
@@ -167,7 +178,7 @@ class BoundVerdict(NamedTuple):
     verdict: str  # "sufficient and necessary", "sufficient, not necessary", "necessary, not sufficient", "neither"
 
 
-def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, float], list[BoundVerdict]]:
+def gamma_verdicts(cfg: Config, eps: float = 0.01, **options) -> tuple[dict[str, float], list[BoundVerdict]]:
     """For each convention of (24)-(26) (``CONVENTIONS``), :func:`certify` at gamma = (1 +- eps)
     times the bound computed from the config's design model (``config.design_model``: its
     box, alpha and beta by vertex enumeration, and its nominal rows) and the poles. ``options``
@@ -193,7 +204,7 @@ def gamma_verdicts(cfg: dict, eps: float = 0.01, **options) -> tuple[dict[str, f
     return {"alpha": d.alpha.value, "beta": d.beta.value}, out
 
 
-def critical_scale(cfg: dict, direction, lo: float = 0.0, hi: float = 64.0, iters: int = 12, **options) -> float:
+def critical_scale(cfg: Config, direction, lo: float = 0.0, hi: float = 64.0, iters: int = 12, **options) -> float:
     """Smallest lambda in [lo, hi] (bisection, ``iters`` steps) such that :func:`certify` holds
     with gamma = lambda * ``direction`` (3,); +inf if it fails at ``hi``. Assumes the check is
     monotone in lambda along the ray (it is for ``sign`` where larger gamma only adds a term
@@ -207,7 +218,7 @@ def critical_scale(cfg: dict, direction, lo: float = 0.0, hi: float = 64.0, iter
     return hi
 
 
-def report(cfg: dict, eps: float = 0.01, verdicts: bool = True, **options) -> dict[str, Any]:
+def report(cfg: Config, eps: float = 0.01, verdicts: bool = True, **options) -> dict[str, Any]:
     """JSON-ready summary for ``fosmc certify``: :func:`certify` at the config's gamma (keys
     ``max_hitting``, ``holds``, ``points_checked``, ``evaluations``, ``where``, ``vertices``,
     ``plant``, ``envelope``) and, if ``verdicts``, ``gamma_bounds``: alpha, beta and one
@@ -221,7 +232,7 @@ def report(cfg: dict, eps: float = 0.01, verdicts: bool = True, **options) -> di
 
 @_with_x64
 def run_certify(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     vertices: int | str = "all",
     configured_switching: bool = False,
@@ -241,7 +252,7 @@ def run_certify(
     if not (_is_integer(seed) and seed >= 0):
         raise ConfigError(f"--seed: expected a non-negative integer, got {seed}")
     cfg = config_of(config)
-    switching = cfg["controller"]["switching"] if configured_switching else "sign"
+    switching = cfg.controller.switching if configured_switching else "sign"
     opts = {"switching": switching, "seed": seed}
     if vertices != "all":
         count = vertices if isinstance(vertices, int) and not isinstance(vertices, bool) else None
@@ -250,7 +261,7 @@ def run_certify(
         if count is None or count < 1:
             raise ConfigError(f"--vertices: expected 'all' or a positive integer, got {vertices!r}")
         opts["vertices"] = count
-    log(f"fosmc certify: {cfg['plant']['kind']} plant, {switching} switching ...")
+    log(f"fosmc certify: {cfg.plant.kind} plant, {switching} switching ...")
     start = time.perf_counter()
     r = report(cfg, **opts)
     log(f"fosmc certify: done in {time.perf_counter() - start:.1f} s")

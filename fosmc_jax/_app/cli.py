@@ -59,7 +59,7 @@ def cmd_simulate(args) -> int:
     rollout held: a batch run in chunks prints as much as memory holds)."""
     across = _processes(args)
     with distributed.agreeing(jax.process_count() > 1) as agree:  # a refusal here ends every process in one line
-        sampled = commands.config_of(args.config)["sample"]["count"] > 0
+        sampled = commands.config_of(args.config).sample.count > 0
         if args.plot:
             from .plots import check_figure_path
 

@@ -11,7 +11,7 @@ import numpy as np
 from .. import _problems as problems
 from .._problems import ConfigError
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _quiet,
     _with_x64,
@@ -22,7 +22,7 @@ from .shared import (
 
 @_with_x64
 def run_export(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     out: str | Path | None = None,
     params: str | Path | dict | None = None,
@@ -90,10 +90,10 @@ def run_export(
                 raise ConfigError(f"--point: {params} is a front of {len(data['points'])} points: name the one to "
                                   "export with --point I (e.g. the one `fosmc select` names)")  # fmt: skip
         cfg = problems.with_params(cfg, params, point)
-    if cfg["controller"]["kind"] not in _export.EXPORTED_KINDS:
+    if cfg.controller.kind not in _export.EXPORTED_KINDS:
         raise ConfigError(f"controller.kind: fosmc export writes {', '.join(_export.EXPORTED_KINDS)}, got "
-                          f"{cfg['controller']['kind']!r}")  # fmt: skip
-    if not cfg["controller"]["sample_period"]:
+                          f"{cfg.controller.kind!r}")  # fmt: skip
+    if not cfg.controller.sample_period:
         raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
                           "drive's period, e.g. 1e-3): the ideal loop reads the exact state at every step and "
                           "integrates the law with the plant, which no drive does")  # fmt: skip
@@ -114,7 +114,7 @@ def run_export(
     design = problems.design_model(cfg)
     if design.source == "arm":
         model = "the model derived from the configured [arm] along the reference"
-    elif all(cfg["model"][k] == problems.defaults()["model"][k] for k in ("A_rows", "B_rows")):
+    elif all(cfg.model.as_dict()[k] == problems.defaults()["model"][k] for k in ("A_rows", "B_rows")):
         model = _export.PAPER_MODEL
     else:
         model = "the config's nominal model ([model] A_rows, B_rows)"
@@ -149,5 +149,5 @@ def run_export(
                     checked = f"did NOT compile: {e}"
             if checked.startswith("compiled cleanly"):  # otherwise "check" says why (the command line warns)
                 log(f"fosmc export: {checked}")
-    return {"files": files, "paths": paths, "kind": cfg["controller"]["kind"], "precision": precision,
+    return {"files": files, "paths": paths, "kind": cfg.controller.kind, "precision": precision,
             "model": model, "check": checked}  # fmt: skip

@@ -11,7 +11,7 @@ from .._problems import ConfigError
 from .._simulator import sharding
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _fresh_out,
     _is_integer,
@@ -29,7 +29,7 @@ MAX_FRONT_SEED = (2**32 - 1 - 700_000 - 1_000) // 1_000_003
 
 @_with_x64
 def run_front(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     out: str | Path | None = None,
     points: int | None = None,

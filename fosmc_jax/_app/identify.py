@@ -14,7 +14,7 @@ from .. import _problems as problems
 from .._io import jsonable, stamped, write_text
 from .._problems import ConfigError
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _fresh_out,
     _quiet,
@@ -25,7 +25,7 @@ from .shared import (
 
 @_with_x64
 def run_identify(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     data: str | Path,
     params: str | list[str] | tuple[str, ...],
@@ -89,13 +89,13 @@ def run_identify(
         raise ConfigError(f"--params: expected names, comma-separated or a list of strings, got {params!r}")
     cfg = config_of(config)
     if payload is None:
-        if len(cfg["plant"]["payloads"]) != 1:
-            raise ConfigError(f"--payload: the config lists {len(cfg['plant']['payloads'])} payloads "
-                              f"({cfg['plant']['payloads']}); give the experiment's (kg)")  # fmt: skip
-        payload = cfg["plant"]["payloads"][0]
+        if len(cfg.plant.payloads) != 1:
+            raise ConfigError(f"--payload: the config lists {len(cfg.plant.payloads)} payloads "
+                              f"({list(cfg.plant.payloads)}); give the experiment's (kg)")  # fmt: skip
+        payload = cfg.plant.payloads[0]
     if out is not None:
         out = _fresh_out(out, force, "use --force to overwrite")
-    counts = np.asarray(cfg["sensors"]["encoder_counts"], float)
+    counts = np.asarray(cfg.sensors.encoder_counts, float)
     try:
         record = identification.read_log(data)
         period = identification.sample_period(record.t)
@@ -105,8 +105,8 @@ def run_identify(
                              f"got {window:g} s")  # fmt: skip
         settings = identification.Settings(
             window=samples,
-            delay=cfg["controller"]["delay_samples"] if delay is None else int(delay),
-            integrator=cfg["sim"]["integrator"],
+            delay=cfg.controller.delay_samples if delay is None else int(delay),
+            integrator=cfg.sim.integrator,
             dt=None if dt is None else float(dt),
             threshold=float(threshold),
             iterations=int(iterations),
@@ -139,7 +139,7 @@ def run_identify(
         header += f"\nWARNING: {warning}."
     if config_check != "ok":
         header += f"\nWARNING: not a valid config as it stands: {config_check}"
-    toml = identification.arm_toml(result, {"payload_range": cfg["arm"]["payload_range"]}, header)
+    toml = identification.arm_toml(result, {"payload_range": list(cfg.arm.payload_range)}, header)
     report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
                       "config": cfg.as_dict()})  # fmt: skip
     if out is not None:

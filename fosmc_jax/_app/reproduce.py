@@ -193,8 +193,8 @@ def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None]
     """SGN and Table 1's sets with the paper's gains on the arm at 0 and 10 kg, in the
     realistic loop (the ideal loop's cases are :func:`run_cases`')."""
     cfg = realistic_config(t_final)
-    dtype = jnp.dtype(cfg["sim"]["precision"])
-    payloads = [f"{p:g} kg" for p in cfg["plant"]["payloads"]]
+    dtype = jnp.dtype(cfg.sim.precision)
+    payloads = [f"{p:g} kg" for p in cfg.plant.payloads]
     cases = []
     for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
         start = time.perf_counter()
@@ -206,7 +206,7 @@ def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None]
                 part = jax.tree.map(lambda x, i=i: np.asarray(x)[i : i + 1], result)
                 cases.append(Case("arm, realistic loop", load, "sign" if switching == "sign" else f"set {k + 1}", part))
                 i += 1
-        log(f"arm realistic {switching:5} {i:2d} rollout(s) x {cfg['sim']['t_final']} s  "
+        log(f"arm realistic {switching:5} {i:2d} rollout(s) x {cfg.sim.t_final} s  "
             f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
     return cases
 
@@ -224,9 +224,9 @@ def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = p
     """Table 1 set 1 with delta scaled by :data:`DELTA_SCALES`, and with the poles (33) sped up
     by :data:`POLE_SPEEDUPS`, on the arm at 0 and 10 kg, in both loops (one call per loop)."""
     cfg = realistic_config(t_final)
-    dtype = jnp.dtype(cfg["sim"]["precision"])
+    dtype = jnp.dtype(cfg.sim.precision)
     base = _controller(paper.DELTA_SETS[0], dtype)
-    P = len(cfg["plant"]["payloads"])
+    P = len(cfg.plant.payloads)
     axes = (("delta scale", DELTA_SCALES, lambda v: base._replace(delta=base.delta * v)),
             ("pole speed-up", POLE_SPEEDUPS, lambda v: base._replace(poles=base.poles * v)))  # fmt: skip
     params = [vary(v) for _, values, vary in axes for v in values]

@@ -18,7 +18,9 @@ from .._io import check_writable
 from .._problems import ConfigError
 from .._simulator.metrics import UNITS
 
-Config = str | Path | dict | None
+#: What a command takes as its config: a TOML path, a preset's name, a dict of TOML tables, a resolved
+#: config, or None (the paper's defaults).
+ConfigInput = str | Path | dict | problems.Config | None
 Log = Callable[[str], None]
 
 
@@ -35,7 +37,7 @@ def _with_x64(f):
     return wrapped
 
 
-def config_of(config: Config) -> dict[str, Any]:
+def config_of(config: ConfigInput) -> problems.Config:
     """The resolved config (:func:`fosmc_jax._problems.as_config`: a TOML path, a preset's
     name, a user dict, a resolved config, or ``None`` for the paper's defaults)."""
     return problems.as_config(config)
@@ -67,7 +69,7 @@ def _is_real(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
-def one_plant(cfg: dict) -> str | None:
+def one_plant(cfg: problems.Config) -> str | None:
     """What the one plant of a resolved config's batch is, or None where the batch holds several.
 
     One plant: ``plant.kind = "linear"`` with ``plant.uncertainty = "none"`` (the nominal model,
@@ -77,18 +79,18 @@ def one_plant(cfg: dict) -> str | None:
     sampled arms (``[arm.uncertainty]``). Initial offsets (``sim.initial_offset``)
     and noise realizations (``sensors.realizations``) vary the start and the measurements, not
     the plant, so they do not count."""
-    plant = cfg["plant"]
-    if plant["kind"] == "arm":
-        payloads = sorted(set(plant["payloads"]))
-        varied = (cfg["sample"]["count"] > 1 and cfg["sample"]["payloads"]) or problems.arm_varies(cfg)
+    plant = cfg.plant
+    if plant.kind == "arm":
+        payloads = sorted(set(plant.payloads))
+        varied = (cfg.sample.count > 1 and cfg.sample.payloads) or problems.arm_varies(cfg)
         return f"the arm with a {payloads[0]:g} kg payload" if len(payloads) == 1 and not varied else None
-    if plant["uncertainty"] == "none":
+    if plant.uncertainty == "none":
         return "the nominal linear model"
-    if plant["uncertainty"] == "fixed":
+    if plant.uncertainty == "fixed":
         return "the linear model plus plant.dA_rows, plant.dB_rows"
-    box = plant["box"]
-    flat = all(np.array_equal(box[f"{m}_lower"], box[f"{m}_upper"]) for m in ("A", "B"))
-    return "one plant of the box" if plant["samples"] == 1 or flat else None
+    box = plant.box
+    flat = np.array_equal(box.A_lower, box.A_upper) and np.array_equal(box.B_lower, box.B_upper)
+    return "one plant of the box" if plant.samples == 1 or flat else None
 
 
 def metric_label(name: str) -> str:
@@ -96,7 +98,7 @@ def metric_label(name: str) -> str:
     return f"{name} ({UNITS[name]}{', total variation' if name == 'chattering' else ''})"
 
 
-def _warn_one_plant(cfg: dict, command: str) -> None:
+def _warn_one_plant(cfg: problems.Config, command: str) -> None:
     """``tune`` and ``front`` on a batch of :func:`one_plant`: a UserWarning that what they find
     holds for that plant only, and which keys add plant uncertainty."""
     what = one_plant(cfg)

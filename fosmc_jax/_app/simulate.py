@@ -21,7 +21,7 @@ from .._simulator.rollout import simulate_batch
 from . import chunks
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _is_integer,
     _quiet,
@@ -33,7 +33,7 @@ from .shared import (
 
 @_with_x64
 def run_simulate(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     params: str | Path | None = None,
     point: int | None = None,
@@ -119,12 +119,12 @@ def run_simulate(
     elif point is not None:
         raise ConfigError("--point: needs --params FRONT.json")
     n = problems.n_steps(cfg)
-    if keep_trace and not cfg["sim"]["save_every"]:
+    if keep_trace and not cfg.sim.save_every:
         m = problems.sample_steps(cfg)
         cfg = problems.replace(cfg, sim={"save_every": max(1, n // 4000 // m) * m})
     if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
         raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
-    if cfg["sim"]["save_every"] and (chunk is not None or checkpoint is not None):
+    if cfg.sim.save_every and (chunk is not None or checkpoint is not None):
         option = "--checkpoint" if checkpoint is not None else "--chunk"
         raise ConfigError(f"{option}: a batch that keeps a trace ([sim] save_every, or --plot without a [sample] "
                           "table) runs whole, not in chunks")  # fmt: skip
@@ -136,11 +136,11 @@ def run_simulate(
     size = size if chunk is None else min(size, chunk)
     problem = problems.problem_of(cfg)
     n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
-    paired = cfg["sim"]["pairing"] == "paired"
+    paired = cfg.sim.pairing == "paired"
     per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
     in_chunks = size < n_rollouts or checkpoint is not None
-    log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg['sim']['integrator']}, "
-        f"dt = {cfg['sim']['dt']} s, {cfg['sim']['precision']}) on {devices} device(s)"
+    log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg.sim.integrator}, "
+        f"dt = {cfg.sim.dt} s, {cfg.sim.precision}) on {devices} device(s)"
         f"{f' in chunks of at most {size} rollouts' if in_chunks else ''}: compiling and running ...")  # fmt: skip
     start = time.perf_counter()
     if across:  # every process's devices; every process gets the whole batch's results
@@ -170,10 +170,10 @@ def run_simulate(
     arrays.update(plant_index=r // (per_plant * n_real), realization_index=r % n_real,
                   offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
     if problems.arm_varies(cfg):  # [arm.uncertainty]: which sampled arm each rollout ran (arm-major, then payload)
-        payloads = cfg["sample"]["count"] if cfg["sample"]["payloads"] else len(cfg["plant"]["payloads"])
+        payloads = cfg.sample.count if cfg.sample.payloads else len(cfg.plant.payloads)
         arrays["arm_index"] = arrays["plant_index"] // (1 if paired else payloads)
     drawn, extra = problems.draws(cfg) if draws else {}, {}
-    if cfg["sample"]["count"] and draws:
+    if cfg.sample.count and draws:
         extra["sampled"] = {k: v.tolist() for k, v in drawn.items() if k != "arms"}
     if "arms" in drawn:  # each sampled arm's parameters
         n_arms = len(drawn["arms"]["F"])
@@ -183,7 +183,9 @@ def run_simulate(
     return dict(out, trace=result.trace) if keep_trace else out
 
 
-def _checkpoint_chunk(folder: Path, cfg: dict, devices: int, size: int, chunk: int | None, resume: bool) -> int:
+def _checkpoint_chunk(
+    folder: Path, cfg: problems.Config, devices: int, size: int, chunk: int | None, resume: bool
+) -> int:
     """The rollouts per chunk of a run with a checkpoint ``folder``: a new run's (at most
     :data:`fosmc_jax._app.chunks.CHECKPOINT_CHUNK`, ``size`` where memory holds fewer, ``chunk``
     where given), recorded in the folder's ``plan.json`` with the config, the devices and the

@@ -44,7 +44,9 @@ def references(front: problems.FrontProblems, chunk: int, plain: Evaluator) -> d
     return out
 
 
-def finished(out: Path | None, name: str, cfg: dict, command: str, log: Callable[[str], None]) -> dict | None:
+def finished(
+    out: Path | None, name: str, cfg: problems.Config, command: str, log: Callable[[str], None]
+) -> dict | None:
     """What ``--resume`` finds in ``out`` when the run there is complete: its final file
     ``name`` (``front.json``, ``result.json``; written last, and removed when a run starts
     afresh, :func:`start_afresh`), returned as it is after one line saying so; None when there
@@ -89,7 +91,7 @@ def replayed(path: str | Path) -> tuple[dict, Settings]:
 WRITE_S = 1.5
 
 
-def study(cfg: dict, settings: Settings, *, out: Path | None = None, resume: bool = False,
+def study(cfg: problems.Config, settings: Settings, *, out: Path | None = None, resume: bool = False,
           compare: tuple = (), started: float | None = None, log: Callable[[str], None] = print
           ) -> dict[str, Any]:  # fmt: skip
     """``fosmc front``: the front of a resolved config's controller kind (its own parameters;

@@ -18,7 +18,7 @@ from .._simulator import sharding
 from .._simulator.metrics import UNITS
 from .distributed import JOIN_TIMEOUT_S, Processes, agreeing, digest, join
 from .shared import (
-    Config,
+    ConfigInput,
     Log,
     _fresh_out,
     _is_real,
@@ -32,7 +32,7 @@ from .shared import (
 
 @_with_x64
 def run_tune(
-    config: Config = None,
+    config: ConfigInput = None,
     *,
     steps: int | None = None,
     out: str | Path | None = None,
@@ -115,13 +115,13 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
         if steps < 1:
             raise ConfigError(f"--steps: expected a positive integer, got {steps}")
         cfg = problems.replace(cfg, tune={"steps": steps})
-    tcfg = cfg["tune"]
-    kind = cfg["controller"]["kind"]
+    tcfg = cfg.tune
+    kind = cfg.controller.kind
     names = tuner.SPACES[kind].names
-    if not set(tcfg["params"]) <= set(names):
+    if not set(tcfg.params) <= set(names):
         raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
-                          f"controller.kind = '{kind}'), got {tcfg['params']}")  # fmt: skip
-    if tcfg["keep_gamma_bound"] and kind != "fosmc":
+                          f"controller.kind = '{kind}'), got {list(tcfg.params)}")  # fmt: skip
+    if tcfg.keep_gamma_bound and kind != "fosmc":
         raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
                           f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
@@ -129,21 +129,21 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
     return cfg, out
 
 
-def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
+def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
           log: Log) -> dict[str, Any]:  # fmt: skip
     """``run_tune``'s work, its inputs checked."""
     from .._search import tune as tuner
 
-    tcfg = cfg["tune"]
+    tcfg = cfg.tune
     plain, problem, p0 = problems.tuning_problems(cfg)
     if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
     floor = None
-    if tcfg["keep_gamma_bound"]:  # alpha, beta of the design model the controller is built on
+    if tcfg.keep_gamma_bound:  # alpha, beta of the design model the controller is built on
         d = problems.design_summary(cfg)
-        floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg["gamma_bound_convention"])
+        floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg.gamma_bound_convention)
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
-        f"per training evaluation; free parameters: {', '.join(tcfg['params'])}")  # fmt: skip
+        f"per training evaluation; free parameters: {', '.join(tcfg.params)}")  # fmt: skip
     m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     t0 = time.perf_counter()
     initial = tuner.evaluate(plain, p0)
@@ -160,22 +160,22 @@ def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, start
     kept = tuner.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
     if kept and "start" in kept:
         start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
-    if tcfg["global_candidates"] and floor is None and not resuming:
+    if tcfg.global_candidates and floor is None and not resuming:
         from .._search.front import global_stage
 
         share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
-        start_params, score = global_stage(problem, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
+        start_params, score = global_stage(problem, obj, p0, tcfg.global_candidates, free=tuple(tcfg.params),
                                            log=log, command="tune", deadline=share)  # fmt: skip
-        which = "the best candidate" if share else f"the best of {tcfg['global_candidates']} candidates"
+        which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
         log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log "
             "scale)")  # fmt: skip
     try:
         u0 = tuner.to_internal(start_params, plain.base, floor)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    lr = tuner.learning_rate(tcfg["learning_rate"], problem)
-    settings = tuner.Settings(tcfg["steps"], lr, tcfg["schedule"], tcfg["clip"], tcfg["mode"],
-                              tuple(tcfg["params"]), tcfg["checkpoint_every"], tcfg["optimizer"])  # fmt: skip
+    lr = tuner.learning_rate(tcfg.learning_rate, problem)
+    settings = tuner.Settings(tcfg.steps, lr, tcfg.schedule, tcfg.clip, tcfg.mode, tuple(tcfg.params),
+                              tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
@@ -197,7 +197,7 @@ def _tune(cfg: dict, out: Path | None, resume: bool, budget: float | None, start
         "initial": {"params": as_dict(p0), **initial},
         "start": {
             "params": as_dict(start_params),
-            "global_candidates": 0 if start_params is p0 else tcfg["global_candidates"],
+            "global_candidates": 0 if start_params is p0 else tcfg.global_candidates,
         },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
         "held_out": held_out,
