@@ -6,8 +6,10 @@ measured rates), arm_sign_dt (ideal loop, sign law), arm_set2 (ideal loop, smoot
 short horizon (``--horizon``, 0.3 s: ``[sim] t_final``; the training problem is tune's,
 ``_config.tuning_problems``), the loss is tune's training loss (``fs.rollout_costs`` +
 ``fs.aggregate`` with tune's objective, its scales from the training metrics at p0) in tune's
-internal coordinates u (15 entries). Points: p0 (the config's parameters) and tune's start (the best
-of ``[tune] global_candidates`` of the global stage, seed 0, on that training problem).
+internal coordinates u (15 entries). Points: p0 (the config's parameters), tune's start (the best
+of ``[tune] global_candidates`` of the global stage, seed 0, on that training problem) and the
+full-horizon start (the same global stage on the config's own horizon: tuning/truncation.py's
+start, the near-sign corner where the digital loops' gradient exploded).
 
 The smoothing distribution D (what every smoothed estimator and the reference average over): u +
 sigma eps, eps ~ N(0, I) (``--sigma``, 0.05 in u: about 5% in each parameter), and a random encoder
@@ -161,7 +163,7 @@ class Loop:
     losses and estimators (each compiled once, timed apart)."""
 
     def __init__(self, name: str, horizon: float, global_candidates: int | None, sigma: float, batch: int):
-        cfg = _config.load(CONFIGS / f"{name}.toml")
+        cfg = self.full_cfg = _config.load(CONFIGS / f"{name}.toml")
         t_final = {"t_final": horizon}
         cfg = _config.replace(cfg, sim=t_final, tune={"train_t_final": min(cfg["tune"]["train_t_final"] or horizon,
                                                                             horizon)})  # fmt: skip
@@ -190,6 +192,20 @@ class Loop:
         start, _ = global_stage(self.train, self.obj, self.p0, self.tcfg["global_candidates"],
                                 free=tuple(self.tcfg["params"]), log=lambda _: None, command="tune")  # fmt: skip
         self.u["start"] = np.asarray(ravel_pytree(fs.to_internal(start, self.plain.base, None))[0])
+        return time.perf_counter() - t
+
+    def full_start(self) -> float:
+        """u["full start"]: tune's start on the config's own horizon (tuning/truncation.py's start, where
+        the digital loops' whole-horizon gradient exploded), the same global stage on that training problem."""
+        t = time.perf_counter()
+        cfg = self.full_cfg
+        if self.cfg["tune"]["global_candidates"] != cfg["tune"]["global_candidates"]:
+            cfg = _config.replace(cfg, tune={"global_candidates": self.cfg["tune"]["global_candidates"]})
+        _, train, p0 = _config.tuning_problems(cfg)
+        obj = fs.objective_of(cfg["tune"], fs.evaluate(train, p0)["metrics"])
+        start, _ = global_stage(train, obj, p0, cfg["tune"]["global_candidates"], free=tuple(cfg["tune"]["params"]),
+                                log=lambda _: None, command="tune")  # fmt: skip
+        self.u["full start"] = np.asarray(ravel_pytree(fs.to_internal(start, self.plain.base, None))[0])
         return time.perf_counter() - t
 
     # one rollout set (the problem's plants) at one u and one initial-state offset (9,)
@@ -593,15 +609,21 @@ def report(data: dict) -> str:
       f"{s['batch']} draws (zo: {2 * s['batch']} antithetic pairs, {4 * s['batch']} forward runs). Reference: central "
       f"differences of L_D at h = {s['fd_step']:g} over {s['ref_samples']} common draws. Races: {s['budget']:g} s per "
       f"method, seeds {s['seeds']}. The module docstring defines every estimator.\n")  # fmt: skip
-    A("\n## Loops\n\n| config | loop | train dt (s) x steps | encoder step q (rad) | Adam lr | global stage (s) | "
-      "loss p0 / start | compile (s) |\n|---|---|---|---|---|---|---|---|\n")  # fmt: skip
+    A("\n## Loops\n\n| config | loop | train dt (s) x steps | encoder step q (rad) | Adam lr | global stage (s): study's, full horizon | "
+      "loss p0 / start / full start | compile (s) |\n|---|---|---|---|---|---|---|---|\n")  # fmt: skip
     for n, c in data["loops"].items():
         comp = ", ".join(f"{k} {v:.0f}" for k, v in c["compile_s"].items() if not k.startswith("forward"))
         A(f"| {n} | {c['loop']} | {c['train_dt']:g} x {c['train_steps']} | {c['q']:.2g} | {c['lr']:g} | "
-          f"{c['global_s']:.1f} | {c['points']['p0']['reference']['loss']:+.3f} / "
-          f"{c['points']['start']['reference']['loss']:+.3f} | {comp} |\n")  # fmt: skip
-    for point in ("start", "p0"):
-        A(f"\n## a. cos(estimator, smoothed FD reference) at {'tune' + chr(39) + 's start' if point == 'start' else 'p0'}\n\n"
+          f"{c['global_s']:.1f}, {c['full_global_s']:.1f} | {c['points']['p0']['reference']['loss']:+.3f} / "
+          f"{c['points']['start']['reference']['loss']:+.3f} / {c['points']['full start']['reference']['loss']:+.3f} | "
+          f"{comp} |\n")  # fmt: skip
+    where = {
+        "start": "tune's start (global stage on the study's horizon)",
+        "p0": "p0 (the config's parameters)",
+        "full start": "the full-horizon start (global stage on the config's own horizon, truncation.md's start)",
+    }
+    for point in ("start", "p0", "full start"):
+        A(f"\n## a. cos(estimator, smoothed FD reference) at {where[point]}\n\n"
           "Mean over the repeats [min, max] (deterministic estimators: one value). Reference noise: ||se|| / ||g_ref||, "
           "and the cosine a noise-free estimator would reach against the noisy reference (ceiling). plain FD: "
           "central differences of the unsmoothed loss at the same h.\n\n")  # fmt: skip
@@ -751,11 +773,12 @@ def main() -> int:
         log(f"{name}: building ({LOOPS.get(name, '?')})")
         lp = Loop(name, args.horizon, args.global_candidates, args.sigma, args.batch)
         t_global = lp.start()
+        t_full = lp.full_start()
         res = {"loop": LOOPS.get(name, "?"), "train_dt": float(lp.train.dt), "train_steps": int(lp.train.options["n_steps"]),
-               "q": lp.q, "lr": lp.lr, "global_s": t_global, "u": {k: v.tolist() for k, v in lp.u.items()},
+               "q": lp.q, "lr": lp.lr, "global_s": t_global, "full_global_s": t_full, "u": {k: v.tolist() for k, v in lp.u.items()},
                "points": {}}  # fmt: skip
         log(f"{name}: global stage {t_global:.1f} s; load {load()}")
-        for point in ("start", "p0"):
+        for point in ("start", "p0", "full start"):
             res["points"][point] = informativeness(lp, point, args)
         res["compile_s"] = dict(lp.compile_s)
         data["loops"][name] = res
