@@ -21,6 +21,11 @@ import numpy as np
 
 from .._simulator import codegen
 
+#: The printer's formats that C's integer arithmetic does exactly (XLA's division and remainder
+#: of integers truncate toward zero, as C99's): the others run in the real type, exact to 2^24
+#: (float) or 2^53 (double), as the kernels carry integers.
+_INTEGER = {"Lib({0} / {1}, LIB(trunc))": "{0} / {1}", "Lib2({0}, {1}, LIB2(fmod))": "{0} % {1}"}
+
 
 class C99(codegen.Target):
     """Scalar C99 in the real type ``real`` (a typedef of ``float`` where ``f32``, else ``double``)."""
@@ -44,7 +49,7 @@ class C99(codegen.Target):
             (re.compile(r"\bkTrue\b"), lambda m: "1"),
             (re.compile(r"\bkFalse\b"), lambda m: "0"),
         ]
-        self._cache: dict[str, str] = {}
+        self._cache: dict[tuple[str, bool], str] = {}
 
     def literal(self, value) -> str:
         if isinstance(value, (bool, np.bool_)):
@@ -62,13 +67,13 @@ class C99(codegen.Target):
             text += ".0"
         return text + ("f" if self.f32 else "")
 
-    def rewrite(self, fmt: str) -> str:
-        if fmt not in self._cache:
-            out = fmt
+    def rewrite(self, fmt: str, integer: bool = False) -> str:
+        if (fmt, integer) not in self._cache:
+            out = _INTEGER.get(fmt, fmt) if integer else fmt
             for pattern, repl in self._rules:
                 out = pattern.sub(repl, out)
-            self._cache[fmt] = out
-        return self._cache[fmt]
+            self._cache[fmt, integer] = out
+        return self._cache[fmt, integer]
 
 
 def prelude(text: str, real: str, f32: bool) -> list[str]:

@@ -74,8 +74,9 @@ class Target:
         """``value`` (a Python bool, int or float) as a constant of the target."""
         return literal(value)
 
-    def rewrite(self, fmt: str) -> str:
-        """The target's form of the printer's C++ format ``fmt`` (``{0}``... the operands)."""
+    def rewrite(self, fmt: str, integer: bool = False) -> str:
+        """The target's form of the printer's C++ format ``fmt`` (``{0}``... the operands) in an
+        equation that gives integers (``integer``) or not."""
         return fmt
 
 
@@ -169,7 +170,7 @@ class Printer:
     def __init__(self, dtype, zeros: bool = False, target: Target | None = None):
         self.zeros = zeros
         self.target = target or Target()
-        self.t = self.target.rewrite
+        self.t = lambda fmt: self.target.rewrite(fmt, self.integer)
         self.integer = False  # whether the equation being printed gives integers
         self.seen: dict[tuple[str, str], Atom] = {}
         self.lines: list[str] = []
