@@ -227,11 +227,12 @@ class Tunable(NamedTuple):
     poles: Any
 
 
-def _law(params: FOSMCParams, controller: dict, T: Array):
-    """The FOSMC of the config's loop: :class:`FOSMC` in the ideal loop, else :class:`DiscreteFOSMC`."""
-    if controller["sample_period"]:
-        return DiscreteFOSMC(params, T, controller["switching"], controller["law"])
-    return FOSMC(params, controller["switching"], controller["law"])
+def _law(params: FOSMCParams, controller: Any, T: Array):
+    """The FOSMC of the config's loop (``controller``: its typed ``[controller]`` table):
+    :class:`FOSMC` in the ideal loop, else :class:`DiscreteFOSMC`."""
+    if controller.sample_period:
+        return DiscreteFOSMC(params, T, controller.switching, controller.law)
+    return FOSMC(params, controller.switching, controller.law)
 
 
 #: The front's boxes: delta x 10^[-3, 1.5], gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]. Its

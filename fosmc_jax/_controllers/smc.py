@@ -58,5 +58,5 @@ class SMCGains(NamedTuple):
 KIND = Kind(
     Space("smc", SMCGains, (Param("k", "smc_k", 1, (-2.0, 2.0)), Param("phi", "smc_phi", 1, (-3.0, 2.0)))),
     {"smc_k": (1000.0, 1000.0, 1000.0), "smc_phi": (10.0, 10.0, 10.0)},
-    lambda params, controller, T: SMC(surface_of(params), controller["smc_k"], controller["smc_phi"]),
+    lambda params, controller, T: SMC(surface_of(params), controller.gains["smc_k"], controller.gains["smc_phi"]),
 )

@@ -4,6 +4,7 @@ search on (:func:`tuning_problems`)."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from .design import box_of, cycloid, design_model
 from .draws import draws
 from .resolve import as_config, replace
 from .schema import ConfigError
-from .tables import Config
+from .tables import Config, Gains
 
 
 def _cast(x: Any, dtype) -> jax.Array:
@@ -69,8 +70,9 @@ def _law_and_loop(cfg: Config, dtype) -> tuple[Callable[[FOSMCParams], Any], Cal
     ctl, sens = cfg.controller, cfg.sensors
     T = _cast(ctl.sample_period, dtype)
     kind = KINDS[ctl.kind]
-    # the kind's law reads the [controller] table in its TOML layout, its own gains as arrays
-    table = dict(ctl.as_dict(), **{key: _cast(ctl.gains[key], dtype) for key in kind.gains})
+    # the kind's law reads the typed [controller] table, its own gains as arrays of the run's dtype
+    gains = Gains(tuple((key, _cast(value, dtype) if key in kind.gains else value) for key, value in ctl.gains.pairs))
+    table = dataclasses.replace(ctl, gains=gains)
     law = lambda params: kind.law(params, table, T)
     if not ctl.sample_period:
         return law, kind.ideal or (lambda law: law)
@@ -198,8 +200,8 @@ def problem_of(cfg: Config) -> Problem:
     return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), make, ctl.kind, arm)
 
 
-#: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes:
-#: growth starts between 20 and 50 ms at 1 and 2 kHz alike (docs/tuning.md).
+#: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes, shorter
+#: than where its growth starts (docs/configuration.md, the [tune] table).
 GRADIENT_WINDOW = 0.02
 
 
@@ -207,7 +209,7 @@ def training_config(cfg: Config) -> Config:
     """The config ``fosmc tune`` and ``fosmc front`` train on: ``[sim]`` with ``tune.train_dt``
     and ``tune.train_t_final`` where set, and a digital loop without ``tune.train_dt`` at one
     integration step per controller sample (dt = ``controller.sample_period``): it ranks
-    candidates like ``[sim]``'s step at a fraction of the cost (docs/tuning.md); results are
+    candidates like ``[sim]``'s step at a fraction of the cost (docs/configuration.md, the [tune] table); results are
     re-evaluated on ``[sim]``. ``cfg`` itself where nothing changes."""
     sim = {}
     if cfg.tune.train_dt:
@@ -225,7 +227,7 @@ def gradient_window(cfg: Config) -> float:
     horizon). Over the whole horizon the gradient grows exponentially on such a loop (at tune's
     start, with the near-sign law of the global stage) and is uphill under the sign law, while
     short windows give finite gradients that lower the plain loss; in the ideal loop with a
-    smooth law the whole horizon's is finite and tunes best (docs/tuning.md)."""
+    smooth law the whole horizon's is finite and tunes best (docs/configuration.md, the [tune] table)."""
     window_s = cfg.tune.gradient_window
     sensors, period = cfg.sensors, cfg.controller.sample_period
     rough = period > cfg.sim.dt and (any(n > 0 for n in sensors.encoder_counts) or sensors.derivatives == "difference")

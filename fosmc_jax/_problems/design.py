@@ -28,11 +28,11 @@ def cycloid(trajectory: Mapping[str, Any], dtype) -> Cycloid:
 
 #: The arm's design model samples its rows at this many instants evenly over [0,
 #: trajectory.duration] (the reference's motion; X_d rests at its end afterwards) x this many
-#: payloads evenly over arm.payload_range: the 81 x 11 grid fosmc bounds sampled the arm on before.
+#: payloads evenly over arm.payload_range.
 ARM_MODEL_TIMES, ARM_MODEL_PAYLOADS = 81, 11
 #: At most this many corners of [arm.uncertainty]'s ranges enter the arm's box: all 2^m corners of
 #: m varying entries up to 2^6, else a fixed draw of this many (each costs one evaluation of the
-#: 81 x 11 grid, 35-70 ms on 2 cores under load).
+#: ARM_MODEL_TIMES x ARM_MODEL_PAYLOADS grid).
 ARM_MODEL_CORNERS = 64
 
 
