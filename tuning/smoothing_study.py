@@ -63,6 +63,8 @@ within one run only.
     .venv/bin/python tuning/smoothing_study.py                 # the study (about 40 min on 2 shared cores)
     .venv/bin/python tuning/smoothing_study.py --quick         # a smoke run to /tmp
     .venv/bin/python tuning/smoothing_study.py --report-only   # the Markdown again from the JSON
+    .venv/bin/python tuning/smoothing_study.py --configs realistic_arm,realistic_arm_exact_rates --horizon 4 \
+        --out tuning/results/smoothing_study_4s     # the digital loops on their own 4 s horizon
 
 Writes tuning/results/smoothing_study.json and .md. Progress lines go to stderr.
 """
@@ -615,14 +617,15 @@ def report(data: dict) -> str:
         comp = ", ".join(f"{k} {v:.0f}" for k, v in c["compile_s"].items() if not k.startswith("forward"))
         A(f"| {n} | {c['loop']} | {c['train_dt']:g} x {c['train_steps']} | {c['q']:.2g} | {c['lr']:g} | "
           f"{c['global_s']:.1f}, {c['full_global_s']:.1f} | {c['points']['p0']['reference']['loss']:+.3f} / "
-          f"{c['points']['start']['reference']['loss']:+.3f} / {c['points']['full start']['reference']['loss']:+.3f} | "
+          f"{c['points']['start']['reference']['loss']:+.3f} / "
+          f"{c['points'].get('full start', c['points']['start'])['reference']['loss']:+.3f} | "
           f"{comp} |\n")  # fmt: skip
     where = {
         "start": "tune's start (global stage on the study's horizon)",
         "p0": "p0 (the config's parameters)",
         "full start": "the full-horizon start (global stage on the config's own horizon, truncation.md's start)",
     }
-    for point in ("start", "p0", "full start"):
+    for point in [p for p in ("start", "p0", "full start") if all(p in c["points"] for c in data["loops"].values())]:
         A(f"\n## a. cos(estimator, smoothed FD reference) at {where[point]}\n\n"
           "Mean over the repeats [min, max] (deterministic estimators: one value). Reference noise: ||se|| / ||g_ref||, "
           "and the cosine a noise-free estimator would reach against the noisy reference (ceiling). plain FD: "
@@ -741,12 +744,17 @@ def main() -> int:
     ap.add_argument("--skip-check", action="store_true", help="leave out part d")
     ap.add_argument("--quick", action="store_true", help="a smoke run to " + str(QUICK_OUT))
     ap.add_argument("--out", help=f"output stem (default {OUT.relative_to(ROOT)})")
-    ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
+    ap.add_argument("--findings", help="with --report-only: store this Markdown file's text as the JSON's findings")
     args = ap.parse_args()
     stem = pathlib.Path(args.out) if args.out else (QUICK_OUT if args.quick else OUT)
     json_path, md_path = stem.with_suffix(".json"), stem.with_suffix(".md")
     if args.report_only:
-        write_text(md_path, report(json.loads(json_path.read_text())))
+        data = json.loads(json_path.read_text())
+        if args.findings:
+            data["findings"] = pathlib.Path(args.findings).read_text().strip()
+            write_text(json_path, json.dumps(data, indent=1))
+        write_text(md_path, report(data))
         log(f"wrote {md_path}")
         return 0
     if args.quick:
@@ -773,12 +781,13 @@ def main() -> int:
         log(f"{name}: building ({LOOPS.get(name, '?')})")
         lp = Loop(name, args.horizon, args.global_candidates, args.sigma, args.batch)
         t_global = lp.start()
-        t_full = lp.full_start()
+        full = args.horizon < lp.full_cfg["sim"]["t_final"]  # else the full-horizon start is tune's start
+        t_full = lp.full_start() if full else 0.0
         res = {"loop": LOOPS.get(name, "?"), "train_dt": float(lp.train.dt), "train_steps": int(lp.train.options["n_steps"]),
                "q": lp.q, "lr": lp.lr, "global_s": t_global, "full_global_s": t_full, "u": {k: v.tolist() for k, v in lp.u.items()},
                "points": {}}  # fmt: skip
         log(f"{name}: global stage {t_global:.1f} s; load {load()}")
-        for point in ("start", "p0", "full start"):
+        for point in ("start", "p0", "full start") if full else ("start", "p0"):
             res["points"][point] = informativeness(lp, point, args)
         res["compile_s"] = dict(lp.compile_s)
         data["loops"][name] = res
