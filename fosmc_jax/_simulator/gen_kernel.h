@@ -38,7 +38,17 @@ typedef fosmc::Simd<T>::V V;
 typedef decltype(V{} < V{}) M;
 constexpr int W = fosmc::Simd<T>::W;
 
-#define LIB(f) [](T a) { return std::f(a); }
+// A library function lane by lane; the type names the function, so that Lib can run the vector
+// form where vecmath.h has one (tanh: the Coulomb friction, in every step of the arm)
+constexpr bool Named(const char* a, const char* b) { return *a == *b && (*a == 0 || Named(a + 1, b + 1)); }
+#define LIB(f)                                                 \
+  [] {                                                         \
+    struct F {                                                 \
+      static constexpr bool Tanh() { return Named(#f, "tanh"); } \
+      T operator()(T a) const { return std::f(a); }            \
+    };                                                         \
+    return F{};                                                \
+  }()
 #define LIB2(f) [](T a, T b) { return std::f(a, b); }
 
 inline V Bc(T x) { return V{} + x; }
@@ -54,8 +64,12 @@ inline M IsFinite(V x) {
   return d == d;
 }
 inline void SinCos(V x, V* s, V* c) { fosmc::SinCos<T>(x, s, c); }
+// const: a call the compiler does not inline is still shared between the places that ask for
+// the same tanh (an observation and a derivative of the same stage)
+__attribute__((const)) inline V VecTanh(V x) { return fosmc::Tanh<T>(x); }
 template <typename F>
 inline V Lib(V x, F f) {
+  if constexpr (F::Tanh()) return VecTanh(x);
   V r;
   for (int l = 0; l < W; l++) r[l] = f(x[l]);
   return r;

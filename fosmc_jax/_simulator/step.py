@@ -206,7 +206,9 @@ def closed_loop_step(plant, ctrl, reference, dt: Array, integrator: str, diverge
 
         def f(t, y):
             ps, cs = y
-            return derivative_at(plant, ps, U, t), ctrl.derivative(cs, observe_at(plant, ps, t), reference(t), t)
+            X = observe_at(plant, ps, t)
+            dps = derivative_observed_at(plant, ps, X, U, t) if reuse else derivative_at(plant, ps, U, t)
+            return dps, ctrl.derivative(cs, X, reference(t), t)
 
         k1 = None if X is None else (first, ctrl.derivative(ctrl_state, X, reference(t), t))
         return stepper(f, t, (plant_state, ctrl_state), dt, k1)
