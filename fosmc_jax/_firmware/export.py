@@ -287,7 +287,7 @@ class _Generator:
         else:  # the angles read now; the rates are those of the initial state, which the first sample reads
             X = [f"theta[{k // 3}]" if k % 3 == 0 else f"st->x0[{k}]" for k in range(9)]
         r = [f"r->{_ROWS[k // 3]}[{k % 3}]" for k in range(12)]
-        t = f"(({self.work})st->j * {self.lit(self.T).removesuffix('f')})"
+        t = f"(({self.work})st->j * {self.step.literal(self.T)})"
         law = type(loop.law).__name__
         bodies = {}
         try:
@@ -338,7 +338,9 @@ class _Generator:
                  else f"voltages clipped to +-[{', '.join(f'{u:g}' for u in self.u_max)}] V")  # fmt: skip
         statics = [f"{f.name} '{getattr(law, f.name)}'" for f in dataclasses.fields(law)
                    if isinstance(getattr(law, f.name), str)] if dataclasses.is_dataclass(law) else []  # fmt: skip
-        kind = f"fosmc_jax.{type(law).__name__}" + (f" ({', '.join(statics)})" if statics else "")
+        cls = type(law)
+        where = "fosmc_jax" if cls.__module__.startswith("fosmc_jax.") else cls.__module__  # the public name
+        kind = f"{where}.{cls.__qualname__}" + (f" ({', '.join(statics)})" if statics else "")
         design = f"  designed on {self.model} (A_r, B_bar: its rows 3, 6, 9 of A, B),"
         lines = [
             *textwrap.wrap(f"The sampled law {kind} in the digital loop of fosmc_jax (fosmc_jax.DigitalLoop), printed "
@@ -391,7 +393,8 @@ class _Generator:
             f"}} {P}_reference;",
             "",
             f"/* The controller's state: what {P}_update remembers from one sample to the next, the loop's",
-            " * state of fosmc_jax (fosmc_jax._loop.digital.LoopState) flattened, each member named by its path. */",
+            " * state of fosmc_jax (fosmc_jax._loop.digital.LoopState) flattened, each member named by its path"
+            + (" (double in float32 too: the estimator differences its angles). */" if self.f32 else "). */"),
             "typedef struct {",
         ]
         counter = [f for f in self.fields if f.dotted == "j"]
