@@ -297,3 +297,40 @@ def test_non_numbers_inside_arrays_are_rejected(cfg):
 def test_step_count_is_bounded():
     with pytest.raises(_config.ConfigError):
         _config.n_steps(_config.resolve({"sim": {"t_final": 1e300, "dt": 1e-300}}))
+
+
+# ---------------------------------------------------------------------------- the typed config
+
+
+@pytest.mark.parametrize("user", [{}, {"plant": {"kind": "arm", "payloads": [0.0, 5.0]}, "actuator": {},
+                                      "controller": {"kind": "smc", "sample_period": 1e-3},
+                                      "sensors": {"encoder_counts": 4096}}])  # fmt: skip
+def test_a_resolved_config_is_typed_frozen_and_its_mapping_is_the_toml_layout(user):
+    cfg = _config.resolve(user)
+    layout = cfg.as_dict()
+    assert set(layout) == set(_config.SCHEMA) and _config.resolve(layout) == cfg  # resolving it again: the same
+    assert cfg.sim.dt == cfg["sim"]["dt"] == layout["sim"]["dt"]
+    assert cfg.controller.delta == tuple(layout["controller"]["delta"])  # vectors: tuples typed, lists in the layout
+    assert cfg["controller"]["delta"] == layout["controller"]["delta"] and cfg.model.source == layout["model"]["from"]
+    assert cfg.controller.gains["smc_k"] == tuple(layout["controller"]["smc_k"]) == tuple(cfg["controller"]["smc_k"])
+    assert (
+        cfg.arm.params.F == tuple(layout["arm"]["F"])
+        and cfg.arm.uncertainty.widths.F == layout["arm"]["uncertainty"]["F"]
+    )
+    assert ("u_max" in cfg["actuator"]) == (cfg.actuator.u_max is not None) == ("u_max" in layout["actuator"])
+    hash(cfg)
+    with pytest.raises(TypeError):
+        cfg["sim"]["dt"] = 1.0
+    with pytest.raises(AttributeError):
+        cfg.sim.dt = 1.0
+
+
+def test_replace_makes_a_variant_checked_again():
+    cfg = _config.resolve({})
+    short = _config.replace(cfg, sim={"t_final": 0.5}, controller={"delta": [1.0, 2.0, 3.0]})
+    assert short.sim.t_final == 0.5 and short.controller.delta == (1.0, 2.0, 3.0) and cfg.sim.t_final != 0.5
+    assert short.sim.dt == cfg.sim.dt and short.plant == cfg.plant
+    with pytest.raises(_config.ConfigError, match=r"^sim\.dt: expected at most sim\.t_final"):
+        _config.replace(cfg, sim={"t_final": 1e-5})
+    with pytest.raises(_config.ConfigError, match=r"^simm: unknown table"):
+        _config.replace(cfg, simm={"dt": 1e-3})
