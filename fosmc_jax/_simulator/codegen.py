@@ -16,6 +16,10 @@ caller runs the ``vmap`` path instead.
 
 The printed code follows the jaxpr's operations in order (no FMA: ``-ffp-contract=off``), so a
 rollout's numbers are XLA's to the last bits of its transcendental functions.
+
+The syntax is a :class:`Target`'s: the default writes the kernels' C++; the firmware's scalar
+C99 (:mod:`fosmc_jax._firmware.c99`, ``fosmc export``) rewrites the same formats for one value at
+a time, so the kernels and the firmware are printed from the same jaxprs by the same printer.
 """
 
 from __future__ import annotations
