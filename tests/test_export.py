@@ -53,6 +53,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
+from fosmc_jax import search
 from fosmc_jax._app import commands
 from fosmc_jax._app.cli import main
 from fosmc_jax._firmware import export as E
@@ -362,6 +363,10 @@ def test_the_c_controller_drives_the_arm_as_the_package_loop_does(tmp_path):
         assert np.abs(U - want).max() <= (tol or F32_TOL["fosmc"] * np.abs(want).max()), np.abs(U - want).max()
 
 
+#: The user's law's gains on each joint's error, rate error and acceleration error.
+USER_K = [[400.0, 60.0, 1.0], [600.0, 80.0, 1.0], [300.0, 40.0, 0.5]]
+
+
 class IntegralState(typing.NamedTuple):
     e: jax.Array  # (3,) the integral of the angle errors
 
@@ -395,8 +400,7 @@ class WithAWhileLoop(TanhPlusIntegral):
 def _user_loop(law_class=TanhPlusIntegral):
     problem = fj.build(config())
     template = problem.controller()
-    law = law_class(jnp.array([[400.0, 60.0, 1.0], [600.0, 80.0, 1.0], [300.0, 40.0, 0.5]]),
-                    jnp.array([50.0, 80.0, 20.0]), jnp.asarray(20.0), template.period)  # fmt: skip
+    law = law_class(jnp.array(USER_K), jnp.array([50.0, 80.0, 20.0]), jnp.asarray(20.0), template.period)
     return problem, dataclasses.replace(template, law=law)
 
 
@@ -415,6 +419,41 @@ def test_a_users_sampled_law_exports_and_replays_as_the_package_runs_it(tmp_path
         E.check_compiles(tmp_path / precision / "fosmc.c", CC, (*E.STRICT_FLAGS, "-O2"))
         tol = U_TOL["fosmc"] if precision == "float64" else F32_TOL["fosmc"] * np.abs(want).max()
         assert np.abs(c.run(Xs[0], Xs) - want).max() <= tol, (precision, np.abs(c.run(Xs[0], Xs) - want).max())
+
+
+class IntegralGains(typing.NamedTuple):
+    ki: jax.Array
+
+
+#: TanhPlusIntegral as a controller kind of its own, registered as a user registers one.
+TANH_INTEGRAL = search.Kind(
+    search.Space("tanh_integral", IntegralGains, (search.Param("ki", "ti_ki", 1, (-2.0, 2.0)),)),
+    {"ti_ki": (50.0, 80.0, 20.0)},
+    lambda params, controller, T: TanhPlusIntegral(
+        jnp.asarray(USER_K, T.dtype), controller["ti_ki"], jnp.asarray(20.0, T.dtype), T
+    ),
+)
+
+
+@needs_cc
+def test_a_registered_kind_exports_from_its_config(tmp_path):
+    """The kinds that export are those whose law prints: a kind registered through
+    fosmc_jax.search.register, built from its config as the package builds its own."""
+    search.register(TANH_INTEGRAL)
+    try:
+        problem = fj.build(config("tanh_integral", controller={"ti_ki": [40.0, 60.0, 10.0]}))
+    finally:
+        from fosmc_jax._controllers import KINDS
+
+        KINDS.pop("tanh_integral")
+    loop = problem.controller()
+    assert type(loop.law) is TanhPlusIntegral and np.allclose(loop.law.ki, [40.0, 60.0, 10.0])
+    c = Compiled(loop, problem.reference, "float64", tmp_path)
+    Xs = recorded(problem, 300)
+    want = np.asarray(replay(loop, jnp.asarray(Xs[0]), jnp.asarray(Xs), jax.vmap(problem.reference)(
+        jnp.arange(300) * loop.period)))  # fmt: skip
+    assert np.abs(want).max() > 1.0
+    assert np.abs(c.run(Xs[0], Xs) - want).max() <= U_TOL["fosmc"]
 
 
 def test_a_law_that_does_not_print_is_refused_in_one_line_naming_the_primitive():
