@@ -679,10 +679,12 @@ def report(data: dict) -> str:
             methods = list(races[0]["methods"])
             ends = {m: np.mean([r["methods"][m]["plain"][-1] for r in races]) for m in methods}
             best = min(ends, key=ends.get)
-            A(f"**{n}** ({c['loop']}), start plain loss {races[0]['start']['plain']:+.3f}; load during the races "
+            A(f"**{n}** ({c['loop']}), start plain loss {races[0]['start']['plain']:+.3f} (training "
+              f"{races[0]['start']['train']:+.3f}); load during the races "
               f"{min(min(r['loads']) for r in races):.1f}-{max(max(r['loads']) for r in races):.1f}\n\n"
               "| method | " + " | ".join(f"{t:.0f} s" for t in races[0]["methods"][methods[0]]["times"])
-              + " | plain-loss fall per s | units (s per unit) |\n|---|---|---|---|---|---|\n")  # fmt: skip
+              + " | plain-loss fall per s | training loss at the end | units (s per unit) |\n"
+              "|---|---|---|---|---|---|---|\n")  # fmt: skip
             for m in methods:
                 pl = np.mean([r["methods"][m]["plain"] for r in races], axis=0)
                 rate = (races[0]["start"]["plain"] - pl[-1]) / s["budget"]
@@ -691,7 +693,8 @@ def report(data: dict) -> str:
                 cells = [f"{x:+.3f}" for x in pl]
                 if m == best:
                     cells[-1] = f"**{cells[-1]}**"
-                A(f"| {m} | " + " | ".join(cells) + f" | {rate:+.3f} | {units:.0f} ({per:.3f}) |\n")
+                train = np.mean([r["methods"][m]["train"][-1] for r in races])
+                A(f"| {m} | " + " | ".join(cells) + f" | {rate:+.3f} | {train:+.3f} | {units:.0f} ({per:.3f}) |\n")
             A("\n")
     if data.get("check"):
         A("\n## d. The slow tier's check (tests/test_tuning.py setup: 1 s horizon, 16 global candidates, five Adam "
