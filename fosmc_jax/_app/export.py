@@ -90,9 +90,6 @@ def run_export(
                 raise ConfigError(f"--point: {params} is a front of {len(data['points'])} points: name the one to "
                                   "export with --point I (e.g. the one `fosmc select` names)")  # fmt: skip
         cfg = problems.with_params(cfg, params, point)
-    if cfg.controller.kind not in _export.EXPORTED_KINDS:
-        raise ConfigError(f"controller.kind: fosmc export writes {', '.join(_export.EXPORTED_KINDS)}, got "
-                          f"{cfg.controller.kind!r}")  # fmt: skip
     if not cfg.controller.sample_period:
         raise ConfigError("controller.sample_period: fosmc export needs a digital loop (sample_period > 0, the "
                           "drive's period, e.g. 1e-3): the ideal loop reads the exact state at every step and "

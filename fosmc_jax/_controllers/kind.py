@@ -54,15 +54,15 @@ class Kind(NamedTuple):
     ``space``: its tunable parameters (names, config keys, signs, the front's box); its name
     is ``space.kind``. ``gains``: its own ``[controller]`` keys, each three positive numbers
     (one per joint), with their defaults. ``law(params, controller, T)``: the law, from the
-    FOSMC parameters (C and the nominal rows; the FOSMC's own gains), the resolved
-    ``[controller]`` table (the kind's gains as arrays of the run's dtype) and the sample
-    period T (an array; ``controller["sample_period"]`` = 0: the ideal loop). ``ideal``: the
+    FOSMC parameters (C and the nominal rows; the FOSMC's own gains), the resolved, typed
+    ``[controller]`` table (``controller.gains``: the kind's gains as arrays of the run's dtype)
+    and the sample period T (an array; ``controller.sample_period`` = 0: the ideal loop). ``ideal``: the
     ideal loop's controller around the law (None: the law itself).
     """
 
     space: Space
     gains: dict[str, tuple[float, float, float]]
-    law: Callable[[Any, dict, Any], Any]
+    law: Callable[[Any, Any, Any], Any]
     ideal: Callable[[Any], Any] | None = None
 
     @property

@@ -93,6 +93,6 @@ class STGains(NamedTuple):
 KIND = Kind(
     Space("super_twisting", STGains, (Param("k1", "st_k1", 1, (-2.0, 2.0)), Param("k2", "st_k2", 1, (-2.0, 3.0)))),
     {"st_k1": (50.0, 50.0, 50.0), "st_k2": (1000.0, 1000.0, 1000.0)},
-    lambda params, controller, T: SuperTwisting(surface_of(params), controller["st_k1"], controller["st_k2"], T),
+    lambda params, ctrl, T: SuperTwisting(surface_of(params), ctrl.gains["st_k1"], ctrl.gains["st_k2"], T),
     ideal=ContinuousSuperTwisting,
 )

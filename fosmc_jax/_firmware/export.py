@@ -49,9 +49,6 @@ from . import c99
 PRECISIONS = ("float32", "float64")
 #: The flags the generated code is written for (and checked with, where a compiler is found).
 STRICT_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic")
-#: The package's controller kinds with a sampled law (all of them print). :func:`export_c` itself
-#: takes any loop whose sample step prints; this names the kinds for a command's first check.
-EXPORTED_KINDS = ("fosmc", "smc", "super_twisting")
 #: The phrase for the paper's design model, (29): ``export_c``'s ``model`` for its rows.
 PAPER_MODEL = "the paper's nominal model (29)"
 #: What each part of the loop's state (fosmc_jax._loop.digital.LoopState) is, for the struct's comments.

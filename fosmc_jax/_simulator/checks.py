@@ -85,7 +85,7 @@ _MASS = Field((), _non_negative, "a non-negative mass (kg)")
 _INERTIAS = Field((3,), _non_negative, "3 non-negative inertias (kg m^2)")
 
 #: The package's types, field by field (from their docstrings and the config's validators,
-#: ``fosmc_jax._app.config.SCHEMA``). In a batch of plants every array has a leading axis P too.
+#: ``fosmc_jax._problems.schema.SCHEMA``). In a batch of plants every array has a leading axis P too.
 RULES: dict[type, dict[str, Field]] = {
     FOSMCParams: {
         "C": _MATRIX_3x9,
