@@ -16,8 +16,8 @@ sigma eps, eps ~ N(0, I) (``--sigma``, 0.05 in u: about 5% in each parameter), a
 phase: the initial angles offset by U(-q/2, q/2), q = 2 pi / encoder counts (the same 2.4e-6 rad on
 the ideal loops), drawn per sample as the problem's initial state (``Problem.X0s``): what a user can
 do without a package change (the quantizer has no dither input; ``[sensors] noise_std`` on the
-angles with several noise keys is a dither, but a noisy loop leaves the generated kernels for the
-vmap path, see ``--dither``). L_D(u) = E_D L.
+angles with several noise keys is a dither too, but in a trial outside this study the gradient of
+such a noisy loop did not run the generated adjoint kernel). L_D(u) = E_D L.
 
 Estimators of grad L_D (B = ``--batch``):
 - ``fo W``: tune's own gradient (reverse mode, ``fs.make_loss`` split over the devices) of the
@@ -60,11 +60,13 @@ d. the slow-tier check of tests/test_tuning.py (start = best of 16 global candid
 Float64; timings are wall times on a shared 2-core machine, each with ``os.getloadavg()``; compare
 within one run only.
 
-    .venv/bin/python tuning/smoothing_study.py                 # the study (about 40 min on 2 shared cores)
+    .venv/bin/python tuning/smoothing_study.py                 # the study (34 min on 2 cores at load 8-10)
     .venv/bin/python tuning/smoothing_study.py --quick         # a smoke run to /tmp
     .venv/bin/python tuning/smoothing_study.py --report-only   # the Markdown again from the JSON
     .venv/bin/python tuning/smoothing_study.py --configs realistic_arm,realistic_arm_exact_rates --horizon 4 \
-        --out tuning/results/smoothing_study_4s     # the digital loops on their own 4 s horizon
+        --ref-samples 128 --repeats 3 --seeds 1 --skip-check --out tuning/results/smoothing_study_4s
+        # the digital loops on their own 4 s horizon (8 min); with --configs realistic_arm
+        # --global-candidates 64 --out tuning/results/smoothing_study_4s_64: the exploding start (4 min)
 
 Writes tuning/results/smoothing_study.json and .md. Progress lines go to stderr.
 """
