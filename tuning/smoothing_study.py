@@ -628,91 +628,94 @@ def report(data: dict) -> str:
       f"{s['batch']} draws (zo: {2 * s['batch']} antithetic pairs, {4 * s['batch']} forward runs). Reference: central "
       f"differences of L_D at h = {s['fd_step']:g} over {s['ref_samples']} common draws. Races: {s['budget']:g} s per "
       f"method, seeds {s['seeds']}. The module docstring defines every estimator.\n")  # fmt: skip
-    A("\n## Loops\n\n| config | loop | train dt (s) x steps | encoder step q (rad) | Adam lr | global stage (s): study's, full horizon | "
-      "loss p0 / start / full start | compile (s) |\n|---|---|---|---|---|---|---|---|\n")  # fmt: skip
-    for n, c in data["loops"].items():
-        comp = ", ".join(f"{k} {v:.0f}" for k, v in c["compile_s"].items() if not k.startswith("forward"))
-        A(f"| {n} | {c['loop']} | {c['train_dt']:g} x {c['train_steps']} | {c['q']:.2g} | {c['lr']:g} | "
-          f"{c['global_s']:.1f}, {c['full_global_s']:.1f} | {c['points']['p0']['reference']['loss']:+.3f} / "
-          f"{c['points']['start']['reference']['loss']:+.3f} / "
-          f"{c['points'].get('full start', c['points']['start'])['reference']['loss']:+.3f} | "
-          f"{comp} |\n")  # fmt: skip
-    where = {
-        "start": "tune's start (global stage on the study's horizon)",
-        "p0": "p0 (the config's parameters)",
-        "full start": "the full-horizon start (global stage on the config's own horizon, truncation.md's start)",
-    }
-    for point in [p for p in ("start", "p0", "full start") if all(p in c["points"] for c in data["loops"].values())]:
-        A(f"\n## a. cos(estimator, smoothed FD reference) at {where[point]}\n\n"
-          "Mean over the repeats [min, max] (deterministic estimators: one value). Reference noise: ||se|| / ||g_ref||, "
-          "and the cosine a noise-free estimator would reach against the noisy reference (ceiling). plain FD: "
-          "central differences of the unsmoothed loss at the same h.\n\n")  # fmt: skip
-        A("| estimator | " + " | ".join(data["loops"]) + " |\n" + "|---" * (len(data["loops"]) + 1) + "|\n")
-        row = lambda name, f: A(
-            f"| {name} | " + " | ".join(f(c["points"][point]) for c in data["loops"].values()) + " |\n"
-        )  # noqa: E731
-        row(
-            "reference noise (ceiling)",
-            lambda p: f"{p['reference']['rel_noise']:.2f} ({p['reference']['cos_ceiling']:.2f})",
-        )
-        row("reference |g|", lambda p: f"{norm(p['reference']['grad']):.2g}")
-        row("plain FD", lambda p: _f(p["reference"]["cos_plain_fd"], "+.2f"))
-        for kind in ESTIMATORS:
-
-            def cell(p, kind=kind):
-                e = p["estimators"][kind]
-                if e["cos_mean"] is None:
-                    return f"not finite (|g| {e['norm_median']:.2g})"
-                spread = "" if len(e["cos"]) == 1 else f" [{e['cos_min']:+.2f}, {e['cos_max']:+.2f}]"
-                bad = "" if e["finite"] == len(e["cos"]) else f" ({len(e['cos']) - e['finite']} not finite)"
-                return f"{e['cos_mean']:+.2f}{spread}{bad}"
-
-            row(label(kind), cell)
-        A("\n|g| (median) of each estimator:\n\n| estimator | " + " | ".join(data["loops"]) + " |\n"
-          + "|---" * (len(data["loops"]) + 1) + "|\n")  # fmt: skip
-        for kind in ESTIMATORS:
-            row(label(kind), lambda p, kind=kind: f"{p['estimators'][kind]['norm_median']:.2g}")
-        alphas = {n: c["points"][point]["estimators"][k]["alpha"] for n, c in data["loops"].items()
-                  for k in ESTIMATORS if k.startswith("mixed") and k == "mixed 0"}  # fmt: skip
-        A("\nmixed (whole)'s alpha (the first-order share) per repeat: " + "; ".join(
-            f"{n} {np.round(a, 2).tolist()}" for n, a in alphas.items()) + "\n")  # fmt: skip
-    A("\n## b. Wall time per estimate (ms; median of the repeats at tune's start, compilation excluded; 1-min load)\n\n"
-      "| estimator | " + " | ".join(data["loops"]) + " |\n" + "|---" * (len(data["loops"]) + 1) + "|\n")  # fmt: skip
-    for kind in ESTIMATORS:
-        A(f"| {label(kind)} | " + " | ".join(
-            f"{c['points']['start']['estimators'][kind]['time_s'] * 1e3:.1f} ({c['points']['start']['estimators'][kind]['load']:.1f})"
-            for c in data["loops"].values()) + " |\n")  # fmt: skip
-    A("| reference (s) | " + " | ".join(f"{c['points']['start']['reference']['time_s']:.1f}" for c in data["loops"].values())
-      + " |\n")  # fmt: skip
-    if any("races" in c for c in data["loops"].values()):
-        A(f"\n## c. Races from tune's start ({s['budget']:g} s of own time per method, interleaved)\n\n"
-          "Plain loss of the best point so far (by nominal training loss) at 1/3, 2/3 and all of the budget, mean over "
-          "the seeds (each seed's value in the JSON); per unit: s per Adam step (one estimate) or per CMA-ES "
-          "generation (16 forward runs). The best method at the end in bold.\n\n")  # fmt: skip
+    if data["loops"]:  # part d alone has no loops
+        A("\n## Loops\n\n| config | loop | train dt (s) x steps | encoder step q (rad) | Adam lr | global stage (s): study's, full horizon | "
+          "loss p0 / start / full start | compile (s) |\n|---|---|---|---|---|---|---|---|\n")  # fmt: skip
         for n, c in data["loops"].items():
-            if "races" not in c:
-                continue
-            races = c["races"]
-            methods = list(races[0]["methods"])
-            ends = {m: np.mean([r["methods"][m]["plain"][-1] for r in races]) for m in methods}
-            best = min(ends, key=ends.get)
-            A(f"**{n}** ({c['loop']}), start plain loss {races[0]['start']['plain']:+.3f} (training "
-              f"{races[0]['start']['train']:+.3f}); load during the races "
-              f"{min(min(r['loads']) for r in races):.1f}-{max(max(r['loads']) for r in races):.1f}\n\n"
-              "| method | " + " | ".join(f"{t:.0f} s" for t in races[0]["methods"][methods[0]]["times"])
-              + " | plain-loss fall per s | training loss at the end | units (s per unit) |\n"
-              "|---|---|---|---|---|---|---|\n")  # fmt: skip
-            for m in methods:
-                pl = np.mean([r["methods"][m]["plain"] for r in races], axis=0)
-                rate = (races[0]["start"]["plain"] - pl[-1]) / s["budget"]
-                units = np.mean([r["methods"][m]["units"] for r in races])
-                per = np.median([r["methods"][m]["per_unit_s"] or np.nan for r in races])
-                cells = [f"{x:+.3f}" for x in pl]
-                if m == best:
-                    cells[-1] = f"**{cells[-1]}**"
-                train = np.mean([r["methods"][m]["train"][-1] for r in races])
-                A(f"| {m} | " + " | ".join(cells) + f" | {rate:+.3f} | {train:+.3f} | {units:.0f} ({per:.3f}) |\n")
-            A("\n")
+            comp = ", ".join(f"{k} {v:.0f}" for k, v in c["compile_s"].items() if not k.startswith("forward"))
+            A(f"| {n} | {c['loop']} | {c['train_dt']:g} x {c['train_steps']} | {c['q']:.2g} | {c['lr']:g} | "
+              f"{c['global_s']:.1f}, {c['full_global_s']:.1f} | {c['points']['p0']['reference']['loss']:+.3f} / "
+              f"{c['points']['start']['reference']['loss']:+.3f} / "
+              f"{c['points'].get('full start', c['points']['start'])['reference']['loss']:+.3f} | "
+              f"{comp} |\n")  # fmt: skip
+        where = {
+            "start": "tune's start (global stage on the study's horizon)",
+            "p0": "p0 (the config's parameters)",
+            "full start": "the full-horizon start (global stage on the config's own horizon, truncation.md's start)",
+        }
+        for point in [
+            p for p in ("start", "p0", "full start") if all(p in c["points"] for c in data["loops"].values())
+        ]:
+            A(f"\n## a. cos(estimator, smoothed FD reference) at {where[point]}\n\n"
+              "Mean over the repeats [min, max] (deterministic estimators: one value). Reference noise: ||se|| / ||g_ref||, "
+              "and the cosine a noise-free estimator would reach against the noisy reference (ceiling). plain FD: "
+              "central differences of the unsmoothed loss at the same h.\n\n")  # fmt: skip
+            A("| estimator | " + " | ".join(data["loops"]) + " |\n" + "|---" * (len(data["loops"]) + 1) + "|\n")
+            row = lambda name, f: A(
+                f"| {name} | " + " | ".join(f(c["points"][point]) for c in data["loops"].values()) + " |\n"
+            )  # noqa: E731
+            row(
+                "reference noise (ceiling)",
+                lambda p: f"{p['reference']['rel_noise']:.2f} ({p['reference']['cos_ceiling']:.2f})",
+            )
+            row("reference |g|", lambda p: f"{norm(p['reference']['grad']):.2g}")
+            row("plain FD", lambda p: _f(p["reference"]["cos_plain_fd"], "+.2f"))
+            for kind in ESTIMATORS:
+
+                def cell(p, kind=kind):
+                    e = p["estimators"][kind]
+                    if e["cos_mean"] is None:
+                        return f"not finite (|g| {e['norm_median']:.2g})"
+                    spread = "" if len(e["cos"]) == 1 else f" [{e['cos_min']:+.2f}, {e['cos_max']:+.2f}]"
+                    bad = "" if e["finite"] == len(e["cos"]) else f" ({len(e['cos']) - e['finite']} not finite)"
+                    return f"{e['cos_mean']:+.2f}{spread}{bad}"
+
+                row(label(kind), cell)
+            A("\n|g| (median) of each estimator:\n\n| estimator | " + " | ".join(data["loops"]) + " |\n"
+              + "|---" * (len(data["loops"]) + 1) + "|\n")  # fmt: skip
+            for kind in ESTIMATORS:
+                row(label(kind), lambda p, kind=kind: f"{p['estimators'][kind]['norm_median']:.2g}")
+            alphas = {n: c["points"][point]["estimators"][k]["alpha"] for n, c in data["loops"].items()
+                      for k in ESTIMATORS if k.startswith("mixed") and k == "mixed 0"}  # fmt: skip
+            A("\nmixed (whole)'s alpha (the first-order share) per repeat: " + "; ".join(
+                f"{n} {np.round(a, 2).tolist()}" for n, a in alphas.items()) + "\n")  # fmt: skip
+        A("\n## b. Wall time per estimate (ms; median of the repeats at tune's start, compilation excluded; 1-min load)\n\n"
+          "| estimator | " + " | ".join(data["loops"]) + " |\n" + "|---" * (len(data["loops"]) + 1) + "|\n")  # fmt: skip
+        for kind in ESTIMATORS:
+            A(f"| {label(kind)} | " + " | ".join(
+                f"{c['points']['start']['estimators'][kind]['time_s'] * 1e3:.1f} ({c['points']['start']['estimators'][kind]['load']:.1f})"
+                for c in data["loops"].values()) + " |\n")  # fmt: skip
+        A("| reference (s) | " + " | ".join(f"{c['points']['start']['reference']['time_s']:.1f}" for c in data["loops"].values())
+          + " |\n")  # fmt: skip
+        if any("races" in c for c in data["loops"].values()):
+            A(f"\n## c. Races from tune's start ({s['budget']:g} s of own time per method, interleaved)\n\n"
+              "Plain loss of the best point so far (by nominal training loss) at 1/3, 2/3 and all of the budget, mean over "
+              "the seeds (each seed's value in the JSON); per unit: s per Adam step (one estimate) or per CMA-ES "
+              "generation (16 forward runs). The best method at the end in bold.\n\n")  # fmt: skip
+            for n, c in data["loops"].items():
+                if "races" not in c:
+                    continue
+                races = c["races"]
+                methods = list(races[0]["methods"])
+                ends = {m: np.mean([r["methods"][m]["plain"][-1] for r in races]) for m in methods}
+                best = min(ends, key=ends.get)
+                A(f"**{n}** ({c['loop']}), start plain loss {races[0]['start']['plain']:+.3f} (training "
+                  f"{races[0]['start']['train']:+.3f}); load during the races "
+                  f"{min(min(r['loads']) for r in races):.1f}-{max(max(r['loads']) for r in races):.1f}\n\n"
+                  "| method | " + " | ".join(f"{t:.0f} s" for t in races[0]["methods"][methods[0]]["times"])
+                  + " | plain-loss fall per s | training loss at the end | units (s per unit) |\n"
+                  "|---|---|---|---|---|---|---|\n")  # fmt: skip
+                for m in methods:
+                    pl = np.mean([r["methods"][m]["plain"] for r in races], axis=0)
+                    rate = (races[0]["start"]["plain"] - pl[-1]) / s["budget"]
+                    units = np.mean([r["methods"][m]["units"] for r in races])
+                    per = np.median([r["methods"][m]["per_unit_s"] or np.nan for r in races])
+                    cells = [f"{x:+.3f}" for x in pl]
+                    if m == best:
+                        cells[-1] = f"**{cells[-1]}**"
+                    train = np.mean([r["methods"][m]["train"][-1] for r in races])
+                    A(f"| {m} | " + " | ".join(cells) + f" | {rate:+.3f} | {train:+.3f} | {units:.0f} ({per:.3f}) |\n")
+                A("\n")
     if data.get("check"):
         A("\n## d. The slow tier's check (tests/test_tuning.py setup: 1 s horizon, 16 global candidates, five Adam "
           "steps)\n\nTraining loss at the start, and the lowest after five steps with each estimator (descends: lower "
