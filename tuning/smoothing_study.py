@@ -728,6 +728,55 @@ def report(data: dict) -> str:
     return "".join(L)
 
 
+# ---------------------------------------------------------------------------- figure
+
+
+def figure(paths: list[pathlib.Path], out: pathlib.Path) -> None:
+    """Two panels from the runs' JSONs: each estimator's cosine to the reference at tune's start
+    (mean, min-max bars), and each race method's plain-loss fall from the start at the end of the
+    budget (mean over the seeds), per loop and run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = []
+    for path in paths:
+        d = json.loads(path.read_text())
+        tag = f"{d['settings']['horizon']:g} s" + (
+            f", {d['settings']['global_candidates']} cand." if d["settings"].get("global_candidates") else ""
+        )
+        runs += [(f"{n} ({tag})", c) for n, c in d["loops"].items()]
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(12, 9))
+    width = 0.8 / len(runs)
+    for i, (name, c) in enumerate(runs):
+        est = c["points"]["start"]["estimators"]
+        y = [est[k]["cos_mean"] if est[k]["cos_mean"] is not None else np.nan for k in ESTIMATORS]
+        lo = [y[j] - (est[k]["cos_min"] if est[k]["cos_min"] is not None else np.nan) for j, k in enumerate(ESTIMATORS)]
+        hi = [(est[k]["cos_max"] if est[k]["cos_max"] is not None else np.nan) - y[j] for j, k in enumerate(ESTIMATORS)]
+        ax1.bar(np.arange(len(ESTIMATORS)) + i * width, y, width, yerr=[lo, hi], label=name, capsize=2)
+    ax1.set_xticks(np.arange(len(ESTIMATORS)) + 0.4 - width / 2, [label(k) for k in ESTIMATORS])
+    ax1.set_ylabel("cosine to the smoothed FD reference (1)")
+    ax1.set_title("Informativeness at tune's start")
+    ax1.axhline(0, color="k", lw=0.5)
+    ax1.legend(fontsize=7)
+    methods = list(next(c for _, c in runs if "races" in c)["races"][0]["methods"])
+    for i, (name, c) in enumerate(runs):
+        if "races" not in c:
+            continue
+        start = c["races"][0]["start"]["plain"]
+        fall = [start - np.mean([r["methods"][m]["plain"][-1] for r in c["races"]]) for m in methods]
+        ax2.bar(np.arange(len(methods)) + i * width, fall, width, label=name)
+    budget = json.loads(paths[0].read_text())["settings"]["budget"]
+    ax2.set_xticks(np.arange(len(methods)) + 0.4 - width / 2, methods)
+    ax2.set_ylabel(f"plain-loss fall after {budget:g} s (1, log units)")
+    ax2.set_title("Races from tune's start, equal wall time")
+    ax2.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+
+
 # ---------------------------------------------------------------------------- main
 
 
@@ -769,6 +818,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="a smoke run to " + str(QUICK_OUT))
     ap.add_argument("--out", help=f"output stem (default {OUT.relative_to(ROOT)})")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
+    ap.add_argument("--figure", help="with --report-only: comma-separated run JSONs to plot into STEM.png")
     ap.add_argument("--findings", help="with --report-only: store this Markdown file's text as the JSON's findings")
     args = ap.parse_args()
     stem = pathlib.Path(args.out) if args.out else (QUICK_OUT if args.quick else OUT)
@@ -780,6 +830,9 @@ def main() -> int:
             write_text(json_path, json.dumps(data, indent=1))
         write_text(md_path, report(data))
         log(f"wrote {md_path}")
+        if args.figure:
+            figure([pathlib.Path(p) for p in args.figure.split(",")], md_path.with_suffix(".png"))
+            log(f"wrote {md_path.with_suffix('.png')}")
         return 0
     if args.quick:
         args.configs, args.ref_samples, args.repeats, args.budget, args.seeds = "arm_set2", 32, 2, 3.0, 1
