@@ -267,10 +267,9 @@ def test_params_physically_plausible():
     assert isinstance(P, ArmParams)
 
 
-@pytest.mark.parametrize("integrator", ["euler", "rk4"])
-def test_the_observation_carried_into_the_next_stage_changes_no_value(monkeypatch, integrator):
-    """The simulator reuses each step's observation (its theta'') in the next step's first
-    stage (``Arm.derivative_observed``): the same values as computing it again."""
+def test_the_arms_derivative_from_its_observation_is_its_derivative_and_is_carried():
+    """``Arm.derivative_observed`` (theta'' read from the observation) equals ``derivative``
+    bit for bit, and the simulator's carry holds the observation for it."""
     from fosmc_jax._simulator import step
 
     arm, ctrl, ref, X0 = Arm(P, jnp.asarray(3.0)), _controller(), _reference(), _X0()
@@ -279,6 +278,18 @@ def test_the_observation_carried_into_the_next_stage_changes_no_value(monkeypatc
     for a, b in zip(jax.tree.leaves(arm.derivative_observed(state, arm.observe(state, t), U, t)),
                     jax.tree.leaves(arm.derivative(state, U, t))):  # fmt: skip
         np.testing.assert_array_equal(a, b)
+    carry = step.start(arm, fj.FOSMC(ctrl), ref, X0, None, 1e6)
+    np.testing.assert_array_equal(carry.X, arm.observe(arm.init(X0), jnp.zeros(())))
+
+
+@pytest.mark.slow  # four arm compilations (~40 s)
+@pytest.mark.parametrize("integrator", ["euler", "rk4"])
+def test_the_observation_carried_into_the_next_stage_changes_no_value(monkeypatch, integrator):
+    """The simulator reuses each step's observation (its theta'') in the next step's first
+    stage: the same values as computing it again."""
+    from fosmc_jax._simulator import step
+
+    arm, ctrl, ref, X0 = Arm(P, jnp.asarray(3.0)), _controller(), _reference(), _X0()
     run = lambda: fj.simulate(arm, fj.FOSMC(ctrl), ref, X0, 1e-3, n_steps=60, integrator=integrator)
     carries = lambda: step.start(arm, fj.FOSMC(ctrl), ref, X0, None, 1e6).X is not None
     carried, reused = run(), carries()
