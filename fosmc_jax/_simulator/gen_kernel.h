@@ -64,12 +64,9 @@ inline M IsFinite(V x) {
   return d == d;
 }
 inline void SinCos(V x, V* s, V* c) { fosmc::SinCos<T>(x, s, c); }
-// const: a call the compiler does not inline is still shared between the places that ask for
-// the same tanh (an observation and a derivative of the same stage)
-__attribute__((const)) inline V VecTanh(V x) { return fosmc::Tanh<T>(x); }
 template <typename F>
 inline V Lib(V x, F f) {
-  if constexpr (F::Tanh()) return VecTanh(x);
+  if constexpr (F::Tanh()) return fosmc::Tanh<T>(x);
   V r;
   for (int l = 0; l < W; l++) r[l] = f(x[l]);
   return r;
