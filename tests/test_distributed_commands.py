@@ -183,7 +183,8 @@ def test_a_process_killed_mid_run(tmp_path, victim):
         assert "resumed from" in one.stderr and (out / "front.json").exists()
 
 
-@pytest.mark.parametrize("me", [0, 1])
+# the coordinator's case in the slow tier (5 s of waiting for --join-timeout: the default tier keeps to 4 minutes)
+@pytest.mark.parametrize("me", [pytest.param(0, marks=pytest.mark.slow), 1])
 def test_a_process_that_never_joins(tmp_path, me):
     """One process of two alone ends non-zero after --join-timeout (well within 120 s), with one
     line naming the missing process."""
