@@ -34,9 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import fosmc_jax._simulator.linear_path as S  # noqa: E402
+from fosmc_jax._simulator import linear_path  # noqa: E402
 
-_ORIGINAL_SCAN = S._scan_steps
+_ORIGINAL_SCAN = linear_path._scan_steps
 
 
 def scan_unrolled(unroll):
@@ -81,13 +81,13 @@ def scan_packed(unroll=1):
 def make(variant, args, opts):
     """A compiled callable for ``variant``."""
     plants, ctrl, ref, X0s, dt = args
-    S._scan_steps = _ORIGINAL_SCAN
+    linear_path._scan_steps = _ORIGINAL_SCAN
     cond = jax.lax.cond
     try:
         if variant.startswith("unroll="):
-            S._scan_steps = scan_unrolled(int(variant.split("=")[1]))
+            linear_path._scan_steps = scan_unrolled(int(variant.split("=")[1]))
         elif variant.startswith("packed"):
-            S._scan_steps = scan_packed(int(variant.split("=")[1]) if "=" in variant else 1)
+            linear_path._scan_steps = scan_packed(int(variant.split("=")[1]) if "=" in variant else 1)
         elif variant == "no cond":
             jax.lax.cond = lambda p, f, g, *a: f(*a)
         if variant.startswith("chunks="):
@@ -96,13 +96,13 @@ def make(variant, args, opts):
 
             def fn(plants, ctrl, ref, X0s, dt):
                 blocks = jax.tree.map(lambda x: x.reshape((c, P // c) + x.shape[1:]), plants)
-                res = jax.lax.map(lambda p: S._linear_batch(p, ctrl, ref, X0s, dt, **opts), blocks)
+                res = jax.lax.map(lambda p: linear_path._linear_batch(p, ctrl, ref, X0s, dt, **opts), blocks)
                 return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), res)
         else:
-            fn = lambda plants, ctrl, ref, X0s, dt: S._linear_batch(plants, ctrl, ref, X0s, dt, **opts)  # noqa: E731
+            fn = lambda plants, ctrl, ref, X0s, dt: linear_path._linear_batch(plants, ctrl, ref, X0s, dt, **opts)  # noqa: E731
         compiled = jax.jit(fn).lower(plants, ctrl, ref, X0s, dt).compile()
     finally:
-        S._scan_steps = _ORIGINAL_SCAN
+        linear_path._scan_steps = _ORIGINAL_SCAN
         jax.lax.cond = cond
     return lambda: compiled(plants, ctrl, ref, X0s, dt)
 

@@ -22,6 +22,7 @@ from ._search.front import (
     cma_stage,
     evaluate_many,
     from_factors,
+    front_search,
     global_factors,
     global_stage,
     grid_factors,
@@ -33,7 +34,6 @@ from ._search.front import (
 )
 from ._search.front import Plan as FrontPlan
 from ._search.front import Settings as FrontSettings
-from ._search.front import run as front_search
 from ._search.pareto import additive_epsilon, dominated_by, epsilon, hypervolume, nondominated
 from ._search.peers import cma_es, cma_front, log_grid, nsga2, optuna_nsga2, random_search
 from ._search.select import controller_toml, select

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._plants import arm as A
+from fosmc_jax._plants import arm as arm_model
 from fosmc_jax._plants.base import derivative_at
 from fosmc_jax._simulator.step import _rk4
 
@@ -28,7 +28,7 @@ DIST = dict(
     tau_sin=np.array([1.2, -0.7, 0.25]),
     f_sin=np.array([7.0, 13.0, 21.0]),
 )
-PARAMS = A.ARM_PARAMS._replace(**DIST)
+PARAMS = arm_model.ARM_PARAMS._replace(**DIST)
 
 
 def np_external(p, t):
@@ -43,20 +43,26 @@ def np_coulomb(p, dq):
 def random_states(n, seed):
     rng = np.random.default_rng(seed)
     return [
-        A.ArmState(*(tuple(jnp.asarray(x) for x in rng.normal(scale=s, size=3)) for s in (1.0, 0.05, 5.0)))
+        arm_model.ArmState(*(tuple(jnp.asarray(x) for x in rng.normal(scale=s, size=3)) for s in (1.0, 0.05, 5.0)))
         for _ in range(n)
     ]  # rates of 0.05 rad/s: the Coulomb term's curved part (v_coulomb = 0.02)
 
 
 # the autodiff oracle (tests/test_arm.py holds it to the closed form), one compilation
-_oracle = jax.jit(lambda p, m, q, dq: (A.mass_matrix(p, m, q), A.coriolis_matrix(p, m, q, dq) @ dq, A.gravity(p, m, q)))
+_oracle = jax.jit(
+    lambda p, m, q, dq: (
+        arm_model.mass_matrix(p, m, q),
+        arm_model.coriolis_matrix(p, m, q, dq) @ dq,
+        arm_model.gravity(p, m, q),
+    )
+)
 
 
 def test_joint_torque_balance_equals_numpy():
     """M q'' + C q' + G + F q' + Fc tanh(q'/v_c) = Kt i + tau_ext(t), q'' what observe and
     derivative give at t, the new terms in NumPy, M, C q', G from the autodiff oracle: at
     random states, before and after the step (t = 0.03, 0.07 s), to 1e-10 of the torques."""
-    arm = A.Arm(PARAMS, 4.0)
+    arm = arm_model.Arm(PARAMS, 4.0)
     observe = jax.jit(lambda s, t: arm.observe(s, t))
     rates = jax.jit(lambda s, t: arm.derivative(s, jnp.zeros(3), t).dtheta)
     for state in random_states(4, seed=1):
@@ -75,7 +81,7 @@ def test_joint_torque_balance_equals_numpy():
 def test_init_solves_the_currents_with_the_torques_at_t0():
     """Arm.init(X0) is the state at t = 0: observe(init(X), 0) = X with a bias, a step on from
     t = 0 and Coulomb friction; observe at a later time differs (the sinusoid)."""
-    arm = A.Arm(PARAMS._replace(t_step=0.0), 2.0)
+    arm = arm_model.Arm(PARAMS._replace(t_step=0.0), 2.0)
     X = jnp.asarray(np.random.default_rng(2).normal(size=9))
     s = arm.init(X)
     np.testing.assert_allclose(arm.observe(s, 0.0), X, atol=1e-10)
@@ -108,10 +114,10 @@ def test_zero_gravity_steady_speed_of_the_base(u1, bias1):
     straight). Driven by the voltage, w lies on the friction's flat part; driven by a bias just
     above Fc with the windings shorted (u1 = 0), within the smoothing scale. 4 s of RK4 at
     1 ms: over 20 time constants of the base (M11 / (F + Kt Kb/R) = 0.17 s)."""
-    p = A.ARM_PARAMS._replace(
+    p = arm_model.ARM_PARAMS._replace(
         g=0.0, d2=0.0, d3=0.0, Fc=np.array([3.0, 1.0, 1.0]), v_coulomb=0.05, tau_bias=np.array([bias1, 0, 0])
     )
-    s = _hold(A.Arm(jax.tree.map(jnp.asarray, p), jnp.asarray(3.0)), jnp.array([u1, 0.0, 0.0]), 4000)
+    s = _hold(arm_model.Arm(jax.tree.map(jnp.asarray, p), jnp.asarray(3.0)), jnp.array([u1, 0.0, 0.0]), 4000)
     R, F, Fc, v, Kt, Kb = p.R[0], p.F[0], p.Fc[0], p.v_coulomb, p.Kt[0], p.Kb[0]
     g = lambda w: R * (F * w + Fc * np.tanh(w / v) - bias1) / Kt + Kb * w - u1  # increasing in w
     lo, hi = -10.0, 10.0
@@ -148,7 +154,7 @@ def test_the_simulator_passes_the_stage_times():
     dt, n, payload = 1e-3, 100, 3.0
     U = np.array([3.0, -2.0, 0.5])
     X0 = np.array([0.2, 0.5, 0.0, -0.4, -0.3, 0.0, 0.6, 0.2, 0.0])
-    arm = A.Arm(jax.tree.map(jnp.asarray, PARAMS), jnp.asarray(payload))
+    arm = arm_model.Arm(jax.tree.map(jnp.asarray, PARAMS), jnp.asarray(payload))
     ref = fj.Cycloid(*(jnp.asarray(x) for x in (fj.paper.THETA_START, fj.paper.THETA_END, fj.paper.TAU)))
     res = fj.simulate(arm, Constant(jnp.asarray(U)), ref, jnp.asarray(X0), dt, n_steps=n, save_every=1)
     X = np.asarray(res.trace.X)
@@ -250,7 +256,7 @@ ARM = {"plant": {"kind": "arm", "payloads": [0.0, 5.0]}, "sim": {"t_final": 0.1,
 def test_the_arm_keys_default_to_no_friction_and_no_disturbance_and_build():
     cfg = fj.config.resolve(ARM)
     assert cfg["arm"]["Fc"] == [0.0] * 3 and cfg["arm"]["tau_bias"] == [0.0] * 3 and cfg["arm"]["tau_sin"] == [0.0] * 3
-    assert cfg["arm"]["v_coulomb"] == A.V_COULOMB
+    assert cfg["arm"]["v_coulomb"] == arm_model.V_COULOMB
     mine = fj.build({**ARM, "arm": {k: np.asarray(v).tolist() for k, v in DIST.items()}})
     for k, v in DIST.items():
         expected = np.broadcast_to(v, (2,) + np.shape(v))
@@ -303,7 +309,7 @@ def test_uncertainty_in_the_coulomb_level_gives_distinct_arms():
     assert Fc.shape == (10, 3)
     np.testing.assert_array_equal(Fc[0::2], drawn["Fc"])  # every arm with each payload, the arm first
     np.testing.assert_array_equal(Fc[1::2], drawn["Fc"])
-    np.testing.assert_array_equal(np.asarray(problem.plants.params.F), np.broadcast_to(A.ARM_PARAMS.F, (10, 3)))
+    np.testing.assert_array_equal(np.asarray(problem.plants.params.F), np.broadcast_to(arm_model.ARM_PARAMS.F, (10, 3)))
 
 
 def test_low_level_checks_name_the_new_fields():
@@ -345,7 +351,7 @@ def test_third_order_rows_hold_the_coulomb_term_and_leave_the_external_torque_ou
     a X + b U + M^-1 (diag(R/L) tau_ext(t) + tau_ext'(t)) at random states with Coulomb friction
     (rates around v_c, where its curvature is) and every disturbance on, tau_ext' in NumPy;
     without the exogenous term it does not."""
-    arm = A.Arm(jax.tree.map(jnp.asarray, PARAMS), jnp.asarray(6.0))
+    arm = arm_model.Arm(jax.tree.map(jnp.asarray, PARAMS), jnp.asarray(6.0))
     rng = np.random.default_rng(3)
 
     @jax.jit
@@ -353,7 +359,7 @@ def test_third_order_rows_hold_the_coulomb_term_and_leave_the_external_torque_ou
         acc = lambda s, t: arm.accelerations(s, t)
         _, jerk = jax.jvp(acc, (state, t), (arm.derivative(state, U, t), jnp.ones(())))
         X = arm.observe(state, t)
-        return jerk, X, A.third_order_rows(arm, X), A.mass_matrix(arm.params, arm.payload, X[0::3])
+        return jerk, X, arm_model.third_order_rows(arm, X), arm_model.mass_matrix(arm.params, arm.payload, X[0::3])
 
     p = PARAMS
     for state in random_states(3, seed=4):
@@ -376,13 +382,15 @@ def test_zero_terms_are_left_out_before_compiling_with_the_same_results():
     and without them (the jitted function behind simulate_batch, which takes the plants as they
     are) agree to 1e-12."""
     arms = fj.arm_sweep(jnp.array([0.0, 5.0]))
-    kept = A.without_idle_terms(arms._replace(params=arms.params._replace(tau_sin=jnp.ones((2, 3)))))
+    kept = arm_model.without_idle_terms(arms._replace(params=arms.params._replace(tau_sin=jnp.ones((2, 3)))))
     assert all(getattr(kept.params, k) is None for k in ("Fc", "tau_bias", "tau_step"))
     assert kept.params.tau_sin is not None and kept.params.v_coulomb is not None
     seen = []
-    jax.jit(lambda Fc: seen.append(A.without_idle_terms(arms._replace(params=arms.params._replace(Fc=Fc))).params.Fc))(
-        jnp.zeros((2, 3))
-    )
+    jax.jit(
+        lambda Fc: seen.append(
+            arm_model.without_idle_terms(arms._replace(params=arms.params._replace(Fc=Fc))).params.Fc
+        )
+    )(jnp.zeros((2, 3)))
     assert isinstance(seen[0], jax.core.Tracer)  # traced: a derivative may follow, the term stays
     from fosmc_jax._simulator.rollout import _simulate_batch
 

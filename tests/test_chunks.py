@@ -24,9 +24,8 @@ import numpy as np
 import pytest
 
 from fosmc_jax import _problems as _config
-from fosmc_jax._app import chunks
-from fosmc_jax._app import commands as C
-from fosmc_jax._app import simulate as S
+from fosmc_jax._app import chunks, commands
+from fosmc_jax._app import simulate as simulate_command
 from fosmc_jax._app.cli import main
 from fosmc_jax._problems import memory
 from fosmc_jax._simulator.metrics import METRIC_NAMES, Metrics
@@ -206,9 +205,9 @@ def test_chunks_equal_the_whole_batch_on_every_path(path):
     the whole batch: the same arrays, bit for bit on the native kernels and to rounding on the
     vmap path, and the summary of the same arrays."""
     cfg, exact = PATHS[path]
-    whole = C.run_simulate(cfg, devices=1, records=False)
+    whole = commands.run_simulate(cfg, devices=1, records=False)
     for chunk in (2, 3, 4):
-        parts = C.run_simulate(cfg, devices=1, records=False, chunk=chunk)
+        parts = commands.run_simulate(cfg, devices=1, records=False, chunk=chunk)
         assert set(parts["arrays"]) == set(whole["arrays"])
         for name, x in whole["arrays"].items():
             y = parts["arrays"][name]
@@ -241,10 +240,10 @@ import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
 import numpy as np
-from fosmc_jax._app import commands as C
+from fosmc_jax._app import commands
 cfg = json.loads(sys.argv[1])
-whole = C.run_simulate(cfg, devices=2, records=False)
-parts = C.run_simulate(cfg, devices=2, records=False, chunk=70)
+whole = commands.run_simulate(cfg, devices=2, records=False)
+parts = commands.run_simulate(cfg, devices=2, records=False, chunk=70)
 print(json.dumps([k for k, x in whole["arrays"].items() if not np.array_equal(x, parts["arrays"][k])]))
 """
 
@@ -378,7 +377,9 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
     (folder / "x").write_text("")
     code, err = run("--checkpoint", folder)
     assert code == 2 and err.startswith(f"fosmc: error: --checkpoint: {folder} exists and is not empty (--resume")
-    S._checkpoint_chunk(folder, cfg, 1, 1000, 70, resume=False)  # the plan.json a run of chunks of 70 writes
+    simulate_command._checkpoint_chunk(
+        folder, cfg, 1, 1000, 70, resume=False
+    )  # the plan.json a run of chunks of 70 writes
     code, err = run("--checkpoint", folder, "--resume", "--devices", 1, "--chunk", 50)
     assert code == 2 and err.startswith(f"fosmc: error: --chunk: {folder} holds chunks of 70 rollouts") and err.count(
         "\n") == 1  # fmt: skip
@@ -386,12 +387,12 @@ def test_resume_refuses_a_checkpoint_of_another_run_before_the_work(capsys, tmp_
     assert code == 2 and err.startswith("fosmc: error: --chunk: expected a positive integer (rollouts), got 0")
     other = _config.replace(cfg, sim={"t_final": 0.02})
     with pytest.raises(_config.ConfigError, match=rf"^--resume: {folder} holds chunks of another config's run"):
-        S._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
+        simulate_command._checkpoint_chunk(folder, other, 1, 1000, None, resume=True)
     with pytest.raises(_config.ConfigError, match=r"run on 1 device\(s\) .*: give --devices 1, or give another"):
-        S._checkpoint_chunk(folder, cfg, 2, 1000, None, resume=True)
+        simulate_command._checkpoint_chunk(folder, cfg, 2, 1000, None, resume=True)
     with pytest.raises(_config.ConfigError, match=r"chunks of 70 rollouts, more than the 60 this process may hold"):
-        S._checkpoint_chunk(folder, cfg, 1, 60, None, resume=True)
-    assert S._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
+        simulate_command._checkpoint_chunk(folder, cfg, 1, 60, None, resume=True)
+    assert simulate_command._checkpoint_chunk(folder, cfg, 1, 1000, None, resume=True) == 70
 
 
 @pytest.mark.parametrize("option", ["--chunk", "--checkpoint"])
@@ -415,7 +416,7 @@ def test_ctrl_c_with_a_checkpoint_says_how_to_resume(capsys, tmp_path, monkeypat
         (folder / "chunk_000000.npz").write_bytes(b"")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(C, "run_simulate", interrupted)
+    monkeypatch.setattr(commands, "run_simulate", interrupted)
     assert main(["simulate", "--checkpoint", str(folder), "--chunk", "10"]) == 130
     assert capsys.readouterr()[1] == (f"fosmc: interrupted; {folder} keeps the chunks done so far: resume with "
                                       f"`fosmc simulate --checkpoint {folder} --chunk 10 --resume`\n")  # fmt: skip

@@ -373,9 +373,9 @@ def test_tradeoff_exists_in_the_realistic_loop_and_not_in_the_ideal_one():
     """Shortened sweep (0.2 s): lowering delta 3000-fold raises the realistic loop's
     chattering_hf more than tenfold, while the ideal loop's stays below 0.2 V until the
     smallest delta."""
-    from fosmc_jax._app import reproduce as R
+    from fosmc_jax._app import reproduce as reproduction
 
-    sweeps = R.tradeoff_sweeps(t_final=0.2, log=lambda _: None)
+    sweeps = reproduction.tradeoff_sweeps(t_final=0.2, log=lambda _: None)
     delta = sweeps[0]
     real = np.mean(delta.realistic.chattering_hf, axis=-1)
     ideal = np.mean(delta.ideal.chattering_hf, axis=-1)

@@ -56,10 +56,10 @@ import fosmc_jax as fj
 from fosmc_jax import search
 from fosmc_jax._app import commands
 from fosmc_jax._app.cli import main
-from fosmc_jax._firmware import export as E
+from fosmc_jax._firmware import export as firmware
 from fosmc_jax._simulator.rollout import simulate
 
-CC = E.c_compiler()
+CC = firmware.c_compiler()
 needs_cc = pytest.mark.skipif(
     CC is None, reason="no C compiler ($CC, cc, gcc, clang): fosmc export still writes the files, nothing runs them"
 )
@@ -109,8 +109,8 @@ class Compiled:
     """A generated controller compiled as a shared library, called as a drive calls it."""
 
     def __init__(self, loop, reference, precision: str, where: Path, name: str = "fosmc", files=None):
-        files = files or E.export_c(loop, reference, precision=precision, name=name)
-        E.write(files, where)
+        files = files or firmware.export_c(loop, reference, precision=precision, name=name)
+        firmware.write(files, where)
         (where / "shim.c").write_text(SHIM.format(name=name))
         so = where / f"lib{name}.so"
         cmd = [*CC.split(), "-std=c99", "-O2", "-shared", "-fPIC", str(where / f"{name}.c"), str(where / "shim.c"),
@@ -273,13 +273,13 @@ VARIANTS = {
 
 
 @needs_cc
-@pytest.mark.parametrize("precision", E.PRECISIONS)
+@pytest.mark.parametrize("precision", firmware.PRECISIONS)
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_the_generated_code_compiles_cleanly_under_strict_flags(variant, precision, tmp_path):
     problem = fj.build(VARIANTS[variant])
-    paths = E.write(E.export_c(problem.controller(), problem.reference, precision=precision), tmp_path)
+    paths = firmware.write(firmware.export_c(problem.controller(), problem.reference, precision=precision), tmp_path)
     # -O2: with the warnings that need the optimizer's analyses (-Wmaybe-uninitialized)
-    assert E.check_compiles(paths[1], CC, (*E.STRICT_FLAGS, "-O2")).endswith("-c fosmc.c")
+    assert firmware.check_compiles(paths[1], CC, (*firmware.STRICT_FLAGS, "-O2")).endswith("-c fosmc.c")
     text = paths[1].read_text()
     assert "malloc" not in text
     # no mutable globals: every file-scope declaration that is not a function is a static const
@@ -289,7 +289,7 @@ def test_the_generated_code_compiles_cleanly_under_strict_flags(variant, precisi
 
 
 @needs_cc
-@pytest.mark.parametrize("precision", E.PRECISIONS)
+@pytest.mark.parametrize("precision", firmware.PRECISIONS)
 def test_the_reference_generators_match_the_package(precision, tmp_path):
     problem = fj.build(config())
     c = Compiled(problem.controller(), problem.reference, precision, tmp_path)
@@ -413,10 +413,10 @@ def test_a_users_sampled_law_exports_and_replays_as_the_package_runs_it(tmp_path
     rs = jax.vmap(problem.reference)(jnp.arange(300) * loop.period)
     want = np.asarray(replay(loop, jnp.asarray(Xs[0]), jnp.asarray(Xs), rs))
     assert np.abs(want).max() > 1.0
-    for precision in E.PRECISIONS:
+    for precision in firmware.PRECISIONS:
         c = Compiled(loop, problem.reference, precision, tmp_path / precision)
         assert "TanhPlusIntegral" in c.files["fosmc.c"] and "law_e[3]" in c.files["fosmc.h"]
-        E.check_compiles(tmp_path / precision / "fosmc.c", CC, (*E.STRICT_FLAGS, "-O2"))
+        firmware.check_compiles(tmp_path / precision / "fosmc.c", CC, (*firmware.STRICT_FLAGS, "-O2"))
         tol = U_TOL["fosmc"] if precision == "float64" else F32_TOL["fosmc"] * np.abs(want).max()
         assert np.abs(c.run(Xs[0], Xs) - want).max() <= tol, (precision, np.abs(c.run(Xs[0], Xs) - want).max())
 
@@ -461,7 +461,7 @@ def test_a_law_that_does_not_print_is_refused_in_one_line_naming_the_primitive()
     with pytest.raises(
         ValueError, match=r"^export: the sample step of WithAWhileLoop .* does not print as C: while"
     ) as e:
-        E.export_c(loop, problem.reference)
+        firmware.export_c(loop, problem.reference)
     assert "\n" not in str(e.value)
 
 
@@ -483,7 +483,7 @@ def test_the_whole_horizon_in_closed_loop_equals_the_package_rollout(kind, tmp_p
     want = problem.simulate(save_every=problem.controller().sample_steps)  # plant-major: 2 x 13 rollouts
     assert not np.any(np.asarray(want.diverged))
     metrics = lambda res, i=...: np.stack([np.asarray(m)[i] for m in res.metrics])  # (8 metrics, 3 joints)
-    for precision in E.PRECISIONS:
+    for precision in firmware.PRECISIONS:
         c = Compiled(problem.controller(), problem.reference, precision, tmp_path / precision)
         for plant in range(2):
             row = plant * len(offsets)
@@ -571,7 +571,7 @@ def test_fosmc_export_refuses_what_has_no_c_form(tmp_path, capsys):
 
 
 def test_export_without_a_compiler_writes_the_files(tmp_path, monkeypatch):
-    monkeypatch.setattr(E, "c_compiler", lambda: None)
+    monkeypatch.setattr(firmware, "c_compiler", lambda: None)
     r = commands.run_export(config("smc"), out=tmp_path)
     assert r["check"] == "not compiled: no C compiler found ($CC, cc, gcc, clang)"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fosmc.c", "fosmc.h"]
@@ -587,10 +587,10 @@ def test_the_interrupt_example_of_the_docs_compiles(tmp_path):
     stubs = ("static void read_encoders(int32_t counts[3]) { counts[0] = counts[1] = counts[2] = 0; }\n"
              "static void write_voltages(const fosmc_real u[3]) { (void)u; }\n")  # fmt: skip
     problem = fj.build(config())
-    E.write(E.export_c(problem.controller(), problem.reference), tmp_path)
+    firmware.write(firmware.export_c(problem.controller(), problem.reference), tmp_path)
     head, body = example.split("static fosmc_state st;")
     (tmp_path / "isr.c").write_text(head + stubs + "static fosmc_state st;" + body)
-    E.check_compiles(tmp_path / "isr.c", CC, (*E.STRICT_FLAGS, "-O2"))
+    firmware.check_compiles(tmp_path / "isr.c", CC, (*firmware.STRICT_FLAGS, "-O2"))
 
 
 def _loop_toml(tmp_path: Path) -> Path:
@@ -617,7 +617,7 @@ def test_fosmc_export_refuses_an_out_it_cannot_write_whole_in_one_line(tmp_path,
     assert [p.name for p in blocked.iterdir()] == ["fosmc.c"] and not any((blocked / "fosmc.c").iterdir())
     # the library's write checks both targets before writing either, too
     with pytest.raises(ValueError, match="fosmc.c exists and is not a file"):
-        E.write({"fosmc.h": "h", "fosmc.c": "c"}, blocked)
+        firmware.write({"fosmc.h": "h", "fosmc.c": "c"}, blocked)
     assert [p.name for p in blocked.iterdir()] == ["fosmc.c"]
 
 
@@ -686,11 +686,13 @@ def test_the_files_name_the_design_model_their_rows_come_from(kind, monkeypatch)
     which: the paper's (29), the config's own [model] rows, or the arm's ([model] from = "arm";
     its derivation, seconds of compilation, replaced here by stand-in rows)."""
     from fosmc_jax._design import paper
-    from fosmc_jax._problems import design as C
+    from fosmc_jax._problems import design
 
     A, B = paper.A_ROWS * 1.25, paper.B_ROWS * 0.8  # not the paper's: where the constants come from shows
     box = (np.minimum(A * 0.9, A * 1.1), np.maximum(A * 0.9, A * 1.1), B * 0.9, B * 1.1)
-    monkeypatch.setattr(C, "_arm_model", lambda key: C.DesignModel("arm", A, B, box, "a test's stand-in rows"))
+    monkeypatch.setattr(
+        design, "_arm_model", lambda key: design.DesignModel("arm", A, B, box, "a test's stand-in rows")
+    )
     cases = {
         "paper": ({}, paper.A_ROWS, paper.B_ROWS, "the paper's nominal model (29)"),
         "own": ({"model": {"A_rows": A.tolist(), "B_rows": B.tolist()}}, A, B,

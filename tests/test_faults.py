@@ -27,9 +27,8 @@ from hypothesis import strategies as st
 
 import fosmc_jax as fj
 from fosmc_jax import _problems as _config
-from fosmc_jax._app import commands as C
-from fosmc_jax._app import reproduce as R
-from fosmc_jax._app import study
+from fosmc_jax._app import commands, study
+from fosmc_jax._app import reproduce as reproduction
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import check_writable, write_text
 from fosmc_jax._problems import memory
@@ -135,7 +134,7 @@ OPTIONS = [
     (["front", "--budget", "nan"], "--budget"),
     (["front", "--budget", "0"], "--budget"),
     (["front", "--seed", "-1"], "--seed"),
-    (["front", "--seed", str(C.MAX_FRONT_SEED + 1)], "--seed"),  # CMA-ES's seeds would pass 2^32
+    (["front", "--seed", str(commands.MAX_FRONT_SEED + 1)], "--seed"),  # CMA-ES's seeds would pass 2^32
     (["front", "--points", "0"], "--points"),
     (["certify", "--seed", "-1"], "--seed"),
     (["reproduce", "--t-final", "-1"], "--t-final"),
@@ -182,10 +181,10 @@ def test_front_budget_and_seed_are_accepted_exactly_when_in_range(budget, seed):
     def stub(*args, **kwargs):
         raise _Reached
 
-    valid = np.isfinite(budget) and budget > 0 and 0 <= seed <= C.MAX_FRONT_SEED
+    valid = np.isfinite(budget) and budget > 0 and 0 <= seed <= commands.MAX_FRONT_SEED
     original, study.study = study.study, stub
     try:
-        C.run_front(budget=budget, seed=seed)
+        commands.run_front(budget=budget, seed=seed)
         raise AssertionError("neither refused nor started")
     except _Reached:
         assert valid
@@ -211,16 +210,16 @@ def test_reproduce_horizon_follows_the_config_rules(t_final, dt):
         valid = True
     except _config.ConfigError:
         valid = False
-    original, R.parallel = R.parallel, stub
+    original, reproduction.parallel = reproduction.parallel, stub
     try:
-        C.run_reproduce(plant="linear", t_final=t_final, dt=dt)
+        commands.run_reproduce(plant="linear", t_final=t_final, dt=dt)
         raise AssertionError("neither refused nor started")
     except _Reached:
         assert valid
     except _config.ConfigError as e:
         assert not valid and str(e).split(":")[0] in ("--t-final", "--dt") and "\n" not in str(e)
     finally:
-        R.parallel = original
+        reproduction.parallel = original
 
 
 # ---------------------------------------------------------------------------- unwritable outputs
@@ -438,7 +437,7 @@ def _interrupt_after(writes_checkpoint: bool):
 def test_ctrl_c_says_how_to_resume(capsys, tmp_path, monkeypatch, command):
     """Exit status 130 and one line that names the checkpoint and the command that resumes
     from it: the same arguments, --force dropped, --resume added once."""
-    monkeypatch.setattr(C, f"run_{command}", _interrupt_after(True))
+    monkeypatch.setattr(commands, f"run_{command}", _interrupt_after(True))
     out = tmp_path / "out"
     code, _, err = cli(capsys, command, "--config", "my config.toml", "--out", out, "--force")
     resume = f"fosmc {command} --config 'my config.toml' --out {out} --resume"
@@ -451,7 +450,7 @@ def test_ctrl_c_says_how_to_resume(capsys, tmp_path, monkeypatch, command):
 
 def test_ctrl_c_before_the_first_checkpoint_says_there_is_nothing_to_resume(capsys, tmp_path, monkeypatch):
     """No checkpoint, or an earlier run's that --force was about to replace: no resume offered."""
-    monkeypatch.setattr(C, "run_tune", _interrupt_after(False))
+    monkeypatch.setattr(commands, "run_tune", _interrupt_after(False))
     out = tmp_path / "out"
     out.mkdir()
     (out / "checkpoint.npz").write_bytes(b"an earlier run's")
@@ -466,7 +465,7 @@ def test_ctrl_c_elsewhere_is_one_line(capsys, monkeypatch):
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(C, "run_bounds", interrupted)
+    monkeypatch.setattr(commands, "run_bounds", interrupted)
     code, _, err = cli(capsys, "bounds")
     assert code == 130 and err.splitlines() == ["fosmc: interrupted"]
 

@@ -9,15 +9,15 @@ import pytest
 from fosmc_jax import _problems as _config
 from fosmc_jax._app import study as front_study
 from fosmc_jax._app.cli import main
-from fosmc_jax._search import front as F
-from fosmc_jax._search import tune as T
+from fosmc_jax._search import front as search_front
+from fosmc_jax._search import tune as tuner
 from fosmc_jax.search import epsilon, nondominated
 
 TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
     "sim": {"t_final": 0.3, "dt": 2e-3, "integrator": "euler"},
 }
-SETTINGS = F.Settings(points=3, candidates=16, steps=3, chunk=8, checkpoint_every=1)
+SETTINGS = search_front.Settings(points=3, candidates=16, steps=3, chunk=8, checkpoint_every=1)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, kill_at):
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
     settings = SETTINGS._replace(cma=2)
-    whole = F.run(train, plain, p0, settings, log=lambda _: None)
+    whole = search_front.front_search(train, plain, p0, settings, log=lambda _: None)
     st = whole["stages"]
     cma_evaluations = st["evaluations"] - 16 - 3 * 8  # but the global stage's and the local rounds'
     assert st["cma_generations"] == 2 and cma_evaluations in (2 * 8 * k for k in range(1, 5))  # 1-4 runs
@@ -85,8 +85,10 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, kill_at):
 
     checkpoint = tmp_path / "checkpoint.npz"
     with pytest.raises(Crash):
-        F.run(train, plain, p0, settings, checkpoint=checkpoint, log=crash)
-    resumed = F.run(train, plain, p0, settings, checkpoint=checkpoint, resume=True, log=lambda _: None)
+        search_front.front_search(train, plain, p0, settings, checkpoint=checkpoint, log=crash)
+    resumed = search_front.front_search(
+        train, plain, p0, settings, checkpoint=checkpoint, resume=True, log=lambda _: None
+    )
     assert resumed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
     assert len(resumed["points"]) == len(whole["points"])
     for a, b in zip(resumed["points"], whole["points"]):
@@ -118,51 +120,55 @@ def test_cma_es_wrapper_reaches_the_minimum_of_a_quadratic():
 
 
 def test_factors_map_and_random_search_cover_the_box():
-    from fosmc_jax._search import peers as S
+    from fosmc_jax._search import peers
 
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
     z = np.array([[1.0, 0, 0, -1, 0, 0, 0, 0, 2.0]])
-    p = S.from_factors(p0, z)
+    p = peers.from_factors(p0, z)
     np.testing.assert_allclose(p.delta[0], np.asarray(p0.delta) * [10, 1, 1])
     np.testing.assert_allclose(p.gamma[0], np.asarray(p0.gamma) * [0.1, 1, 1])
     np.testing.assert_allclose(p.poles[0], np.asarray(p0.poles) * np.array([1, 1, 100])[:, None])
-    r = S.random_search(train, p0, budget=1e-9, chunk=8, log=lambda _: None)  # one chunk at least
-    lo, hi = S.bounds()
+    r = peers.random_search(train, p0, budget=1e-9, chunk=8, log=lambda _: None)  # one chunk at least
+    lo, hi = peers.bounds()
     assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
     assert r["metrics"]["rms_error"].shape == (8, 3)
 
 
 def test_global_stage_keeps_frozen_parameters_and_never_scores_worse_than_the_start():
-    from fosmc_jax._search import tune as T
+    from fosmc_jax._search import tune as tuner
 
     cfg = _config.resolve(TINY)
     plain, train, p0 = _config.tuning_problems(cfg)
-    m = T.evaluate(train, p0)["metrics"]
-    obj = T.objective_of(cfg["tune"], m)
-    best, score = F.global_stage(train, obj, p0, 16, free=("delta",), chunk=8, log=lambda _: None)
+    m = tuner.evaluate(train, p0)["metrics"]
+    obj = tuner.objective_of(cfg["tune"], m)
+    best, score = search_front.global_stage(train, obj, p0, 16, free=("delta",), chunk=8, log=lambda _: None)
     np.testing.assert_array_equal(best.gamma, p0.gamma)
     np.testing.assert_array_equal(best.poles, p0.poles)
-    start = float(T.rollout_costs(type("M", (), {k: np.asarray(v)[None] for k, v in m.items()}),
+    start = float(tuner.rollout_costs(type("M", (), {k: np.asarray(v)[None] for k, v in m.items()}),
                                   np.array([False]), obj)[0][0])  # fmt: skip
     assert abs(start) < 1e-9  # log scale, scales from the start itself
     assert score <= start
 
 
 def test_global_stage_holds_the_start_and_the_whole_grid_of_common_factors():
-    z = F.global_factors(300, seed=0, grid_share=1.0)
-    g = F.grid_size(300, 1.0)
+    z = search_front.global_factors(300, seed=0, grid_share=1.0)
+    g = search_front.grid_size(300, 1.0)
     assert g == 6 and z.shape == (300, 9)
     np.testing.assert_array_equal(z[0], 0.0)  # the start itself
-    grid = F.grid_factors(g)
+    grid = search_front.grid_factors(g)
     np.testing.assert_array_equal(z[1 : 1 + g**3], grid)
     assert np.all(grid[:, 0:3] == grid[:, [0]]) and np.all(grid[:, 6:9] == grid[:, [6]])  # common to the joints
-    lo, hi = F.bounds()
+    lo, hi = search_front.bounds()
     for k in range(3):  # ends of each range included
         np.testing.assert_array_equal(np.unique(grid[:, 3 * k])[[0, -1]], [lo[3 * k], hi[3 * k]])
     draws = z[1 + g**3 :]
     assert np.all((draws >= lo) & (draws <= hi)) and np.ptp(draws[:, 0:3], axis=1).min() > 0  # per joint
-    assert F.grid_size(300, 0.5) == 5 and F.grid_size(8, 1.0) == 0 and F.grid_size(28, 1.0) == 3
+    assert (
+        search_front.grid_size(300, 0.5) == 5
+        and search_front.grid_size(8, 1.0) == 0
+        and search_front.grid_size(28, 1.0) == 3
+    )
 
 
 @pytest.mark.slow  # 5 s: the default tier keeps to 4 minutes on 2 cores
@@ -173,14 +179,14 @@ def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
     import cma  # noqa: F401  (imported and compiled before: the budget then goes to the stages)
 
     plain, train, p0 = _config.tuning_problems(_config.resolve({**TINY, "tune": {"train_dt": 4e-3}}))
-    F.evaluate_many(train, F.sample_candidates(p0, 8, 0), 8, log=lambda _: None)
-    settings = F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
-    r = F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
+    search_front.evaluate_many(train, search_front.sample_candidates(p0, 8, 0), 8, log=lambda _: None)
+    settings = search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
+    r = search_front.front_search(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
     st = r["stages"]
     assert st["candidates"] % 8 == 0 and st["candidates"] >= 16  # the global stage and the probe's chunk
     # how many generations and rounds fit depends on the machine's load: only their bookkeeping is checked
     assert st["evaluations"] >= st["candidates"] + 8 * st["local_rounds"]
-    header, _ = T._load(tmp_path / "c.npz")
+    header, _ = tuner._load(tmp_path / "c.npz")
     ends = header["ends"]
     # in order; not held against the budget: a stage that overruns its deadline (a loaded machine:
     # 3.66 s of a 3 s budget once) moves the later ones, and timings belong to the benchmarks
@@ -193,13 +199,13 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     m = {"rms_error": np.array([[1.0] * 3, [2.0] * 3, [3.0] * 3, [0.5] * 3]),
          "chattering_hf": np.array([[1.0] * 3, [0.5] * 3, [2.0] * 3, [4.0] * 3])}  # fmt: skip
     front = {0, 1, 3}  # point 2 is dominated by point 0
-    children = F.local_factors(z, m, 12, points=2, sigma=0.0, seed=1)
+    children = search_front.local_factors(z, m, 12, points=2, sigma=0.0, seed=1)
     parents = {int(np.flatnonzero((z == c).all(1))[0]) for c in children}
     assert len(parents) == 2 and parents <= front
-    lo, hi = F.bounds()
-    moved = F.local_factors(z, m, 64, points=8, sigma=0.5, seed=2)
+    lo, hi = search_front.bounds()
+    moved = search_front.local_factors(z, m, 64, points=8, sigma=0.5, seed=2)
     assert np.all((moved >= lo) & (moved <= hi)) and np.any(moved == hi) and not np.any((moved[:, None] == z).all(-1))
-    small = F.local_factors(z, m, 64, points=1, sigma=0.01, seed=3)  # one parent, no clipping
+    small = search_front.local_factors(z, m, 64, points=1, sigma=0.01, seed=3)  # one parent, no clipping
     step = small - z[np.argmin(np.abs(z - small[0]).sum(1))]  # from the parent, the nearest row
     moved_coords = np.abs(step) > 0
     assert moved_coords[0::2].all() and moved_coords[1::2].any(1).all()  # per joint: all; common: a subset
@@ -208,7 +214,7 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     np.testing.assert_allclose(common, np.repeat(common[:, :, :1], 3, axis=2), atol=1e-15)
     assert np.ptp(step[0::2].reshape(-1, 3, 3), axis=2).max() > 0  # per joint
     # a point with a diverged rollout (its metrics: means over the survivors) is no parent
-    children = F.local_factors(z, dict(m, diverged=np.array([0, 1, 0, 0])), 12, points=3, sigma=0.0, seed=1)
+    children = search_front.local_factors(z, dict(m, diverged=np.array([0, 1, 0, 0])), 12, points=3, sigma=0.0, seed=1)
     assert {int(np.flatnonzero((z == c).all(1))[0]) for c in children} == {0, 3}
 
 
@@ -220,15 +226,17 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
     plain, train, p0 = _config.tuning_problems(cfg)
     assert train.options["n_steps"] < plain.options["n_steps"]
     settings = SETTINGS._replace(polish=3)
-    res = F.run(train, plain, p0, settings, log=lambda _: None)
+    res = search_front.front_search(train, plain, p0, settings, log=lambda _: None)
     st = res["stages"]
     assert st["plain_rounds"] == 3 and st["plain_evaluations"] > 3 * settings.chunk
-    from fosmc_jax._search import tune as T
+    from fosmc_jax._search import tune as tuner
 
     for pt in res["points"]:
-        p = T.Tunable(*(np.asarray(pt["params"][k]) for k in T.PARAM_NAMES))
-        np.testing.assert_allclose(T.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-9)
-        assert not np.allclose(T.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)
+        p = tuner.Tunable(*(np.asarray(pt["params"][k]) for k in tuner.PARAM_NAMES))
+        np.testing.assert_allclose(
+            tuner.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-9
+        )
+        assert not np.allclose(tuner.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)
 
     class Crash(Exception):
         pass
@@ -238,8 +246,10 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
             raise Crash
 
     with pytest.raises(Crash):
-        F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
-    resumed = F.run(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None)
+        search_front.front_search(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
+    resumed = search_front.front_search(
+        train, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None
+    )
     assert resumed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
     for a, b in zip(resumed["points"], res["points"], strict=True):
         np.testing.assert_allclose(a["metrics"]["rms_error"], b["metrics"]["rms_error"], rtol=1e-12)
@@ -283,7 +293,9 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
     """With sizes from the budget the local rounds end at the deadline even when the probe
     chunk made them look cheap (here: a budget already spent), and stages say how many ran."""
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
-    r = F.run(train, plain, p0, F.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None)
+    r = search_front.front_search(
+        train, plain, p0, search_front.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None
+    )
     assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16 + 8  # the given 16, the probe's 8
     assert r["stages"]["cma_generations"] == 0  # a spent budget leaves no stage a negative size
     assert len(r["points"]) >= 1
@@ -306,11 +318,11 @@ def test_peers_evaluate_whole_generations_within_the_box(peer):
     generations of ``popsize`` candidates, inside the kind's box, at least one generation even
     with a spent budget, metrics for every candidate."""
     pytest.importorskip("pymoo" if peer == "nsga2" else "optuna")
-    from fosmc_jax._search import peers as S
+    from fosmc_jax._search import peers
 
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
-    r = getattr(S, peer)(train, p0, budget=0.0, popsize=8, log=lambda _: None)
-    lo, hi = F.bounds()
+    r = getattr(peers, peer)(train, p0, budget=0.0, popsize=8, log=lambda _: None)
+    lo, hi = search_front.bounds()
     assert r["z"].shape == (8, 9) and np.all((r["z"] >= lo) & (r["z"] <= hi))
     assert r["metrics"]["rms_error"].shape == (8, 3) and r["metrics"]["diverged"].shape == (8,)
 
@@ -322,5 +334,5 @@ def test_a_training_problem_that_differs_only_in_its_gradient_is_no_surrogate():
     cfg = _config.resolve({**TINY, "tune": {"gradient_window": 0.01}})
     plain, train, _ = _config.tuning_problems(cfg)
     assert train.options["truncate_every"] > 0 and "truncate_every" not in plain.options
-    assert F._same_simulation(train, plain)
-    assert not F._same_simulation(train._replace(dt=2 * train.dt), plain)
+    assert search_front._same_simulation(train, plain)
+    assert not search_front._same_simulation(train._replace(dt=2 * train.dt), plain)

@@ -14,7 +14,7 @@ import pytest
 import fosmc_jax as fj
 from fosmc_jax._app.cli import main
 from fosmc_jax._app.commands import run_identify
-from fosmc_jax._firmware import identify as I
+from fosmc_jax._firmware import identify as identification
 
 try:  # Python >= 3.11
     import tomllib
@@ -46,7 +46,7 @@ def test_a_log_reads_alike_from_csv_and_npz(tmp_path):
     theta, u, current = rng.normal(size=(50, 3)), rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
     for cur in (None, current):
         csv, npz = _log_files(tmp_path, t, theta, u, cur)
-        a, b = I.read_log(csv), I.read_log(npz)
+        a, b = identification.read_log(csv), identification.read_log(npz)
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
         np.testing.assert_array_equal(a.theta, theta)
@@ -158,10 +158,18 @@ def test_the_integration_step_is_the_longest_that_divides_the_period_and_is_said
     """--dt that divides the period is used as is; one that does not gives the next shorter step
     that does (never a longer one: dt sets the accuracy), said in the first progress line, before
     anything is compiled; the period and the window in seconds come out free of round-off."""
-    assert [I.substeps(1e-3, dt) for dt in (None, 1e-3, 2e-3, 2.5e-4, 1e-3 / 3, 3e-4, 4e-4)] == [1, 1, 1, 4, 3, 4, 3]
+    assert [identification.substeps(1e-3, dt) for dt in (None, 1e-3, 2e-3, 2.5e-4, 1e-3 / 3, 3e-4, 4e-4)] == [
+        1,
+        1,
+        1,
+        4,
+        3,
+        4,
+        3,
+    ]
     t = np.arange(400) * 1e-3
-    assert np.median(np.diff(t)) != 1e-3 and I.sample_period(t) == 1e-3  # 0.0010000000000000009 s before
-    log = I.Log(t, np.zeros((400, 3)), np.zeros((400, 3)))
+    assert np.median(np.diff(t)) != 1e-3 and identification.sample_period(t) == 1e-3  # 0.0010000000000000009 s before
+    log = identification.Log(t, np.zeros((400, 3)), np.zeros((400, 3)))
 
     class First(Exception):
         pass
@@ -174,7 +182,9 @@ def test_the_integration_step_is_the_longest_that_divides_the_period_and_is_said
                      (2.5e-4, "step 0.00025 s (4 rk4 step(s) per 0.001 s sample);"),
                      (None, "of 100 samples (0.1 s); step 0.001 s (1 rk4 step(s) per 0.001 s sample);")):  # fmt: skip
         with pytest.raises(First) as e:
-            I.identify(fj.ARM_PARAMS, 0.0, log, ["F"], I.Settings(window=100, dt=dt), progress=first)
+            identification.identify(
+                fj.ARM_PARAMS, 0.0, log, ["F"], identification.Settings(window=100, dt=dt), progress=first
+            )
         assert said in str(e.value), str(e.value)
 
 
@@ -185,7 +195,7 @@ def test_the_bootstrap_is_skipped_below_5_windows_and_says_so():
     rng = np.random.default_rng(1)
     for W in (6, 4):
         Jx, Jz, r = rng.normal(size=(W, 40, 9)), rng.normal(size=(W, 40, 2)), rng.normal(size=(W, 40))
-        unc = I._uncertainty(Jx, Jz, r, np.ones(2, bool), W * 9, I.Settings(bootstrap=200))
+        unc = identification._uncertainty(Jx, Jz, r, np.ones(2, bool), W * 9, identification.Settings(bootstrap=200))
         if W == 6:
             assert unc["resamples"] == 200 and unc["skipped"] is None and unc["source"].startswith("the larger of")
             assert np.all((unc["std_boot"] > unc["std_gn"] / 2) & (unc["std_boot"] < 2 * unc["std_gn"]))
@@ -193,7 +203,7 @@ def test_the_bootstrap_is_skipped_below_5_windows_and_says_so():
             assert unc["resamples"] == 0 and unc["skipped"].startswith("4 window(s), fewer than the 5")
             assert unc["source"].startswith("Gauss-Newton's only: bootstrap skipped, 4 window(s)")
             np.testing.assert_array_equal(unc["std"], unc["std_gn"])
-    unc = I._uncertainty(Jx, Jz, r, np.ones(2, bool), W * 9, I.Settings(bootstrap=0))
+    unc = identification._uncertainty(Jx, Jz, r, np.ones(2, bool), W * 9, identification.Settings(bootstrap=0))
     assert unc["skipped"] is None and unc["source"] == "Gauss-Newton's only: no bootstrap"
 
 
@@ -201,19 +211,22 @@ def test_a_residual_far_above_the_noise_is_a_misfit():
     """The rule: the largest ratio over the joints of the residual RMS to the angles' noise, a
     warning above 10 naming the joint; a joint of unknown noise (the 1e-12 guard) left out."""
     q = Q / math.sqrt(12)
-    assert I.misfit([q, q, 0.9 * q], [q] * 3) == (1.0, None)
-    ratio, warning = I.misfit([q, 120 * q, 3 * q], [q] * 3)
+    assert identification.misfit([q, q, 0.9 * q], [q] * 3) == (1.0, None)
+    ratio, warning = identification.misfit([q, 120 * q, 3 * q], [q] * 3)
     assert ratio == pytest.approx(120) and "120 x the angles' noise on joint 2" in warning
-    assert I.misfit([q, 9.9 * q, 3 * q], [q] * 3)[1] is None and I.misfit([q, 10.1 * q, q], [q] * 3)[1]
-    assert I.misfit([1e-3, q, q], [1e-12, q, q]) == (1.0, None)
-    assert I.misfit([1e-3] * 3, [1e-12] * 3) == (None, None)
+    assert (
+        identification.misfit([q, 9.9 * q, 3 * q], [q] * 3)[1] is None
+        and identification.misfit([q, 10.1 * q, q], [q] * 3)[1]
+    )
+    assert identification.misfit([1e-3, q, q], [1e-12, q, q]) == (1.0, None)
+    assert identification.misfit([1e-3] * 3, [1e-12] * 3) == (None, None)
 
 
 def test_the_smoother_is_exact_on_cubics_and_the_noise_is_the_encoders_quantum():
     """Savitzky-Golay weights give a cubic's value and derivatives exactly (to rounding); the
     scatter of a quantized smooth signal about local cubics is q / sqrt(12) (uniform rounding
     error), measured within 5% on 20,000 samples."""
-    w = I.smoother(10)
+    w = identification.smoother(10)
     k = np.arange(-10, 11, dtype=float)
     c = np.array([0.3, -1.2, 0.7, 0.05])
     y = c[0] + c[1] * k + c[2] * k**2 + c[3] * k**3
@@ -221,26 +234,26 @@ def test_the_smoother_is_exact_on_cubics_and_the_noise_is_the_encoders_quantum()
     t = np.arange(20_000) * 1e-3
     smooth = np.stack([0.4 * np.sin(1.3 * t), 0.2 * np.cos(0.7 * t) + t * 0.1, 0.3 * np.sin(2.1 * t + 1)], axis=1)
     quantized = Q * np.round(smooth / Q)
-    np.testing.assert_allclose(I.noise_levels(quantized), Q / math.sqrt(12), rtol=0.05)
+    np.testing.assert_allclose(identification.noise_levels(quantized), Q / math.sqrt(12), rtol=0.05)
 
 
 def test_one_entry_is_fixed_per_direction_the_log_does_not_identify():
     """R, L, Kt of one joint scale together (the null direction (1, 1, 1) in log p): a tie, so the
     entry named first is fixed, and the group says the others move one for one with it; an
     unequal direction fixes its largest entry, and the group gives the others' moves per unit."""
-    names = [I.Entry(n, n, 0, 1.0, True, 1.0) for n in ("R", "L", "Kt", "Kb")]
+    names = [identification.Entry(n, n, 0, 1.0, True, 1.0) for n in ("R", "L", "Kt", "Kb")]
     N = np.array([[1.0], [1.0], [1.0], [0.0]]) / math.sqrt(3)
-    fixed = I.choose_fixed(N)
+    fixed = identification.choose_fixed(N)
     assert fixed == [0]
-    (g,) = I.groups(N, fixed, names, np.eye(4))
+    (g,) = identification.groups(N, fixed, names, np.eye(4))
     assert g["fixed"] == "R" and g["moves"] == {"R": 1.0, "L": 1.0, "Kt": 1.0}
     N = np.array([[0.0], [0.2], [-1.0], [0.0]]) / math.sqrt(1.04)
-    fixed = I.choose_fixed(N)
+    fixed = identification.choose_fixed(N)
     assert fixed == [2]
-    assert I.groups(N, fixed, names, np.eye(4))[0]["moves"] == {"Kt": 1.0, "L": -0.2}
+    assert identification.groups(N, fixed, names, np.eye(4))[0]["moves"] == {"Kt": 1.0, "L": -0.2}
     # two directions: two entries fixed, and no direction left that keeps both still
     N = np.linalg.qr(np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]]))[0]
-    fixed = I.choose_fixed(N)
+    fixed = identification.choose_fixed(N)
     assert len(set(fixed)) == 2 and abs(np.linalg.det(N[fixed])) > 0.1
 
 
@@ -253,7 +266,9 @@ def test_the_identified_table_is_a_config_with_every_field():
         {"name": "payload", "field": "payload", "status": "fitted", "std": 0.01, "estimate": 2.5},
     ]
     params = {**fj.ARM_PARAMS._asdict(), "F": np.array([0.2, 0.03, 0.05]), "m3": np.asarray(40.0)}
-    text = I.arm_toml({"entries": entries, "params": params}, {"payload_range": [0.0, 10.0]}, "a header\nline 2")
+    text = identification.arm_toml(
+        {"entries": entries, "params": params}, {"payload_range": [0.0, 10.0]}, "a header\nline 2"
+    )
     assert text.startswith("# a header\n# line 2\n[arm]\n")
     table = tomllib.loads(text)["arm"]
     assert set(table) == set(fj.ArmParams._fields) | {"payload_range"}
@@ -306,7 +321,7 @@ def _open_loop_log(hidden, payload):
     u = np.stack([3 * np.sin(9 * t + j) + 2 * np.sin(23 * t + 2 * j) for j in range(3)], axis=1)[:n]
     X0 = jnp.array([0.0, 0, 0, 0.6, 0, 0, 0.4, 0, 0])
     theta, _ = _rk4_log(fj.Arm(hidden, jnp.asarray(payload)), X0, u, T)
-    return I.Log(t, Q * np.round(theta / Q), np.concatenate([u, u[-1:]]))
+    return identification.Log(t, Q * np.round(theta / Q), np.concatenate([u, u[-1:]]))
 
 
 @pytest.mark.slow  # a compilation of the fit: ~30 s
@@ -316,8 +331,8 @@ def test_a_small_fit_recovers_the_payload_and_torque_constants_from_an_open_loop
     is right, so the residual is the log's noise (misfit measured: 0.92) and no warning."""
     hidden = fj.ARM_PARAMS._replace(Kt=np.asarray(fj.ARM_PARAMS.Kt) * 0.7)
     log = _open_loop_log(hidden, 3.0)
-    settings = I.Settings(window=100, bootstrap=20, resolution=(Q,) * 3)
-    res = I.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings)
+    settings = identification.Settings(window=100, bootstrap=20, resolution=(Q,) * 3)
+    res = identification.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings)
     assert [e["status"] for e in res["entries"]] == ["fitted"] * 4 and res["groups"] == []
     np.testing.assert_allclose([e["estimate"] for e in res["entries"]], [*hidden.Kt, 3.0], rtol=0.01)
     assert res["fit"]["misfit"] < 2 and res["warnings"] == []

@@ -6,18 +6,20 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._firmware import identify as I
+from fosmc_jax._firmware import identify as identification
 
 LOOP = {"plant": {"kind": "arm", "payloads": [2.0]}, "controller": {"sample_period": 1e-3, "delay_samples": 1},
         "sensors": {"encoder_counts": [2621440, 2621440, 2621440]}, "sim": {"t_final": 0.3, "dt": 2.5e-4}}  # fmt: skip
 
 
 def test_the_delay_check_names_another_delay_only_when_it_fits_clearly_better():
-    assert I.delay_warning({0: 100.0, 1: 200.0, 2: 300.0}, 1).startswith("--delay 1: the log fits --delay 0 better")
-    assert "fit again with --delay 0" in I.delay_warning({0: 100.0, 1: 200.0}, 1)
-    assert I.delay_warning({0: 100.0, 1: 80.0, 2: 300.0}, 1) is None  # the configured one is best
-    assert I.delay_warning({0: 97.0, 1: 100.0}, 1) is None  # within the margin (5%): noise, not a verdict
-    assert I.delay_warning({0: 94.0, 1: 100.0}, 1) is not None
+    assert identification.delay_warning({0: 100.0, 1: 200.0, 2: 300.0}, 1).startswith(
+        "--delay 1: the log fits --delay 0 better"
+    )
+    assert "fit again with --delay 0" in identification.delay_warning({0: 100.0, 1: 200.0}, 1)
+    assert identification.delay_warning({0: 100.0, 1: 80.0, 2: 300.0}, 1) is None  # the configured one is best
+    assert identification.delay_warning({0: 97.0, 1: 100.0}, 1) is None  # within the margin (5%): noise, not a verdict
+    assert identification.delay_warning({0: 94.0, 1: 100.0}, 1) is not None
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".npz"])
@@ -25,10 +27,10 @@ def test_the_delay_check_names_another_delay_only_when_it_fits_clearly_better():
 def test_a_written_log_reads_back_exactly(tmp_path, suffix, currents):
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.uniform(0.9e-3, 1.1e-3, 50))
-    log = I.Log(t, rng.standard_normal((50, 3)), 24 * rng.standard_normal((50, 3)),
+    log = identification.Log(t, rng.standard_normal((50, 3)), 24 * rng.standard_normal((50, 3)),
                 rng.standard_normal((50, 3)) if currents else None)  # fmt: skip
-    I.write_log(log, tmp_path / f"log{suffix}")
-    back = I.read_log(tmp_path / f"log{suffix}")
+    identification.write_log(log, tmp_path / f"log{suffix}")
+    back = identification.read_log(tmp_path / f"log{suffix}")
     for a, b in zip(log, back):
         assert (a is None and b is None) or np.array_equal(a, b)
     assert [p.name for p in tmp_path.iterdir()] == [f"log{suffix}"]  # nothing else left (atomic write)
@@ -50,7 +52,7 @@ def test_a_log_needs_an_arm_in_a_digital_loop(change, key):
 def test_a_simulated_log_has_the_loops_samples_encoder_delay_and_currents(tmp_path):
     written = fj.identification_log(LOOP, tmp_path / "log.csv", currents=True)  # the config's delay: 1
     acting = fj.identification_log(LOOP, delay=0)
-    assert np.array_equal(I.read_log(tmp_path / "log.csv").u, written.u)
+    assert np.array_equal(identification.read_log(tmp_path / "log.csv").u, written.u)
     np.testing.assert_allclose(np.diff(written.t), 1e-3, rtol=1e-9)
     assert written.t.size == 301 and written.current.shape == (301, 3) and acting.current is None
     q = 2 * np.pi / 2621440
@@ -69,9 +71,9 @@ def test_a_wrong_delay_is_warned_and_the_right_one_is_not():
     kt = np.asarray(fj.ARM_PARAMS.Kt) * [1.2, 1, 1]
     cfg = {**LOOP, "sim": {"t_final": 1.0, "dt": 2.5e-4}, "arm": {"Kt": kt.tolist()}}
     log = fj.identification_log(cfg, delay=0)
-    settings = I.Settings(window=200, bootstrap=0, resolution=(2 * np.pi / 2621440,) * 3)
-    wrong = I.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings._replace(delay=1))
-    right = I.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings._replace(delay=0))
+    settings = identification.Settings(window=200, bootstrap=0, resolution=(2 * np.pi / 2621440,) * 3)
+    wrong = identification.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings._replace(delay=1))
+    right = identification.identify(fj.ARM_PARAMS, 2.0, log, ["Kt", "payload"], settings._replace(delay=0))
     costs = {int(d): c for d, c in wrong["log"]["delay_costs"].items()}
     assert set(costs) == {0, 1, 2, 3} and min(costs, key=costs.get) == 0
     assert [w for w in wrong["warnings"] if w.startswith("--delay 1: the log fits --delay 0 better")]

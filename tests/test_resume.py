@@ -19,8 +19,8 @@ import fosmc_jax as fj
 from fosmc_jax import _problems as _config
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import jsonable
-from fosmc_jax._search import front as F
-from fosmc_jax._search import tune as T
+from fosmc_jax._search import front as search_front
+from fosmc_jax._search import tune as tuner
 
 TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
@@ -39,7 +39,7 @@ integrator = "euler"
 train_dt = 4e-3
 """
 #: Given sizes with every stage: 4 chunks of global candidates, 2 CMA-ES generations, 3 local and 2 plain rounds.
-SIZES = F.Settings(points=3, candidates=32, steps=3, chunk=8, cma=2, polish=2, checkpoint_every=1)
+SIZES = search_front.Settings(points=3, candidates=32, steps=3, chunk=8, cma=2, polish=2, checkpoint_every=1)
 
 
 class Crash(Exception):
@@ -50,7 +50,7 @@ class Counted:
     """An evaluator whose compiled chunk counts its calls (the units of work done)."""
 
     def __init__(self, problem):
-        self.evaluator = F.Evaluator(problem)
+        self.evaluator = search_front.Evaluator(problem)
         run = self.evaluator.compiled()
         self.calls = 0
 
@@ -75,7 +75,7 @@ def _strip(result):
 def _run(problems, settings, **kw):
     train, plain, p0 = problems
     train.calls = plain.calls = 0
-    r = F.run(train.evaluator, plain.evaluator, p0, settings, **kw)
+    r = search_front.front_search(train.evaluator, plain.evaluator, p0, settings, **kw)
     return r, train.calls + plain.calls
 
 
@@ -97,7 +97,7 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
                                                                                  monkeypatch, k, stage):  # fmt: skip
     front, work = whole
     checkpoint = tmp_path / "checkpoint.npz"
-    save, saved = T._save, []
+    save, saved = tuner._save, []
 
     def crash_after_k(path, header, arrays):
         save(path, header, arrays)
@@ -105,13 +105,13 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
         if len(saved) == k:
             raise Crash
 
-    monkeypatch.setattr(T, "_save", crash_after_k)
+    monkeypatch.setattr(tuner, "_save", crash_after_k)
     train, plain, _ = problems
     with pytest.raises(Crash):
         _run(problems, SIZES, checkpoint=checkpoint, log=lambda _: None)
     before = train.calls + plain.calls
     assert saved[-1] == stage
-    monkeypatch.setattr(T, "_save", save)
+    monkeypatch.setattr(tuner, "_save", save)
     lines = []
     resumed, after = _run(problems, SIZES, checkpoint=checkpoint, resume=True, log=lines.append)
     assert lines[0].startswith(f"front: resumed from {checkpoint} at ")
@@ -122,11 +122,13 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
 @pytest.mark.slow  # a budgeted run and its replay (6-20 s): the default tier keeps its 4 minutes
 def test_a_budgeted_front_replays_bit_for_bit(problems):
     lines = []
-    budgeted, _ = _run(problems, F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1), log=lines.append)
+    budgeted, _ = _run(
+        problems, search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1), log=lines.append
+    )
     rec = budgeted["stages"]["replay"]
     assert rec["probe"] and rec["evaluated"] + 8 == budgeted["stages"]["candidates"]
     assert rec["local_rounds"] == budgeted["stages"]["local_rounds"]  # how many: the load decides
-    replayed, _ = _run(problems, F.replay_settings(budgeted["stages"]), log=lines.append)
+    replayed, _ = _run(problems, search_front.replay_settings(budgeted["stages"]), log=lines.append)
     assert _strip(replayed) == _strip(budgeted)
     # no time left below zero, whatever the load
     assert not [line for line in lines if "s left)" in line and "(-" in line]
@@ -137,32 +139,32 @@ def test_a_budgeted_front_replays_bit_for_bit(problems):
 def test_a_resumed_budgeted_front_replays_to_its_front(problems, tmp_path, monkeypatch):
     """Stopped at the end of its CMA-ES stage (the stage boundaries are checkpointed whatever
     the time since the last), resumed: its recorded work, replayed, gives its front."""
-    settings = F.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
-    save = T._save
+    settings = search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
+    save = tuner._save
 
     def crash_at_local(path, header, arrays):
         save(path, header, arrays)
         if header["stage"] == "local":
             raise Crash
 
-    monkeypatch.setattr(T, "_save", crash_at_local)
+    monkeypatch.setattr(tuner, "_save", crash_at_local)
     with pytest.raises(Crash):
         _run(problems, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
-    monkeypatch.setattr(T, "_save", save)
+    monkeypatch.setattr(tuner, "_save", save)
     lines = []
     resumed, _ = _run(problems, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lines.append)
     assert lines[0].endswith("at local round 0")
-    replayed, _ = _run(problems, F.replay_settings(resumed["stages"]), log=lambda _: None)
+    replayed, _ = _run(problems, search_front.replay_settings(resumed["stages"]), log=lambda _: None)
     assert _strip(replayed) == _strip(resumed)
 
 
 def test_a_budget_compilation_alone_exceeds_says_so_in_one_line(problems):
     lines = []
-    r, _ = _run(problems, F.Settings(points=3, chunk=8, budget=0.0), log=lines.append)
+    r, _ = _run(problems, search_front.Settings(points=3, chunk=8, budget=0.0), log=lines.append)
     short = [line for line in lines if "warning: --budget" in line]
     assert len(short) == 1 and "s of search after" in short[0]
     serve = int(short[0].split("a budget of ")[1].split(" s")[0])
-    assert serve >= F.MIN_SEARCH_S
+    assert serve >= search_front.MIN_SEARCH_S
     end = [line for line in lines if "the search ends" in line]
     assert len(end) == 1 and "after the run's deadline: the budget is shorter than compilation" in end[0]
     assert r["stages"]["replay"]["local_rounds"] == 0 and len(r["points"]) >= 1
@@ -170,7 +172,7 @@ def test_a_budget_compilation_alone_exceeds_says_so_in_one_line(problems):
 
 def test_replay_settings_refuse_a_front_without_recorded_work():
     with pytest.raises(ValueError, match="stages.replay: this front.json does not record its work"):
-        F.replay_settings({"candidates": 16, "local_rounds": 3})
+        search_front.replay_settings({"candidates": 16, "local_rounds": 3})
 
 
 @pytest.fixture
@@ -182,7 +184,7 @@ def finished(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     cfg = _config.load(config)
-    front = {"axes": list(F.AXES), "points": [], "stages": {"replay": {}}, "config": jsonable(cfg.as_dict())}
+    front = {"axes": list(search_front.AXES), "points": [], "stages": {"replay": {}}, "config": jsonable(cfg.as_dict())}
     (out / "front.json").write_text(json.dumps(front, indent=1))
     (out / "front.png").write_bytes(b"png")
     (out / "checkpoint.npz").write_bytes(b"npz")

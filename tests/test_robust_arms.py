@@ -6,7 +6,7 @@ import pytest
 
 import fosmc_jax as fj
 from fosmc_jax import _problems as _config
-from fosmc_jax._search import tune as T
+from fosmc_jax._search import tune as tuner
 
 # 3 sampled arms (torque constants +-50%: clearly different arms) x 2 payloads, 0.1 s of Euler
 # (the arm's vmap path compiles in less than half RK4's time; the integrator is not what is tested)
@@ -28,14 +28,14 @@ def test_worst_case_forms_run_over_the_sampled_arms():
     E = np.asarray(r.metrics.rms_error).mean(-1)
     C = np.asarray(r.metrics.chattering_hf).mean(-1)
     assert not np.asarray(r.diverged).any()
-    obj = T.objective_of(cfg["tune"], {"rms_error": E.mean(), "chattering_hf": C.mean()})
+    obj = tuner.objective_of(cfg["tune"], {"rms_error": E.mean(), "chattering_hf": C.mean()})
     # the weighted form on the log scale
     J = obj.weight_error * np.log(E / E.mean()) + obj.weight_chattering * np.log(C / C.mean())
     # the arms differ: the worst rollout is not the same for every arm's payloads
     assert np.ptp(J.reshape(3, 2).mean(1)) > 1e-3
-    u0 = T.to_internal(p0, plain.base, None)
+    u0 = tuner.to_internal(p0, plain.base, None)
     for form, worst in (("max", J.max()), ("cvar", np.sort(J)[::-1][:3].mean())):  # (1 - 0.5) x 6 = 3 worst
-        loss, _ = T.make_loss(plain, obj._replace(worst_case=form), None)(u0)
+        loss, _ = tuner.make_loss(plain, obj._replace(worst_case=form), None)(u0)
         np.testing.assert_allclose(float(loss), J.mean() + 2.0 * worst, rtol=1e-4, atol=1e-5, err_msg=form)
 
 

@@ -9,7 +9,7 @@ import pytest
 
 import fosmc_jax as fj
 from fosmc_jax import _problems as _config
-from fosmc_jax._app import commands as C
+from fosmc_jax._app import commands
 from fosmc_jax._app.cli import main
 from fosmc_jax._io import versions
 
@@ -34,21 +34,21 @@ UNCERTAIN = dict(NOMINAL, plant={"uncertainty": "sample", "samples": 3})
 )
 def test_one_plant_rule(plant, one):
     cfg = _config.resolve({"plant": plant})
-    assert (C.one_plant(cfg) is None) if one is None else (one in C.one_plant(cfg))
+    assert (commands.one_plant(cfg) is None) if one is None else (one in commands.one_plant(cfg))
 
 
 def test_a_box_of_zero_width_is_one_plant():
     box = _config.resolve({})["plant"]["box"]
     flat = {"A_lower": box["A_lower"], "A_upper": box["A_lower"], "B_lower": box["B_lower"], "B_upper": box["B_lower"]}
     cfg = _config.resolve({"plant": {"uncertainty": "vertices", "samples": 8, "box": flat}})
-    assert C.one_plant(cfg) == "one plant of the box"
+    assert commands.one_plant(cfg) == "one plant of the box"
 
 
 def test_offsets_and_noise_do_not_make_a_plant_uncertain():
     cfg = _config.resolve({"sim": {"initial_offset": [[0.0] * 9, [0.01] + [0.0] * 8]},
                            "controller": {"sample_period": 1e-3},
                            "sensors": {"noise_std": [1e-4] + [0.0] * 8, "realizations": 4}})  # fmt: skip
-    assert C.one_plant(cfg) == "the nominal linear model"
+    assert commands.one_plant(cfg) == "the nominal linear model"
 
 
 class _Stop(Exception):
@@ -114,7 +114,7 @@ def test_tune_logs_name_tune_and_the_objectives_metrics(tuned):
 @pytest.mark.slow  # a real (tiny) run: 10-14 s of compilation
 def test_tune_prints_the_metrics_it_optimises_with_their_units(tuned, monkeypatch, capsys):
     result = tuned[0]
-    monkeypatch.setattr(C, "run_tune", lambda *a, **k: result)  # the printing only
+    monkeypatch.setattr(commands, "run_tune", lambda *a, **k: result)  # the printing only
     assert main(["tune", "--steps", "2"]) == 0
     rows = capsys.readouterr()[0].splitlines()
     assert [r.split("  initial")[0].rstrip() for r in rows] == [

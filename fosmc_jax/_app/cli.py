@@ -131,7 +131,7 @@ def _simulate_json_parts(r: dict, block: int = 10_000) -> Iterator[str]:
     after the other: its records (``rollout_records``), one per line, ``block`` rollouts per
     part (so that a batch of 10^7 never holds its text at once), written by json's C encoder
     from one ``tolist`` per array and block (records of NumPy rows through ``jsonable`` and an
-    indented dump cost 1 s at 16,384 rollouts, more than the simulation; BENCHMARKS.md).
+    indented dump cost more than the simulation: BENCHMARKS.md, "Figures behind the code").
     Non-finite numbers become null, as ``jsonable`` makes them (the records hold only
     numbers and booleans, so the tokens cannot be in a string). The versions (``"fosmc_jax"``,
     from ``run_simulate``) come first, the rollouts next."""

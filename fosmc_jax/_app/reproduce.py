@@ -172,14 +172,14 @@ def _run(cfg: problems.Config, params: list[FOSMCParams], switching: str, realis
     """Every (params x payload) of ``cfg``'s arm, each run in the ideal loop or the config's
     digital loop: one vmapped call, results with a leading axis (len(params) * P)."""
     problem = problems.build(problems.replace(cfg, controller={"switching": switching}))
-    make = problem.make if realistic else functools.partial(FOSMC, switching=switching)
+    controller_of = problem.make if realistic else functools.partial(FOSMC, switching=switching)
     if not save_every:  # metrics only: the arm's kernel
         keys = None if problem.keys is None else problem.keys[:1]
-        return _batched(problem.plants, jax.vmap(make)(_stack(params)), problem.reference, problem.X0s[0],
+        return _batched(problem.plants, jax.vmap(controller_of)(_stack(params)), problem.reference, problem.X0s[0],
                         problem.dt, keys=keys, n_steps=problem.options["n_steps"],
                         integrator=problem.options["integrator"])  # fmt: skip
     P = jax.tree.leaves(problem.plants)[0].shape[0]
-    ctrls = _stack([make(p) for p in params for _ in range(P)])
+    ctrls = _stack([controller_of(p) for p in params for _ in range(P)])
     plants = jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * len(params)), problem.plants)
     key = None if problem.keys is None else problem.keys[0]
     one = functools.partial(simulate, n_steps=problem.options["n_steps"], integrator=problem.options["integrator"],

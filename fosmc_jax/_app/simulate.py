@@ -158,8 +158,8 @@ def run_simulate(
             raise ConfigError(f"--resume: {e}") from None
     else:
         result = jax.block_until_ready(run(*problem.args, keys=problem.keys, **problem.options))
-        # one transfer per array (indexing a device array per rollout cost 27 of 45 s at 16,384
-        # rollouts: BENCHMARKS.md)
+        # one transfer per array: indexing a device array per rollout costs a transfer each
+        # (BENCHMARKS.md, "Figures behind the code")
         arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
         arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at))
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")

@@ -20,7 +20,7 @@ from .. import _problems as problems
 from .._design import paper
 from .._io import jsonable, write_text
 from .._search import tune as tuner
-from .._search.front import Evaluator, Settings, point_of, replay_settings, run
+from .._search.front import Evaluator, Settings, front_search, point_of, replay_settings
 from .._simulator import sharding
 
 
@@ -123,7 +123,7 @@ def study(cfg: problems.Config, settings: Settings, *, out: Path | None = None, 
     held_s = sharding.first(float(held_s))  # process 0's: the search's plan is the same on every process
     log(f"front: the held-out evaluation costs {1e3 * held_s:.1f} ms per front point")
     checkpoint = None if out is None else Path(out) / "checkpoint.npz"
-    result = run(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
+    result = front_search(train, plain, p0, settings, checkpoint=checkpoint, resume=resume,
                  deadline=t0 + settings.budget - WRITE_S, reserve_per_point=1.5 * held_s, log=log)  # fmt: skip
     params = type(p0)(*(jnp.asarray(np.array([pt["params"][k] for pt in result["points"]]), x.dtype)
                         for k, x in zip(p0._fields, p0)))  # fmt: skip

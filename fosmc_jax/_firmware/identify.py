@@ -23,7 +23,7 @@ state unknowns are eliminated from the normal equations (Schur complement), so a
 Jacobian (forward mode, 9 + p tangents per window) and a p x p solve. A trust region caps each
 step's largest |dz| (:data:`MAX_STEP` at first), and the weakly identified entries (standard
 deviation above :data:`WEAK` x the threshold) join only once the others are fitted: without
-either, a parameter runs off (Jm or F to zero) while the others are still wrong (measured).
+either, a parameter runs off (Jm or F to zero) while the others are still wrong (docs/identify.md).
 
 **Identifiability.** Angles and voltages alone leave some directions of the parameters
 invisible: scaling R, L and Kt of one joint together (the current scales the other way), or
@@ -47,9 +47,8 @@ Both hold the fixed entries at their configured values; how each estimate moves 
 residuals the log's noise. A residual RMS more than :data:`MISFIT` times the angles' noise (the
 log's scatter, at least the encoder's quantum / sqrt(12)) is a model error, a wrong parameter left
 out of the fit or an effect the arm model lacks, and is reported with a warning (:func:`misfit`):
-the estimates are then biased by more than their standard deviations say (measured: Kt fitted
-alone to 1 s of a closed loop whose Kb is 10-20% off the configured one: Kt[1] 23% off at a
-standard deviation of 1%, the residual 320 times the noise).
+the estimates are then biased by more than their standard deviations say (docs/identify.md
+gives an example).
 
 Run in float64 (``jax.enable_x64``): the encoder's quantum is 1e-6 of the angles.
 """
@@ -86,12 +85,12 @@ DELAYS = 3
 #: Levenberg-Marquardt steps (states and free parameters) of each other delay's check, from the fit's optimum.
 DELAY_ITERATIONS = 10
 #: Another delay whose cost is below the configured one's by more than this share is said to fit the log better
-#: (:func:`delay_warning`); a right delay's neighbours cost more (measured: docs/identify.md).
+#: (:func:`delay_warning`); a right delay's neighbours cost more (docs/identify.md).
 DELAY_MARGIN = 0.05
 #: The fewest windows a bootstrap resamples (with fewer, the standard deviations are Gauss-Newton's only).
 BOOTSTRAP_WINDOWS = 5
 #: The residual RMS, in units of the angles' noise, above which the model does not explain the log
-#: (:func:`misfit`): a right model leaves the noise (measured: 0.92-0.94 on synthetic logs), and at 10
+#: (:func:`misfit`): a right model leaves the noise (docs/identify.md), and at 10
 #: the model's error is 99% of the residual's power; margin is left for what real logs hold beyond the
 #: arm model and for noise the scatter about local cubics understates (correlated over 21 samples).
 MISFIT = 10.0

@@ -282,7 +282,7 @@ def without_idle_terms(plant):
     """``plant`` with each optional term (:data:`OPTIONAL_TERMS`) whose amplitude is concretely
     zero (in every arm of a batch) set to None: the same dynamics, without evaluating the zero
     term (3 tanh or sin per evaluation of the accelerations, which the ``vmap`` path would pay
-    at every stage of every step: about 2.3x its time with all of them). The simulator does
+    at every stage of every step; what that costs: BENCHMARKS.md, "Figures behind the code"). The simulator does
     this before it compiles (:func:`fosmc_jax.simulate`, :func:`fosmc_jax.simulate_batch`);
     traced amplitudes (a derivative in them) stay. Anything but an :class:`Arm` is returned as
     it is."""
@@ -566,8 +566,8 @@ def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[t
 
 # Rematerialised under reverse mode: the closed form is a few hundred cheap elementwise
 # operations, and saving each of their results for the backward pass (at every step of a
-# checkpointed block) costs more than recomputing them from the nine state entries (value
-# and grad of the tuner's loss, batch 64 x 4,000 steps: about 12x -> 7x the forward, CPU).
+# checkpointed block) costs more than recomputing them from the nine state entries
+# (BENCHMARKS.md, "Figures behind the code").
 # prevent_cse=False: it runs inside scan, where there is no CSE across steps to prevent.
 @functools.partial(jax.checkpoint, prevent_cse=False)
 def _accelerations(params: ArmParams, payload: Array, state: ArmState, t: Array) -> tuple[Array, Array, Array]:

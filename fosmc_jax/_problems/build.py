@@ -193,11 +193,11 @@ def problem_of(cfg: Config) -> Problem:
     params = controller_of(cfg, dtype)
     law, loop = _law_and_loop(cfg, dtype)
     if ctl.kind == "fosmc":
-        base, make = params, lambda params: loop(law(params))
+        base, controller_from = params, lambda params: loop(law(params))
     else:  # the kind's parameters are fields of its law
-        base, make = law(params), loop
+        base, controller_from = law(params), loop
     arm = arm_params_of(cfg, dtype) if cfg.plant.kind == "arm" else None  # the nominal, sampled arms around it
-    return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), make, ctl.kind, arm)
+    return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), controller_from, ctl.kind, arm)
 
 
 #: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes, shorter

@@ -42,19 +42,18 @@ OUTPUT_EXTRA_BYTES = 1 + 6 * 8
 #: metric), the device's metrics and ``diverged_at``, and its initial state (9).
 WORK_FLOATS = 9 + 3 * len(METRIC_NAMES) + 3 * len(METRIC_NAMES) + 1 + 9
 #: How many times :data:`WORK_FLOATS` (with a plant's entries) a chunk is sized at: XLA's
-#: temporaries. Measured: peak RSS grew 1.0-1.5 x :func:`estimate` per rollout between 50,000
-#: and 400,000 rollouts (linear native path, a noisy digital loop, ``[sample]`` offsets, sampled arms).
+#: temporaries, with room over the peak resident memory seen (BENCHMARKS.md, "Figures behind the code").
 WORK_FACTOR = 2
 #: Bytes of one rollout's record (``run_simulate(records=True)``: a dict of ints and of metric
-#: rows): 1.6 KB measured (tracemalloc, 20,000 records).
+#: rows), rounded up from tracemalloc's count (BENCHMARKS.md, "Figures behind the code").
 RECORD_BYTES = 1700
-#: Bytes per number of the draws ``run_simulate`` returns as lists (``sampled``; 39 B measured),
-#: and per sampled arm (``arms``: a dict of lists, 3.1 KB measured for the arm's 52 entries),
-#: each doubled for ``--json``'s copy and text.
+#: Bytes per number of the draws ``run_simulate`` returns as lists (``sampled``), and per
+#: sampled arm (``arms``: a dict of lists of the arm's 52 entries), each twice tracemalloc's
+#: count, for ``--json``'s copy and text (BENCHMARKS.md, "Figures behind the code").
 SAMPLED_BYTES, ARM_RECORD_BYTES = 80, 6400
-#: What compiling and running take beyond the process that plans (its JAX backend started: 1.8
-#: GB of address space, 0.3 GB resident): measured up to 0.3 GB more address space and 0.4 GB
-#: more resident, an arm's noisy digital loop compiled afresh (a linear batch: 0.05 and 0.08).
+#: What compiling and running take beyond the process that plans (its JAX backend started),
+#: above the most an arm's noisy digital loop compiled afresh was seen to take
+#: (BENCHMARKS.md, "Figures behind the code").
 RESERVE = 0.75e9
 #: The fewest rollouts worth a chunk.
 MIN_CHUNK = 64

@@ -27,12 +27,12 @@ def frozen(value: Any) -> Any:
     return tuple(frozen(v) for v in value) if isinstance(value, (list, tuple)) else value
 
 
-def plain(value: Any) -> Any:
+def as_toml(value: Any) -> Any:
     """The TOML layout of a typed value: tables as dicts, tuples as lists."""
     if isinstance(value, Table):
         return value.as_dict()
     if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
+        return [as_toml(v) for v in value]
     return value
 
 
@@ -63,12 +63,12 @@ class Table(Mapping):
 
     def as_dict(self) -> dict[str, Any]:
         """The table in the TOML's layout, a fresh plain dict (JSON-ready)."""
-        return {key: plain(value) for key, value in self.entries()}
+        return {key: as_toml(value) for key, value in self.entries()}
 
     def __getitem__(self, key: str) -> Any:
         for k, value in self.entries():
             if k == key:
-                return value if isinstance(value, Table) else plain(value)
+                return value if isinstance(value, Table) else as_toml(value)
         raise KeyError(key)
 
     def __iter__(self) -> Iterator[str]:

@@ -202,7 +202,7 @@ def sample_candidates(p0: tuner.Params, n: int, seed: int) -> tuner.Params:
 class Evaluator:
     """Mean metrics of many parameter sets of one problem, in jitted, vmapped chunks split over
     every local device (on CPU one per core after :func:`fosmc_jax.use_all_cores`: the CLI's
-    default; 2.2x on 2 cores), and over every process's devices in a run across processes
+    default), and over every process's devices in a run across processes
     (``jax.distributed``: each process holds every chunk, runs its devices' slice, and gets
     all the metrics back); candidates are independent, so the split changes no result. The
     object owns its compilation (one per chunk size): a second call reuses it; a fresh
@@ -397,11 +397,11 @@ class _Clock:
         return time.perf_counter() - self.start
 
 
-#: Seconds of search below which :func:`run` says that its budget is short (and names one that gives them).
+#: Seconds of search below which :func:`front_search` says that its budget is short (and names one that gives them).
 MIN_SEARCH_S = 30.0
 
 
-def run(
+def front_search(
     train: tuner.Problem | Evaluator,
     plain: tuner.Problem | Evaluator,
     p0: tuner.Params,
@@ -657,6 +657,10 @@ def run(
               "replay": {"seed": settings.seed, "points": settings.points, "chunk": settings.chunk,
                          **work._asdict()}}  # fmt: skip
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
+
+
+#: The former name of :func:`front_search`, until tests/test_tuning_kinds.py moves to the new one.
+run = front_search
 
 
 def replay_settings(stages: dict[str, Any]) -> Settings:

@@ -158,7 +158,7 @@ def _table(reference, a_rows, b_rows, dt, k: Array, *, stages: int, m: int) -> A
     return jnp.concatenate(parts, axis=1)
 
 
-def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, how: dict) -> Array:
+def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, digital: bool, flags: dict) -> Array:
     """``n_steps`` steps of the kernel: ``carry`` (R, N) and ``lanes`` (LANE_ROWS, N) with any N (padded
     here to whole blocks), ``shared`` = (reference, a_rows, b_rows, dt, the low-pass's (decay,
     weight), bound). Calls of a few hundred steps (see TABLE_BYTES) in a scan."""
@@ -170,8 +170,8 @@ def _advance(carry: Array, lanes: Array, shared, *, n_steps: int, rk4: bool, dig
     consts = jnp.stack([dt, *gain, jnp.minimum(bound, jnp.finfo(dtype).max)]).astype(dtype)
     stages = 0 if digital else 3 if rk4 else 1
     call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct(carry.shape, dtype), vmap_method="sequential")
-    m = how["m"]  # the sample period in steps: the table's flag; the rest are the kernel's attributes
-    attrs = {name: np.int32(v) for name, v in dict(how, rk4=rk4, digital=digital).items() if name != "m"}
+    m = flags["m"]  # the sample period in steps: the table's flag; the rest are the kernel's attributes
+    attrs = {name: np.int32(v) for name, v in dict(flags, rk4=rk4, digital=digital).items() if name != "m"}
 
     def chunk(c, k0, length):
         table = _table(reference, a_rows, b_rows, dt, k0 + jnp.arange(length), stages=stages, m=m)
@@ -222,13 +222,15 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
     delay = ctrl.delay if digital else 0
     law = _law_of(ctrl)
     fosmc = isinstance(law, (FOSMC, DiscreteFOSMC))
-    how = dict(kind=(SAMPLED if digital else IDEAL)[type(law if digital else ctrl)], delay=delay,
-               switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
-               difference=digital and ctrl.sensors.derivatives == "difference",
-               m=ctrl.sample_steps if digital else 1)  # fmt: skip
+    flags = dict(kind=(SAMPLED if digital else IDEAL)[type(law if digital else ctrl)], delay=delay,
+                 switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
+                 difference=digital and ctrl.sensors.derivatives == "difference",
+                 m=ctrl.sample_steps if digital else 1)  # fmt: skip
     gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
     shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
-    advance = _folded(functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, how=how))
+    advance = _folded(
+        functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, flags=flags)
+    )
     out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
     fields = out[METRICS].reshape(_native.ACC, 3, N)
     acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))

@@ -98,8 +98,8 @@ def _linear_batch(
     derived = derive(controller)
     C, S, CB_inv, K = (_rows(m, 2) for m in (controller.C, derived.S, derived.CB_inv, derived.K))
     # Every batch vector has the shape ``lanes``, (P, O), or (P,) when O = 1: a trailing axis
-    # of length 1 leaves XLA:CPU a loop it does not vectorise (2.7x slower at P = 4,096,
-    # O = 1, the CLI's ``uncertainty = "sample"`` batch).
+    # of length 1 leaves XLA:CPU a loop it does not vectorise (BENCHMARKS.md, "Figures behind
+    # the code").
     lanes = (P, O) if O > 1 else (P,)
     col = (lambda a: a[..., None]) if O > 1 else (lambda a: a)
     A = _rows(col(jnp.moveaxis(plants.a_rows, 0, -1)), 2)  # entries (P, 1), or (P,)
@@ -107,11 +107,11 @@ def _linear_batch(
     gamma, delta = _rows(controller.gamma), _rows(controller.delta)
     # XLA:CPU fuses each output separately and would recompute shared terms in each; an
     # optimization_barrier does not survive its pipeline, but a conditional's outputs are
-    # always materialised: ``once`` runs ``fn`` under an always-true cond, so that every
+    # always materialised: ``materialised`` runs ``fn`` under an always-true cond, so that every
     # stage's result is a (P, O) vector computed once per step.
     always = jnp.isfinite(dt)
 
-    def once(fn):
+    def materialised(fn):
         return lambda *args: jax.lax.cond(always, fn, fn, *args)
 
     def sample(x, w, t):
@@ -133,7 +133,7 @@ def _linear_batch(
             dx = (x[1], x[2], jerk[0], x[4], x[5], jerk[1], x[7], x[8], jerk[2])
             return dx, _mv(S, _sub(x, _rows(desired_state(reference(t)))))
 
-        return once(f)
+        return materialised(f)
 
     def ok_of(x, w, U, s):
         finite = functools.reduce(operator.and_, (jnp.isfinite(v) for v in x + w + U + s))
@@ -143,9 +143,9 @@ def _linear_batch(
 
     def body(c: _Batch, _) -> tuple[_Batch, None]:
         t = c.k.astype(dtype) * dt
-        x, w = once(lambda y: step(field(c.U), t, y, dt))((c.x, c.w))
+        x, w = materialised(lambda y: step(field(c.U), t, y, dt))((c.x, c.w))
         k = c.k + 1
-        U, s, e = once(sample)(x, w, k.astype(dtype) * dt)
+        U, s, e = materialised(sample)(x, w, k.astype(dtype) * dt)
         ok = ok_of(x, w, U, s)
         acc = tuple(_metrics.add(a, ej, uj, pj, gain) for a, ej, uj, pj in zip(c.acc, e, U, c.U))
         kept, diverged, diverged_at = _guard(
@@ -154,7 +154,7 @@ def _linear_batch(
         return _Batch(k, *kept, diverged, diverged_at), None
 
     # Two steps per loop trip: a little faster than one (benchmarks/loop_variants.py); a packed
-    # carry, more unrolling, no ``once`` or blocks of the batch were slower or no faster.
+    # carry, more unrolling, no ``materialised`` or blocks of the batch were slower or no faster.
     advance = functools.partial(_scan_steps, body, unroll=2)
 
     x = tuple(jnp.broadcast_to(X0s[:, i], lanes) for i in range(9))
@@ -187,7 +187,7 @@ def _linear_batch(
     return Result(_metrics.masked(jax.tree.map(flat, metrics), diverged), diverged, flat(carry.diverged_at), None)
 
 
-def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **how) -> _Batch:
+def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt, gain, bound, **kernel_opts) -> _Batch:
     """``n_steps`` of ``body`` in :mod:`fosmc_jax._simulator.native`'s kernel: the carry packed into
     rows of lanes (padded to a multiple of its block), the time-only terms in a table; every
     input in the carry's dtype (the widest of the inputs', as the scan promotes them)."""
@@ -212,12 +212,12 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
 
     def table(k):
         t = k.astype(dt.dtype) * dt
-        stages = [X_d_at(t)] if not how["rk4"] else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)]
+        stages = [X_d_at(t)] if not kernel_opts["rk4"] else [X_d_at(t), X_d_at(t + dt / 2), X_d_at(t + dt)]
         t1 = (k + 1).astype(dt.dtype) * dt
         X_d, Omega, rho_ref = jax.vmap(functools.partial(_time_terms, controller, reference))(t1)
         return jnp.concatenate([*stages, X_d, Omega, rho_ref[:, None], t1[:, None]], axis=1).astype(dtype)
 
-    out = _native.advance(carry, ab, consts, table, c.k, n_steps, **how)[:, :n].reshape((-1, *lanes))
+    out = _native.advance(carry, ab, consts, table, c.k, n_steps, **kernel_opts)[:, :n].reshape((-1, *lanes))
     div = _native.LIN_DIV
     x, w, U, acc = out[:9], out[9:12], out[12 : _native.LIN_ACC], out[_native.LIN_ACC : div]
     div, div_at = out[div], out[div + 1]

@@ -246,8 +246,8 @@ def first(value):
 def replicated(tree):
     """``tree`` placed whole on every local device, on :func:`simulate_split`'s mesh: how the
     gradients of a loss on it come out, so that a jitted optimizer step fed its own outputs
-    compiles once (an uncommitted first input compiled a second program: 34 -> 21 s on
-    arm_set2_truncated, tuning/results/truncation.md)."""
+    compiles once (an uncommitted first input compiles a second program; what that cost:
+    BENCHMARKS.md, "Figures behind the code")."""
     if across_processes():  # every process's devices: the tuner's loss spans them
         return spread(tree, Mesh(np.asarray(jax.devices()), (AXIS,)), Spec())
     if jax.local_device_count() == 1:
