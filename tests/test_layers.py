@@ -33,17 +33,25 @@ def _layer(parts: tuple[str, ...]) -> int:
 
 def _imports(path: pathlib.Path):
     """(line, target parts under fosmc_jax) of every import of the package in a file."""
-    rel = path.relative_to(PKG).parts
-    for node in ast.walk(ast.parse(path.read_text())):
+    return _imports_in(path.read_text(), path.relative_to(PKG).parts)
+
+
+def _imports_in(source: str, rel: tuple[str, ...]):
+    """(line, target parts under fosmc_jax) of every import of the package in ``source``, the
+    text of the module at ``rel`` (its path parts under fosmc_jax), in every form: relative,
+    ``from fosmc_jax[.x] import y``, ``import fosmc_jax[.x]`` (the bare package: its face,
+    ``()``), ``importlib.import_module("fosmc_jax.x")`` with a literal name, at the module's
+    top or inside functions."""
+    for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.ImportFrom):
             if node.level:  # relative: resolve against the file's package
                 base = list(rel[:-1])[: len(rel) - node.level]
                 target = base + (node.module.split(".") if node.module else [])
-                names = [target + [a.name] for a in node.names] if not node.module else [target]
+                names = [target + [a.name] for a in node.names]  # each name: a module or a member
             elif node.module == "fosmc_jax":  # from the package's face: each name is what it imports
                 names = [[a.name] for a in node.names]
-            elif node.module and node.module.split(".")[0] == "fosmc_jax":
-                names = [node.module.split(".")[1:]]
+            elif node.module and node.module.split(".")[0] == "fosmc_jax":  # each name: a module or a member
+                names = [node.module.split(".")[1:] + [a.name] for a in node.names]
             else:
                 continue
             for t in names:
@@ -51,8 +59,35 @@ def _imports(path: pathlib.Path):
                     yield node.lineno, tuple(t)
         elif isinstance(node, ast.Import):
             for a in node.names:
-                if a.name.split(".")[0] == "fosmc_jax" and "." in a.name:
+                if a.name.split(".")[0] == "fosmc_jax":
                     yield node.lineno, tuple(a.name.split(".")[1:])
+        elif (
+            isinstance(node, ast.Call)
+            and (ast.unparse(node.func) in ("importlib.import_module", "import_module", "__import__"))
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+            and node.args[0].value.split(".")[0] == "fosmc_jax"
+        ):
+            yield node.lineno, tuple(node.args[0].value.split(".")[1:])
+
+
+def test_every_import_form_is_seen():
+    source = """
+from .. import _io
+from ..search import front_search
+from . import step
+import fosmc_jax
+import fosmc_jax._app.cli
+from fosmc_jax import search
+from fosmc_jax._app import cli as command_line
+def late():
+    from .._app import study
+    importlib.import_module("fosmc_jax._app.front")
+"""
+    seen = sorted(t for _, t in _imports_in(source, ("_simulator", "rollout.py")))
+    assert seen == sorted([("_io",), ("search", "front_search"), ("_simulator", "step"), (), ("_app", "cli"),
+                           ("search",), ("_app", "cli"), ("_app", "study"), ("_app", "front")])  # fmt: skip
 
 
 def test_the_layer_list_is_the_folder_listing():
