@@ -75,21 +75,7 @@ def certify(
     Runs in float64.
     """
     cfg = as_config(config)
-    if cfg.controller.kind != "fosmc":
-        raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
-                          f"'{cfg.controller.kind}'")  # fmt: skip
-    if cfg.controller.sample_period:
-        raise ConfigError(
-            "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "
-            "loop; a digital loop (sample_period > 0: sampling, sensors, delay, saturation) cannot be certified "
-            "this way (set sample_period = 0)"
-        )
-    plant = plant or cfg.plant.kind
-    law = law or cfg.controller.law
-    if plant not in ("linear", "arm"):
-        raise ValueError(f"plant must be 'linear' or 'arm', got {plant!r}")
-    if n_s < 26:
-        raise ValueError(f"n_s must be at least 26 (the sign patterns), got {n_s}")
+    plant, law = _checked(cfg, plant or cfg.plant.kind, n_s), law or cfg.controller.law
     n_times = n_times if n_times is not None else (81 if plant == "linear" else 21)
     n_z = n_z if n_z is not None else (200 if plant == "linear" else 30)
     rng = np.random.default_rng(seed)
@@ -113,54 +99,102 @@ def certify(
             "seed": seed,
         }
         derivs = jax.vmap(ref)(jnp.asarray(times))  # (T, 4, 3)
-        Zj, Sj = jnp.asarray(Zs), jnp.asarray(S)
-        n_pts = len(times) * len(Zs) * len(S)
-        if plant == "linear":
-            box = box_of(cfg)
-            m = int(sum(np.count_nonzero(hi - lo > 0) for lo, hi in (box[:2], box[2:])))
-            if vertices == "all":
-                boxj = tuple(jnp.asarray(b) for b in box)
-                values = box_values(ctrl, derivs, Zj, Sj, boxj, switching, law)  # (T, nZ, nS)
-                vmax, k = argmax(values)
-                it, iz, i_s = np.unravel_index(int(k), values.shape)
-                _, a_v, b_v = box_max_hitting(ctrl, derivs[it], Zj[iz], Sj[i_s], boxj, switching, law)
-                a_v, b_v = np.asarray(a_v), np.asarray(b_v)
-                code = code_of(
-                    np.concatenate([a_v, b_v], 1),
-                    np.concatenate(box[::2], 1),
-                    np.concatenate(box[1::2], 1),
-                )
-                where = {"vertex_code": code, "A_rows": a_v.tolist(), "B_rows": b_v.tolist()}
-                label = f"all 2^{m} vertices (exact closed-form maximum over the box)"
-                points, evaluations = n_pts * 2**m, n_pts
-            else:
-                lo, hi = np.concatenate(box[::2], 1), np.concatenate(box[1::2], 1)
-                codes = vertex_codes(m, int(vertices), rng)
-                V = vertices_from_codes(codes, lo, hi)
-                values = vertex_values(ctrl, derivs, Zj, Sj, jnp.asarray(V[:, :, :9]), jnp.asarray(V[:, :, 9:]),
-                                        switching, law)  # fmt: skip
-                vmax, k = argmax(values)
-                iv, it, iz, i_s = np.unravel_index(int(k), values.shape)
-                where = {
-                    "vertex_code": int(codes[iv]),
-                    "A_rows": V[iv, :, :9].tolist(),
-                    "B_rows": V[iv, :, 9:].tolist(),
-                }
-                label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
-                points = evaluations = n_pts * codes.size
+        grid = _Grid(ctrl, derivs, jnp.asarray(Zs), jnp.asarray(S), switching, law, len(times) * len(Zs) * len(S))
+        if plant == "linear" and vertices == "all":
+            found = _over_the_box(grid, box_of(cfg))
+        elif plant == "linear":
+            found = _over_vertices(grid, box_of(cfg), int(vertices), rng)
         else:
-            payload_range = tuple(cfg.arm.payload_range)
-            payloads = np.linspace(*payload_range, n_payloads)
-            params = arm_params_of(cfg, jnp.float64)
-            values = arm_values(ctrl, derivs, Zj, Sj, params, jnp.asarray(payloads), switching, law)  # (P, T, nZ, nS)
-            vmax, k = argmax(values)
-            ip, it, iz, i_s = np.unravel_index(int(k), values.shape)
-            where = {"payload": float(payloads[ip])}
-            label = f"arm at {n_payloads} payloads evenly over {payload_range} kg"
-            points = evaluations = n_pts * n_payloads
+            found = _over_payloads(grid, cfg, n_payloads)
+        vmax, (it, iz, i_s), where, label, points, evaluations = found
         vmax = float(vmax)
         where = {"t": float(times[it]), "Z": Zs[iz].tolist(), "s": S[i_s].tolist(), **where}
     return Certificate(vmax, bool(vmax < 0), int(points), int(evaluations), where, label, plant, envelope)
+
+
+def _checked(cfg: Config, plant: str, n_s: int) -> str:
+    """``plant``, once the config is one :func:`certify` checks (the FOSMC's ideal loop) and
+    ``plant`` and ``n_s`` are in range."""
+    if cfg.controller.kind != "fosmc":
+        raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
+                          f"'{cfg.controller.kind}'")  # fmt: skip
+    if cfg.controller.sample_period:
+        raise ConfigError(
+            "controller.sample_period: certify checks the hitting condition (20) of the ideal, continuous-time "
+            "loop; a digital loop (sample_period > 0: sampling, sensors, delay, saturation) cannot be certified "
+            "this way (set sample_period = 0)"
+        )
+    if plant not in ("linear", "arm"):
+        raise ValueError(f"plant must be 'linear' or 'arm', got {plant!r}")
+    if n_s < 26:
+        raise ValueError(f"n_s must be at least 26 (the sign patterns), got {n_s}")
+    return plant
+
+
+class _Grid(NamedTuple):
+    """The sampled points of :func:`certify`: the controller, the reference's derivatives at
+    the instants (T, 4, 3), the errors Z (nZ, 9) and s values (nS, 3), the law, and the count
+    of (instant, Z, s) points."""
+
+    ctrl: Any
+    derivs: Any
+    Z: Any
+    S: Any
+    switching: str
+    law: str
+    n_points: int
+
+
+def _box_size(box) -> int:
+    """The number m of the box's rows that vary (2^m vertices)."""
+    return int(sum(np.count_nonzero(hi - lo > 0) for lo, hi in (box[:2], box[2:])))
+
+
+def _over_the_box(grid: _Grid, box):
+    """The largest value over the whole box, exactly (closed form per point): (max, its
+    (instant, Z, s) indices, its vertex, label, points covered, evaluations)."""
+    m = _box_size(box)
+    boxj = tuple(jnp.asarray(b) for b in box)
+    values = box_values(grid.ctrl, grid.derivs, grid.Z, grid.S, boxj, grid.switching, grid.law)  # (T, nZ, nS)
+    vmax, k = argmax(values)
+    it, iz, i_s = np.unravel_index(int(k), values.shape)
+    _, a_v, b_v = box_max_hitting(grid.ctrl, grid.derivs[it], grid.Z[iz], grid.S[i_s], boxj, grid.switching, grid.law)
+    a_v, b_v = np.asarray(a_v), np.asarray(b_v)
+    code = code_of(np.concatenate([a_v, b_v], 1), np.concatenate(box[::2], 1), np.concatenate(box[1::2], 1))
+    where = {"vertex_code": code, "A_rows": a_v.tolist(), "B_rows": b_v.tolist()}
+    label = f"all 2^{m} vertices (exact closed-form maximum over the box)"
+    return vmax, (it, iz, i_s), where, label, grid.n_points * 2**m, grid.n_points
+
+
+def _over_vertices(grid: _Grid, box, n_vertices: int, rng):
+    """The largest value over ``n_vertices`` explicit vertices of the box (a seeded sample):
+    as :func:`_over_the_box`'s."""
+    m = _box_size(box)
+    lo, hi = np.concatenate(box[::2], 1), np.concatenate(box[1::2], 1)
+    codes = vertex_codes(m, n_vertices, rng)
+    V = vertices_from_codes(codes, lo, hi)
+    values = vertex_values(grid.ctrl, grid.derivs, grid.Z, grid.S, jnp.asarray(V[:, :, :9]), jnp.asarray(V[:, :, 9:]),
+                            grid.switching, grid.law)  # fmt: skip
+    vmax, k = argmax(values)
+    iv, it, iz, i_s = np.unravel_index(int(k), values.shape)
+    where = {"vertex_code": int(codes[iv]), "A_rows": V[iv, :, :9].tolist(), "B_rows": V[iv, :, 9:].tolist()}
+    label = ("all" if codes.size == 2**m else f"sampled {codes.size} of 2^{m}") + " vertices (seeded)"
+    return vmax, (it, iz, i_s), where, label, grid.n_points * codes.size, grid.n_points * codes.size
+
+
+def _over_payloads(grid: _Grid, cfg: Config, n_payloads: int):
+    """The largest value over the config's arm at ``n_payloads`` payloads evenly over its
+    ``payload_range``: as :func:`_over_the_box`'s."""
+    payload_range = tuple(cfg.arm.payload_range)
+    payloads = np.linspace(*payload_range, n_payloads)
+    params = arm_params_of(cfg, jnp.float64)
+    values = arm_values(grid.ctrl, grid.derivs, grid.Z, grid.S, params, jnp.asarray(payloads), grid.switching,
+                        grid.law)  # (P, T, nZ, nS)  # fmt: skip
+    vmax, k = argmax(values)
+    ip, it, iz, i_s = np.unravel_index(int(k), values.shape)
+    where = {"payload": float(payloads[ip])}
+    label = f"arm at {n_payloads} payloads evenly over {payload_range} kg"
+    return vmax, (it, iz, i_s), where, label, grid.n_points * n_payloads, grid.n_points * n_payloads
 
 
 # ---------------------------------------------------------------------------- gamma bounds

@@ -440,6 +440,8 @@ def _option_first(message: str) -> str:
 
 
 def parser() -> argparse.ArgumentParser:
+    """The command line's parser: every command and option with its help. Its length is that
+    table, one option after the other, as ``fosmc <command> --help`` lists them."""
     p = _Parser(prog="fosmc", description="FOSMC tracking controller simulator (JAX)")
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="simulate the closed loop; print metrics per rollout")

@@ -65,28 +65,7 @@ def run_identify(
     """
     from .._firmware import identify as identification
 
-    # (option, value, integer?, least, strictly above it?, what); None: the default, for the last three
-    checks = (("--window", window, False, 0, True, "a positive number (s)"),
-              ("--threshold", threshold, False, 0, True, "a positive number"),
-              ("--iterations", iterations, True, 1, False, "a positive integer"),
-              ("--bootstrap", bootstrap, True, 0, False, "a non-negative integer"),
-              ("seed", seed, True, 0, False, "a non-negative integer"),
-              ("--dt", dt, False, 0, True, "a positive number (s)"),
-              ("--delay", delay, True, 0, False, "a non-negative integer (samples)"),
-              ("--payload", payload, False, 0, False, "a non-negative mass (kg)"))  # fmt: skip
-    for name, value, integer, least, strict, what in checks:
-        if value is None and name in ("--dt", "--delay", "--payload"):
-            continue
-        ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
-        ok = ok and (integer or math.isfinite(value)) and (value > least if strict else value >= least)
-        if not ok:
-            raise ConfigError(f"{name}: expected {what}, got {repr(value) if isinstance(value, str) else value}")
-    if isinstance(params, str):
-        names = [n.strip() for n in params.split(",") if n.strip()]
-    elif isinstance(params, (list, tuple)) and all(isinstance(n, str) for n in params):
-        names = list(params)
-    else:
-        raise ConfigError(f"--params: expected names, comma-separated or a list of strings, got {params!r}")
+    names = _checked_options(params, window, threshold, iterations, bootstrap, seed, dt, delay, payload)
     cfg = config_of(config)
     if payload is None:
         if len(cfg.plant.payloads) != 1:
@@ -95,6 +74,36 @@ def run_identify(
         payload = cfg.plant.payloads[0]
     if out is not None:
         out = _fresh_out(out, force, "use --force to overwrite")
+    result = _fit(cfg, data, names, payload, log, window=window, delay=delay, dt=dt, threshold=threshold,
+                  iterations=iterations, bootstrap=bootstrap, seed=seed)  # fmt: skip
+    fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
+    try:
+        problems.replace(cfg, arm=fitted, plant={"kind": "arm", "payloads": [result["payload"]]})
+        config_check = "ok"
+    except ConfigError as e:
+        config_check = str(e)
+        log(f"identify: warning: the identified arm is not a valid config: {e}")
+    header = _toml_header(config, data, names, result, config_check)
+    toml = identification.arm_toml(result, {"payload_range": list(cfg.arm.payload_range)}, header)
+    report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
+                      "config": cfg.as_dict()})  # fmt: skip
+    if out is not None:
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            write_text(out / "identified.toml", toml)
+            write_text(out / "identify.json", json.dumps(jsonable(report), indent=1))
+        except OSError as e:
+            raise ConfigError(f"--out: cannot write in {out}: {e.strerror or e}") from None
+    return report
+
+
+def _fit(cfg, data, names: list[str], payload, log: Log, *, window, delay, dt, threshold, iterations, bootstrap,
+         seed) -> dict[str, Any]:  # fmt: skip
+    """:func:`fosmc_jax._firmware.identify.identify` of the log ``data`` from the config's arm,
+    with the options as its settings (the window in whole sample periods, the encoder's quantum
+    from the config); a bad log or option as a one-line :class:`ConfigError`."""
+    from .._firmware import identify as identification
+
     counts = np.asarray(cfg.sensors.encoder_counts, float)
     try:
         record = identification.read_log(data)
@@ -118,13 +127,38 @@ def run_identify(
         result = identification.identify(arm, float(payload), record, names, settings, progress=log)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    fitted = {k: np.asarray(v).tolist() for k, v in result["params"].items()}
-    try:
-        problems.replace(cfg, arm=fitted, plant={"kind": "arm", "payloads": [result["payload"]]})
-        config_check = "ok"
-    except ConfigError as e:
-        config_check = str(e)
-        log(f"identify: warning: the identified arm is not a valid config: {e}")
+    return result
+
+
+def _checked_options(params, window, threshold, iterations, bootstrap, seed, dt, delay, payload) -> list[str]:
+    """The names of the fields to fit, once every numeric option is in range (a one-line
+    :class:`ConfigError` naming the first that is not)."""
+    # (option, value, integer?, least, strictly above it?, what); None: the default, for the last three
+    checks = (("--window", window, False, 0, True, "a positive number (s)"),
+              ("--threshold", threshold, False, 0, True, "a positive number"),
+              ("--iterations", iterations, True, 1, False, "a positive integer"),
+              ("--bootstrap", bootstrap, True, 0, False, "a non-negative integer"),
+              ("seed", seed, True, 0, False, "a non-negative integer"),
+              ("--dt", dt, False, 0, True, "a positive number (s)"),
+              ("--delay", delay, True, 0, False, "a non-negative integer (samples)"),
+              ("--payload", payload, False, 0, False, "a non-negative mass (kg)"))  # fmt: skip
+    for name, value, integer, least, strict, what in checks:
+        if value is None and name in ("--dt", "--delay", "--payload"):
+            continue
+        ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
+        ok = ok and (integer or math.isfinite(value)) and (value > least if strict else value >= least)
+        if not ok:
+            raise ConfigError(f"{name}: expected {what}, got {repr(value) if isinstance(value, str) else value}")
+    if isinstance(params, str):
+        return [n.strip() for n in params.split(",") if n.strip()]
+    if isinstance(params, (list, tuple)) and all(isinstance(n, str) for n in params):
+        return list(params)
+    raise ConfigError(f"--params: expected names, comma-separated or a list of strings, got {params!r}")
+
+
+def _toml_header(config, data, names: list[str], result: dict, config_check: str) -> str:
+    """``identified.toml``'s opening comment: what was fitted to what, the residuals against
+    the noise, what the standard deviations assume, and every warning."""
     origin = str(config) if isinstance(config, (str, Path)) else "the paper's defaults" if config is None else "a dict"
     fit = result["fit"]
     rms = np.array2string(np.asarray(fit["rms_theta"]), precision=2)
@@ -139,14 +173,4 @@ def run_identify(
         header += f"\nWARNING: {warning}."
     if config_check != "ok":
         header += f"\nWARNING: not a valid config as it stands: {config_check}"
-    toml = identification.arm_toml(result, {"payload_range": list(cfg.arm.payload_range)}, header)
-    report = stamped({"data": str(data), "names": names, **result, "toml": toml, "config_check": config_check,
-                      "config": cfg.as_dict()})  # fmt: skip
-    if out is not None:
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            write_text(out / "identified.toml", toml)
-            write_text(out / "identify.json", json.dumps(jsonable(report), indent=1))
-        except OSError as e:
-            raise ConfigError(f"--out: cannot write in {out}: {e.strerror or e}") from None
-    return report
+    return header

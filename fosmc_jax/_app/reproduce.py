@@ -488,22 +488,7 @@ def run_reproduce(
     ``metrics.md``, ``design.md``, ``metrics_short.csv`` (and ``realistic.md``,
     ``tradeoff.md`` for the arm), exactly as written to ``out``.
     """
-    if plant not in ("arm", "linear"):
-        raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
-    if integrator not in ("euler", "rk4"):
-        raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
-    problems.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
-    if plant == "arm":  # the realistic loop's horizon too (its period, its delay), before any case runs
-        try:
-            problems.resolve(realistic_config(t_final))
-        except ConfigError as e:
-            raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
-    if report:
-        report = writable(report, "--report")
-        try:
-            report.read_text()
-        except (OSError, ValueError) as e:
-            raise ConfigError(f"--report: cannot read {report}: {getattr(e, 'strerror', None) or e}") from None
+    report = _checked_options(plant, t_final, dt, integrator, report)
     if out is not None:
         out = _fresh_out(out, force, "use --force to overwrite")
         out.mkdir(parents=True, exist_ok=True)
@@ -545,12 +530,39 @@ def run_reproduce(
                 write_text(out / name, files[name])
             figures += write_realistic_figures(cases + realistic, sweeps, out)
     if report:
-        text = report.read_text()
-        text = replace_block(text, "metrics", files["metrics.md"])
-        text = replace_block(text, "design", files["design.md"])
-        for name in ("realistic", "tradeoff"):
-            if f"{name}.md" in files:
-                text = replace_block(text, name, files[f"{name}.md"])
-        write_text(report, text)
+        _refresh(report, files)
         log(f"fosmc reproduce: updated {report}")
     return {"files": files, "figures": figures, "rows": tables}
+
+
+def _checked_options(plant: str, t_final: float, dt: float, integrator: str, report) -> Path | None:
+    """The ``report`` file (checked readable and writable), once every option is in range (a
+    one-line :class:`ConfigError` naming the first that is not), before any case runs."""
+    if plant not in ("arm", "linear"):
+        raise ConfigError(f"--plant: expected 'arm' or 'linear', got {plant!r}")
+    if integrator not in ("euler", "rk4"):
+        raise ConfigError(f"--integrator: expected 'euler' or 'rk4', got {integrator!r}")
+    problems.check_horizon(t_final, dt, ("--t-final", "--dt"))  # as the config's [sim] t_final and dt
+    if plant == "arm":  # the realistic loop's horizon too (its period, its delay)
+        try:
+            problems.resolve(realistic_config(t_final))
+        except ConfigError as e:
+            raise ConfigError(f"--t-final: too short for the realistic loop ({e})") from None
+    if report:
+        report = writable(report, "--report")
+        try:
+            report.read_text()
+        except (OSError, ValueError) as e:
+            raise ConfigError(f"--report: cannot read {report}: {getattr(e, 'strerror', None) or e}") from None
+    return report
+
+
+def _refresh(report: Path, files: dict[str, str]) -> None:
+    """The generated blocks of the Markdown file ``report`` replaced by the tables in ``files``."""
+    text = report.read_text()
+    text = replace_block(text, "metrics", files["metrics.md"])
+    text = replace_block(text, "design", files["design.md"])
+    for name in ("realistic", "tradeoff"):
+        if f"{name}.md" in files:
+            text = replace_block(text, name, files[f"{name}.md"])
+    write_text(report, text)

@@ -93,6 +93,8 @@ def run_simulate(
     process's devices (``devices``: None, all of them) and every process returns the whole
     result; process 0 alone logs. Not with ``checkpoint`` (its chunk files would be written by
     every process).
+
+    (Long for its options and this page on them; the body is the stages below, in order.)
     """
     across = join(Processes(distributed, coordinator, num_processes, process_id, join_timeout))
     log = log if not across or sharding.leads() else _quiet
@@ -106,28 +108,9 @@ def run_simulate(
         options = {"command": "simulate", "config": cfg.as_dict(), "params": params, "point": point,
                    "keep_trace": keep_trace, "records": records, "draws": draws, "chunk": chunk}  # fmt: skip
         agree(digest(options, (params,)))
-    if resume and checkpoint is None:
-        raise ConfigError("--resume: needs --checkpoint DIR, the folder of the run's chunks")
-    if checkpoint is not None:
-        checkpoint = writable(checkpoint, "--checkpoint", folder=True)
-        if not resume and checkpoint.exists() and any(checkpoint.iterdir()):
-            raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
-                              "there; or give another folder)")  # fmt: skip
+    checkpoint = _checkpoint_folder(checkpoint, resume)
     devices = (jax.device_count() if across else jax.local_device_count()) if devices is None else devices
-    if params:
-        cfg = problems.with_params(cfg, params, point)
-    elif point is not None:
-        raise ConfigError("--point: needs --params FRONT.json")
-    n = problems.n_steps(cfg)
-    if keep_trace and not cfg.sim.save_every:
-        m = problems.sample_steps(cfg)
-        cfg = problems.replace(cfg, sim={"save_every": max(1, n // 4000 // m) * m})
-    if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
-        raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
-    if cfg.sim.save_every and (chunk is not None or checkpoint is not None):
-        option = "--checkpoint" if checkpoint is not None else "--chunk"
-        raise ConfigError(f"{option}: a batch that keeps a trace ([sim] save_every, or --plot without a [sample] "
-                          "table) runs whole, not in chunks")  # fmt: skip
+    cfg = _run_config(cfg, params, point, keep_trace, chunk, checkpoint)
     size, too_large = memory.plan(cfg, records=records, draws=draws)  # before anything is drawn
     if too_large is not None:
         raise ConfigError(too_large)
@@ -135,20 +118,65 @@ def run_simulate(
         size = _checkpoint_chunk(checkpoint, cfg, devices, size, chunk, resume)
     size = size if chunk is None else min(size, chunk)
     problem = problems.problem_of(cfg)
-    n_rollouts, n_real = problem.rollouts, 1 if problem.keys is None else problem.keys.shape[0]
-    paired = cfg.sim.pairing == "paired"
-    per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
+    arrays, trace = _batch_arrays(cfg, problem, _runner(across, devices), devices, size, checkpoint, log)
+    # result.summary() of the arrays, whether or not they came in chunks
+    summary = batch_summary(Metrics(*(arrays[name] for name in METRIC_NAMES)), arrays["diverged"])
+    arrays.update(_rollout_indices(cfg, problem))
+    body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
+    out = stamped({**body, "summary": summary, **(_draw_records(cfg) if draws else {}), "config": cfg.as_dict()})
+    return dict(out, trace=trace) if keep_trace else out
+
+
+def _checkpoint_folder(checkpoint: str | Path | None, resume: bool) -> Path | None:
+    """``--checkpoint``'s folder, checked: writable, and empty unless the run resumes there."""
+    if resume and checkpoint is None:
+        raise ConfigError("--resume: needs --checkpoint DIR, the folder of the run's chunks")
+    if checkpoint is not None:
+        checkpoint = writable(checkpoint, "--checkpoint", folder=True)
+        if not resume and checkpoint.exists() and any(checkpoint.iterdir()):
+            raise ConfigError(f"--checkpoint: {checkpoint} exists and is not empty (--resume continues the run "
+                              "there; or give another folder)")  # fmt: skip
+    return checkpoint
+
+
+def _run_config(cfg: problems.Config, params, point, keep_trace: bool, chunk, checkpoint) -> problems.Config:
+    """The config the run simulates: the tuned ``params`` in it, a trace's decimation where
+    ``keep_trace`` asks for one; ``chunk`` checked, and refused beside a trace."""
+    if params:
+        cfg = problems.with_params(cfg, params, point)
+    elif point is not None:
+        raise ConfigError("--point: needs --params FRONT.json")
+    if keep_trace and not cfg.sim.save_every:
+        m = problems.sample_steps(cfg)
+        cfg = problems.replace(cfg, sim={"save_every": max(1, problems.n_steps(cfg) // 4000 // m) * m})
+    if chunk is not None and not (_is_integer(chunk) and chunk >= 1):
+        raise ConfigError(f"--chunk: expected a positive integer (rollouts), got {chunk!r}")
+    if cfg.sim.save_every and (chunk is not None or checkpoint is not None):
+        option = "--checkpoint" if checkpoint is not None else "--chunk"
+        raise ConfigError(f"{option}: a batch that keeps a trace ([sim] save_every, or --plot without a [sample] "
+                          "table) runs whole, not in chunks")  # fmt: skip
+    return cfg
+
+
+def _runner(across: bool, devices: int):
+    """The batch simulation: over every process's devices (each process gets the whole
+    batch's results), split over ``devices`` local devices, or unsharded."""
+    if across:
+        return lambda *args, **kw: sharding.gathered(sharding.simulate_sharded(*args, devices=None, **kw))
+    if devices > 1:
+        return functools.partial(sharding.simulate_sharded, devices=devices)
+    return simulate_batch
+
+
+def _batch_arrays(cfg, problem, run, devices: int, size: int, checkpoint: Path | None, log: Log):
+    """(every rollout's metrics, ``diverged`` and ``diverged_at`` as NumPy arrays, the trace or
+    None) of ``problem`` run by ``run``: whole, or in chunks of at most ``size`` rollouts."""
+    n_rollouts, paired = problem.rollouts, cfg.sim.pairing == "paired"
     in_chunks = size < n_rollouts or checkpoint is not None
-    log(f"fosmc: {n_rollouts} rollout(s) x {n} steps ({cfg.sim.integrator}, "
+    log(f"fosmc: {n_rollouts} rollout(s) x {problems.n_steps(cfg)} steps ({cfg.sim.integrator}, "
         f"dt = {cfg.sim.dt} s, {cfg.sim.precision}) on {devices} device(s)"
         f"{f' in chunks of at most {size} rollouts' if in_chunks else ''}: compiling and running ...")  # fmt: skip
-    start = time.perf_counter()
-    if across:  # every process's devices; every process gets the whole batch's results
-        run = lambda *args, **kw: sharding.gathered(sharding.simulate_sharded(*args, devices=None, **kw))
-    elif devices > 1:
-        run = functools.partial(sharding.simulate_sharded, devices=devices)
-    else:
-        run = simulate_batch
+    start, trace = time.perf_counter(), None
     if in_chunks:
         plants, ctrl, reference, X0s, dt = problem.args
         simulate = lambda plants, X0s, keys: run(plants, ctrl, reference, X0s, dt, keys=keys, **problem.options)
@@ -162,25 +190,36 @@ def run_simulate(
         # (BENCHMARKS.md, "Figures behind the code")
         arrays = {name: np.asarray(getattr(result.metrics, name)) for name in METRIC_NAMES}
         arrays.update(diverged=np.asarray(result.diverged), diverged_at=np.asarray(result.diverged_at))
+        trace = result.trace
     log(f"fosmc: done in {time.perf_counter() - start:.2f} s (compilation included)")
-    # result.summary() of the arrays, whether or not they came in chunks
-    summary = batch_summary(Metrics(*(arrays[name] for name in METRIC_NAMES)), arrays["diverged"])
+    return arrays, trace
 
-    r = np.arange(n_rollouts)
-    arrays.update(plant_index=r // (per_plant * n_real), realization_index=r % n_real,
-                  offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
+
+def _rollout_indices(cfg: problems.Config, problem) -> dict[str, np.ndarray]:
+    """Each rollout's ``plant_index``, ``realization_index``, ``offset_index`` (and
+    ``arm_index`` with ``[arm.uncertainty]``), in the batch's order."""
+    paired = cfg.sim.pairing == "paired"
+    n_real = 1 if problem.keys is None else problem.keys.shape[0]
+    per_plant = 1 if paired else problem.X0s.shape[0]  # initial states per plant
+    r = np.arange(problem.rollouts)
+    indices = dict(plant_index=r // (per_plant * n_real), realization_index=r % n_real,
+                   offset_index=r // n_real if paired else r // n_real % per_plant)  # fmt: skip
     if problems.arm_varies(cfg):  # [arm.uncertainty]: which sampled arm each rollout ran (arm-major, then payload)
         payloads = cfg.sample.count if cfg.sample.payloads else len(cfg.plant.payloads)
-        arrays["arm_index"] = arrays["plant_index"] // (1 if paired else payloads)
-    drawn, extra = problems.draws(cfg) if draws else {}, {}
-    if cfg.sample.count and draws:
+        indices["arm_index"] = indices["plant_index"] // (1 if paired else payloads)
+    return indices
+
+
+def _draw_records(cfg: problems.Config) -> dict[str, Any]:
+    """The config's draws as lists: ``"sampled"`` (a ``[sample]`` table's payloads, offsets)
+    and ``"arms"`` (each sampled arm's parameters by ``[arm]`` key), where there are any."""
+    drawn, extra = problems.draws(cfg), {}
+    if cfg.sample.count:
         extra["sampled"] = {k: v.tolist() for k, v in drawn.items() if k != "arms"}
     if "arms" in drawn:  # each sampled arm's parameters
         n_arms = len(drawn["arms"]["F"])
         extra["arms"] = [{k: v[i].tolist() for k, v in drawn["arms"].items()} for i in range(n_arms)]
-    body = {"rollouts": list(rollout_records(arrays))} if records else {"arrays": arrays}
-    out = stamped({**body, "summary": summary, **extra, "config": cfg.as_dict()})
-    return dict(out, trace=result.trace) if keep_trace else out
+    return extra
 
 
 def _checkpoint_chunk(

@@ -102,7 +102,7 @@ class Settings(NamedTuple):
     chunk: int = 16  # candidates per vmapped evaluation
     seed: int = 0
     # share of the search time spent on the global stage (candidates = 0); 0.15 rather than 0.3:
-    # CMA-ES at equal wall time dominated 3 of 119 front points instead of 34-40 (tuning/README.md)
+    # the time left to CMA-ES wins more of the front (tuning/README.md)
     global_share: float = 0.15
     grid_share: float = 1.0  # share of the global stage on the grid of common factors
     sigma: tuple[float, float] = (0.3, 0.01)  # local step, first and last round, in shares of each range
@@ -401,6 +401,86 @@ class _Clock:
 MIN_SEARCH_S = 30.0
 
 
+def _join(a: dict, b: dict) -> dict:
+    """The evaluations ``b`` after ``a`` (``a`` empty: ``b``'s)."""
+    return {k: np.concatenate([a[k], b[k]]) for k in b} if a else dict(b)
+
+
+class _Run:
+    """One front search as its stages see it (:func:`front_search`): the problems, the sizes
+    (given, planned from the budget, or resumed from a checkpoint), the clock, and the
+    evaluations so far (``z``, ``m``: log factors and metrics, with the counts that mark each
+    stage's share), which each stage advances in turn."""
+
+    def __init__(self, train, plain, p0, settings: Settings, checkpoint, resume, reserve_per_point, log, t0):
+        self.settings, self.p0, self.log, self.t0 = settings, p0, log, t0
+        self.checkpoint, self.reserve_per_point = checkpoint, reserve_per_point
+        self.space = tuner.space_of(p0)
+        state: dict[str, Any] = {}
+        ckpt: dict[str, np.ndarray] = {}
+        if resume and checkpoint is not None and checkpoint.exists():
+            state, ckpt = tuner._load(checkpoint)
+            where = {
+                "global": f"{len(ckpt['z'])} global candidates",
+                "cma": f"CMA-ES generation {state.get('cma_round')}",
+                "local": f"local round {state.get('round')}",
+                "polish": f"plain round {state.get('polish_round')}",
+            }
+            log(f"front: resumed from {checkpoint} at {where[state['stage']]}")  # fmt: skip
+        self.state, self.ckpt = state, ckpt
+        self.train, self.plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
+        self.surrogate = not _same_simulation(self.train.problem, self.plain.problem)
+        plan = self.plan = settings.plan
+        self.timed = plan is None and not (settings.candidates and settings.steps)
+        self.n_cand = state.get("candidates", plan.drawn if plan else settings.candidates)
+        self.rounds = state.get("steps", plan.local_rounds if plan else settings.steps)
+        self.polish = state.get("polish", plan.plain_rounds if plan else settings.polish if self.surrogate else 0)
+        self.generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
+        self.horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
+        self.probe = state.get("probe", plan.probe if plan else self.timed)
+        self.costs = state.get("costs", {})  # s per chunk of the training and plain evaluations (the budget's plan)
+        self.clock = _Clock(t0 - state.get("elapsed", 0.0), state.get("ends"))
+        self.stage = state.get("stage", "global")
+        self.keys = state.get("keys", ())
+        self.z0 = ckpt.get("probe.z", np.zeros((0, self.space.dim)))
+        self.m0 = {k: ckpt[f"probe.m.{k}"] for k in self.keys if "probe.z" in ckpt}
+        self.n_global = state.get("global_end", 0)  # the global stage's evaluations (the probe's among them)
+        self.n_cma = state.get("cma_end", 0)  # evaluations up to the end of the CMA-ES stage
+        self.z = ckpt.get("z", np.zeros((0, self.space.dim)))
+        self.m = {k: ckpt[f"m.{k}"] for k in self.keys}
+        self.evaluated = state.get("global_evaluated", 0)  # the global stage's own candidates (not the probe's)
+
+    def evaluate(self, problem, z: np.ndarray, **kw) -> dict:
+        return evaluate_many(problem, from_factors(self.p0, z), self.settings.chunk, **kw)
+
+    def save(self, stage: str, z: np.ndarray, m: dict, extra: dict | None = None, arrays: dict | None = None) -> None:
+        if self.checkpoint is not None:
+            header = {"stage": stage, "elapsed": self.clock.elapsed(), "ends": self.clock.ends,
+                      "candidates": self.n_cand, "global_end": self.n_global, "cma_end": self.n_cma,
+                      "steps": self.rounds, "polish": self.polish, "keys": list(m),
+                      "cma_generations": self.generations, "horizon": self.horizon, "probe": self.probe,
+                      "costs": self.costs, **(extra or {})}  # fmt: skip
+            stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
+            if stage == "global" and self.m0:  # the probe's, which join the global stage at its end
+                stored.update({"probe.z": self.z0, **{f"probe.m.{k}": v for k, v in self.m0.items()}})
+            tuner._save(self.checkpoint, header, stored)
+
+    def finish_by(self, stage: str, n_points: int) -> float | None:
+        """The deadline of the last stage: the run's end less the final evaluations of its front."""
+        end = self.clock.end(stage)
+        return None if end is None else end - n_points * self.reserve_per_point
+
+    def rounds_horizon(self, which: str, n: int, end: float | None) -> int:
+        """The rounds over which a stage's sigma shrinks: its rounds less one with given sizes;
+        with a budget, the rounds its time holds at the probe's cost per chunk (a count, not
+        the clock, so that a replay or a resumed run steps as the first run did)."""
+        if which not in self.horizon:
+            cost = self.costs.get("train" if which == "local" else "plain", 0.0)
+            guess = sharding.first((end - time.perf_counter()) / cost) if end is not None and cost > 0 else n - 1
+            self.horizon[which] = int(max(1, min(guess, n - 1)))
+        return self.horizon[which]
+
+
 def front_search(
     train: tuner.Problem | Evaluator,
     plain: tuner.Problem | Evaluator,
@@ -425,232 +505,220 @@ def front_search(
 
     ``checkpoint``: written after every ``settings.checkpoint_every`` units of work (chunks of
     the global stage, CMA-ES generations, local or plain rounds; with a budget, at most every
-    10 s); ``resume`` continues from it where it was written (a fresh run otherwise)."""
-    t0 = time.perf_counter()
-    space = tuner.space_of(p0)
-    state: dict[str, Any] = {}
-    ckpt: dict[str, np.ndarray] = {}
-    if resume and checkpoint is not None and checkpoint.exists():
-        state, ckpt = tuner._load(checkpoint)
-        where = {
-            "global": f"{len(ckpt['z'])} global candidates",
-            "cma": f"CMA-ES generation {state.get('cma_round')}",
-            "local": f"local round {state.get('round')}",
-            "polish": f"plain round {state.get('polish_round')}",
-        }
-        log(f"front: resumed from {checkpoint} at {where[state['stage']]}")  # fmt: skip
-    train, plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
-    surrogate = not _same_simulation(train.problem, plain.problem)
-    plan = settings.plan
-    timed = plan is None and not (settings.candidates and settings.steps)
-    n_cand = state.get("candidates", plan.drawn if plan else settings.candidates)
-    rounds = state.get("steps", plan.local_rounds if plan else settings.steps)
-    polish = state.get("polish", plan.plain_rounds if plan else settings.polish if surrogate else 0)
-    generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
-    horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
-    probe = state.get("probe", plan.probe if plan else timed)
-    costs = state.get("costs", {})  # s per chunk of the training and plain evaluations (the budget's plan)
-    clock = _Clock(t0 - state.get("elapsed", 0.0), state.get("ends"))
-    stage = state.get("stage", "global")
-    keys = state.get("keys", ())
-    z0, m0 = ckpt.get("probe.z", np.zeros((0, space.dim))), {k: ckpt[f"probe.m.{k}"] for k in keys if "probe.z" in ckpt}
-    if probe and not state:  # the probe: one chunk (timed with a budget: compiled, then warm), kept as candidates
-        z0 = global_factors(settings.chunk, settings.seed + 1, space=space)
+    10 s); ``resume`` continues from it where it was written (a fresh run otherwise).
+
+    The stages, each over the run's state (:class:`_Run`): :func:`_probe_and_plan`,
+    :func:`_global`, :func:`_cma`, :func:`_local`, :func:`_plain`, :func:`_result`."""
+    run = _Run(train, plain, p0, settings, checkpoint, resume, reserve_per_point, log, time.perf_counter())
+    _probe_and_plan(run, deadline)
+    if run.stage == "global":
+        _global(run)
+    if run.stage == "cma":
+        _cma(run)
+    if run.stage == "local":
+        _local(run)
+    n_train = len(run.z)
+    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
+    zp, mp = run.z, run.m
+    if run.surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
+        idx, zp, mp = _plain(run)
+    return _result(run, zp, mp, idx, n_train)
+
+
+def _probe_and_plan(run: _Run, deadline: float | None) -> None:
+    """A fresh run's probe, one chunk of the training evaluation kept as candidates (timed with
+    a budget: compiled, then warm); with a budget, the stages' deadlines and the sizes they
+    hold planned from its cost."""
+    settings, state = run.settings, run.state
+    if run.probe and not state:
+        run.z0 = global_factors(settings.chunk, settings.seed + 1, space=run.space)
         t = time.perf_counter()
-        m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-    if timed and not state:  # the stages' deadlines
-        compile_s = time.perf_counter() - t
-        t = time.perf_counter()
-        m0 = evaluate_many(train, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-        costs["train"] = sharding.first(time.perf_counter() - t)  # process 0's clock: the plan is the same everywhere
-        plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
-        if surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
-            for _ in range(2):
-                t = time.perf_counter()
-                evaluate_many(plain, from_factors(p0, z0), settings.chunk, log=lambda _: None)
-            costs["plain"] = sharding.first(time.perf_counter() - t)
-            plain_point_s = costs["plain"] / settings.chunk
-        end = settings.budget if deadline is None else deadline - t0
-        # the search's time, less the final evaluations of a front of a few hundred points
-        # once, and at most the end: the stages' ends must not pass the run's (local = now + search <= end),
-        # also where compiling took the whole budget (a loaded machine)
-        elapsed, end = sharding.first(clock.elapsed()), sharding.first(float(end))
-        now = min(elapsed, end)
-        final = 300 * (reserve_per_point + plain_point_s)
-        search = max(0.0, end - now - final)
-        ends = {"global": now + settings.global_share * search}
-        ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
-        ends["local"] = now + (1 - (settings.polish_share if surrogate else 0.0)) * search
-        ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
-        clock = _Clock(clock.start, ends)
-        n_cand = n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
-        generations = generations or 10**9
-        rounds, polish = rounds or 10**9, polish or (10**9 if surrogate else 0)
-        log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
-            f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {n_cand} global candidates, then CMA-ES, "
-            f"local rounds{' and plain rounds' if surrogate else ''} until their shares of it are spent")  # fmt: skip
-        if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
-            serve = settings.budget - end + elapsed + final + MIN_SEARCH_S
-            log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
+        run.m0 = run.evaluate(run.train, run.z0, log=lambda _: None)
+    if not (run.timed and not state):
+        return
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    run.m0 = run.evaluate(run.train, run.z0, log=lambda _: None)
+    costs = run.costs
+    costs["train"] = sharding.first(time.perf_counter() - t)  # process 0's clock: the plan is the same everywhere
+    plain_point_s = 0.0  # a plain evaluation's cost per point (the surrogate's front is re-evaluated)
+    if run.surrogate:  # the plain evaluator compiled now (its cost known before the search is planned)
+        for _ in range(2):
+            t = time.perf_counter()
+            run.evaluate(run.plain, run.z0, log=lambda _: None)
+        costs["plain"] = sharding.first(time.perf_counter() - t)
+        plain_point_s = costs["plain"] / settings.chunk
+    end = settings.budget if deadline is None else deadline - run.t0
+    # the search's time, less the final evaluations of a front of a few hundred points
+    # once, and at most the end: the stages' ends must not pass the run's (local = now + search <= end),
+    # also where compiling took the whole budget (a loaded machine)
+    elapsed, end = sharding.first(run.clock.elapsed()), sharding.first(float(end))
+    now = min(elapsed, end)
+    final = 300 * (run.reserve_per_point + plain_point_s)
+    search = max(0.0, end - now - final)
+    ends = {"global": now + settings.global_share * search}
+    ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
+    ends["local"] = now + (1 - (settings.polish_share if run.surrogate else 0.0)) * search
+    ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
+    run.clock = _Clock(run.clock.start, ends)
+    run.n_cand = run.n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
+    run.generations = run.generations or 10**9
+    run.rounds, run.polish = run.rounds or 10**9, run.polish or (10**9 if run.surrogate else 0)
+    run.log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
+            f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {run.n_cand} global candidates, then "
+            f"CMA-ES, local rounds{' and plain rounds' if run.surrogate else ''} until their shares of it are "
+            "spent")  # fmt: skip
+    if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
+        serve = settings.budget - end + elapsed + final + MIN_SEARCH_S
+        run.log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
                 f"{settings.budget - end + elapsed:.1f} s of set-up (compilation, timing) and {final:.1f} s kept for "
                 f"the final evaluations: each stage runs one chunk at least, so the run may end late; a budget of "
                 f"{np.ceil(serve):.0f} s or more leaves {MIN_SEARCH_S:.0f} s")  # fmt: skip
 
-    def finish_by(stage: str, n_points: int) -> float | None:
-        """The deadline of the last stage: the run's end less the final evaluations of its front."""
-        end = clock.end(stage)
-        return None if end is None else end - n_points * reserve_per_point
 
-    def rounds_horizon(which: str, n: int, end: float | None) -> int:
-        """The rounds over which a stage's sigma shrinks: its rounds less one with given sizes;
-        with a budget, the rounds its time holds at the probe's cost per chunk (a count, not
-        the clock, so that a replay or a resumed run steps as the first run did)."""
-        if which not in horizon:
-            cost = costs.get("train" if which == "local" else "plain", 0.0)
-            guess = sharding.first((end - time.perf_counter()) / cost) if end is not None and cost > 0 else n - 1
-            horizon[which] = int(max(1, min(guess, n - 1)))
-        return horizon[which]
+def _global(run: _Run) -> None:
+    """The global stage: candidates drawn over the box (the grid of common factors first),
+    evaluated in chunks until they are done or the stage's time is spent; the probe's join them."""
+    settings, z, m = run.settings, run.z, run.m
+    zg = global_factors(run.n_cand, settings.seed, settings.grid_share, run.space)
+    limit, done = (run.plan.evaluated if run.plan else run.n_cand), len(z)
+    end = None if run.plan or settings.candidates else run.clock.end("global")
+    saved = [time.perf_counter(), 0]
 
-    n_global = state.get("global_end", 0)  # the global stage's evaluations (the probe's among them)
-    n_cma = state.get("cma_end", 0)  # evaluations up to the end of the CMA-ES stage
-    join = lambda a, b: {k: np.concatenate([a[k], b[k]]) for k in b} if a else dict(b)
+    def partial(k: int, mk: dict) -> None:  # a checkpoint every checkpoint_every chunks (timed: 10 s at least)
+        chunks = -(-k // settings.chunk)
+        every = settings.checkpoint_every
+        if every and chunks - saved[1] >= every and (end is None or time.perf_counter() - saved[0] > 10):
+            run.save("global", np.concatenate([z, zg[done : done + k]]), _join(m, mk))
+            saved[:] = [time.perf_counter(), chunks]
 
-    def save(stage: str, z: np.ndarray, m: dict, extra: dict | None = None, arrays: dict | None = None) -> None:
-        if checkpoint is not None:
-            header = {"stage": stage, "elapsed": clock.elapsed(), "ends": clock.ends, "candidates": n_cand,
-                      "global_end": n_global, "cma_end": n_cma, "steps": rounds, "polish": polish, "keys": list(m),
-                      "cma_generations": generations, "horizon": horizon, "probe": probe, "costs": costs,
-                      **(extra or {})}  # fmt: skip
-            stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
-            if stage == "global" and m0:  # the probe's, which join the global stage at its end
-                stored.update({"probe.z": z0, **{f"probe.m.{k}": v for k, v in m0.items()}})
-            tuner._save(checkpoint, header, stored)
+    if done < limit and not (done and end is not None and sharding.first(time.perf_counter() > end)):
+        mg = run.evaluate(run.train, zg[done:limit], log=run.log, what="global stage", deadline=end, each=partial)
+        z, m = np.concatenate([z, zg[done : done + len(mg["diverged"])]]), _join(m, mg)
+    run.evaluated = len(z)
+    run.z, run.m = np.concatenate([z, run.z0]), _join(m, run.m0) if run.m0 else m
+    run.n_global = len(run.z)
+    run.stage = "cma"
+    run.save("cma", run.z, run.m, {"cma_round": 0, "global_evaluated": run.evaluated})
+    run.log(f"front: global stage done, {int(nondominated(*axes(run.m)).sum())} non-dominated of {len(run.z)}")
 
-    z = ckpt.get("z", np.zeros((0, space.dim)))
-    m = {k: ckpt[f"m.{k}"] for k in keys}
-    evaluated = state.get("global_evaluated", 0)  # the global stage's own candidates evaluated (the probe's not)
-    if stage == "global":
-        zg = global_factors(n_cand, settings.seed, settings.grid_share, space)
-        limit, done = (plan.evaluated if plan else n_cand), len(z)
-        end = None if plan or settings.candidates else clock.end("global")
-        saved = [time.perf_counter(), 0]
 
-        def partial(k: int, mk: dict) -> None:  # a checkpoint every checkpoint_every chunks (timed: 10 s at least)
-            chunks = -(-k // settings.chunk)
-            every = settings.checkpoint_every
-            if every and chunks - saved[1] >= every and (end is None or time.perf_counter() - saved[0] > 10):
-                save("global", np.concatenate([z, zg[done : done + k]]), join(m, mk))
-                saved[:] = [time.perf_counter(), chunks]
-
-        if done < limit and not (done and end is not None and sharding.first(time.perf_counter() > end)):
-            mg = evaluate_many(train, from_factors(p0, zg[done:limit]), settings.chunk, log=log, what="global stage",
-                               deadline=end, each=partial)  # fmt: skip
-            z, m = np.concatenate([z, zg[done : done + len(mg["diverged"])]]), join(m, mg)
-        evaluated = len(z)
-        z, m = np.concatenate([z, z0]), join(m, m0) if m0 else m
-        n_global = len(z)
-        stage = "cma"
-        save("cma", z, m, {"cma_round": 0, "global_evaluated": evaluated})
-        log(f"front: global stage done, {int(nondominated(*axes(m)).sum())} non-dominated of {len(z)}")
-    if stage == "cma":
-        g0 = state.get("cma_round", 0) if state.get("stage") == "cma" else 0
-        blob = bytes(ckpt["cma.state"]) if g0 and "cma.state" in ckpt else None
-        if generations:
-            save_cma = lambda g, z, m, b: save("cma", z, m, {"cma_round": g, "global_evaluated": evaluated},
+def _cma(run: _Run) -> None:
+    """The CMA-ES stage (:func:`cma_stage`), where it has generations to run."""
+    g0 = run.state.get("cma_round", 0) if run.state.get("stage") == "cma" else 0
+    blob = bytes(run.ckpt["cma.state"]) if g0 and "cma.state" in run.ckpt else None
+    if run.generations:
+        save_cma = lambda g, z, m, b: run.save("cma", z, m, {"cma_round": g, "global_evaluated": run.evaluated},
                                                {"cma.state": np.frombuffer(b, np.uint8)})  # fmt: skip
-            z, m, generations = cma_stage(train, p0, z, m, settings, generations, clock.end("cma"), log,
-                                          resumed=blob, start=g0, save=save_cma)  # fmt: skip
-        n_cma, stage = len(z), "local"
-        save("local", z, m, {"round": 0, "global_evaluated": evaluated})
+        run.z, run.m, run.generations = cma_stage(run.train, run.p0, run.z, run.m, run.settings, run.generations,
+                                                  run.clock.end("cma"), run.log, resumed=blob, start=g0,
+                                                  save=save_cma)  # fmt: skip
+    run.n_cma, run.stage = len(run.z), "local"
+    run.save("local", run.z, run.m, {"round": 0, "global_evaluated": run.evaluated})
 
-    def rounds_on(problem, z, m, r0, n, sigma, seed, deadline, what, save_at, horizon):
-        """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
-        (None: no deadline) passes, sigma from sigma[0] at round 0 to sigma[1] at round
-        ``horizon`` and after; returns (z, m, rounds run). Parents are drawn from the
-        front, kept as the rounds go (the non-dominated set of the old front and the round's
-        children: a dominated point stays dominated). With a deadline, checkpoints are written
-        at most every 10 s (a round can cost less than writing the archive)."""
-        (s0, s1), shown, saved = sigma, -np.inf, time.perf_counter()
-        keep = nondominated(*axes(m))
-        fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
-        zs, ms = [z], [m]
-        for r in range(r0, n):
-            now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
-            if end is not None and sharding.first(now > end):
-                log(f"front: {what} rounds: {r} run, the stage's time is spent")
-                n = r
-                break
-            sig = s0 * (s1 / s0) ** min(r / horizon, 1.0)
-            zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, space)
-            mr = evaluate_many(problem, from_factors(p0, zr), settings.chunk, log=lambda _: None)
-            zs.append(zr)
-            ms.append(mr)
-            fz, fm = np.concatenate([fz, zr]), join(fm, mr)
-            keep = nondominated(*axes(fm))
-            fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
-            if end is None or time.perf_counter() - shown > 1.0:
-                shown = time.perf_counter()
-                total = f"/{n}" if end is None else f" ({max(0.0, end - shown):.1f} s left)"
-                log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(fz)} non-dominated  "
-                    f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
-            due = settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n)
-            if due and (end is None or time.perf_counter() - saved > 10.0):
-                z, m = np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}
-                zs, ms = [z], [m]
-                save_at(r + 1, z, m)
-                saved = time.perf_counter()
-        return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
 
-    seed = settings.seed * 1_000_003
-    at = {"global_evaluated": evaluated}
-    if stage == "local":
-        r0 = state.get("round", 0) if state.get("stage") == "local" else 0
-        local_end = None if clock.ends is None else (
-            (lambda n: clock.end("local")) if surrogate else (lambda n: finish_by("end", n)))  # fmt: skip
-        h = rounds_horizon("local", rounds, None if local_end is None else local_end(front_size(m)))
-        z, m, rounds = rounds_on(train, z, m, r0, rounds, settings.sigma, seed, local_end, "local",
-                                 lambda r, z_, m_: save("local", z_, m_, {"round": r, **at}), h)  # fmt: skip
-    n_train = len(z)
-    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
-    zp, mp, p_run = z, m, 0
-    if surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
-        idx = np.flatnonzero(nondominated(*axes(m)))
-        plain_state = lambda r, z_, m_: ({"polish_round": r, **at},
-                                         {"plain.z": z_, **{f"plain.m.{k}": v for k, v in m_.items()}})  # fmt: skip
-        if stage == "polish":
-            p_run, zp = state["polish_round"], ckpt["plain.z"]
-            mp = {k: ckpt[f"plain.m.{k}"] for k in keys}
-        else:
-            zp = z[idx]
-            mp = evaluate_many(plain, from_factors(p0, zp), settings.chunk, log=log, what="plain evaluation")
-            save("polish", z, m, *plain_state(0, zp, mp))
-        plain_end = None if clock.ends is None else (lambda n: finish_by("plain", n))
-        h = rounds_horizon("plain", polish, None if plain_end is None else plain_end(front_size(mp)))
-        save_plain = lambda r, z_, m_: save("polish", z, m, *plain_state(r, z_, m_))
-        zp, mp, polish = rounds_on(plain, zp, mp, p_run, polish, settings.polish_sigma, seed + 500_000, plain_end,
-                                   "plain", save_plain, h)  # fmt: skip
-        idx = np.concatenate([idx, np.full(len(zp) - len(idx), -1)])
+def _local(run: _Run) -> None:
+    """The local rounds on the training problem, around its front."""
+    r0 = run.state.get("round", 0) if run.state.get("stage") == "local" else 0
+    local_end = None if run.clock.ends is None else (
+        (lambda n: run.clock.end("local")) if run.surrogate else (lambda n: run.finish_by("end", n)))  # fmt: skip
+    h = run.rounds_horizon("local", run.rounds, None if local_end is None else local_end(front_size(run.m)))
+    at = {"global_evaluated": run.evaluated}
+    save_local = lambda r, z_, m_: run.save("local", z_, m_, {"round": r, **at})
+    run.z, run.m, run.rounds = _rounds_on(run, run.train, run.z, run.m, r0, run.rounds, run.settings.sigma,
+                                          run.settings.seed * 1_000_003, local_end, "local", save_local, h)  # fmt: skip
+
+
+def _plain(run: _Run) -> tuple[np.ndarray, np.ndarray, dict]:
+    """With a training surrogate: the plain metrics of the points non-dominated on the training
+    metrics, then plain rounds around their front. Returns (each point's index among the
+    training evaluations, -1 for a plain round's; their log factors; their plain metrics)."""
+    z, m, at = run.z, run.m, {"global_evaluated": run.evaluated}
+    idx = np.flatnonzero(nondominated(*axes(m)))
+    plain_state = lambda r, z_, m_: ({"polish_round": r, **at},
+                                     {"plain.z": z_, **{f"plain.m.{k}": v for k, v in m_.items()}})  # fmt: skip
+    if run.stage == "polish":
+        p_run, zp = run.state["polish_round"], run.ckpt["plain.z"]
+        mp = {k: run.ckpt[f"plain.m.{k}"] for k in run.keys}
+    else:
+        p_run, zp = 0, z[idx]
+        mp = run.evaluate(run.plain, zp, log=run.log, what="plain evaluation")
+        run.save("polish", z, m, *plain_state(0, zp, mp))
+    plain_end = None if run.clock.ends is None else (lambda n: run.finish_by("plain", n))
+    h = run.rounds_horizon("plain", run.polish, None if plain_end is None else plain_end(front_size(mp)))
+    save_plain = lambda r, z_, m_: run.save("polish", z, m, *plain_state(r, z_, m_))
+    zp, mp, run.polish = _rounds_on(run, run.plain, zp, mp, p_run, run.polish, run.settings.polish_sigma,
+                                    run.settings.seed * 1_000_003 + 500_000, plain_end, "plain", save_plain,
+                                    h)  # fmt: skip
+    return np.concatenate([idx, np.full(len(zp) - len(idx), -1)]), zp, mp
+
+
+def _rounds_on(run: _Run, problem, z, m, r0, n, sigma, seed, deadline, what, save_at, horizon):
+    """Local rounds r0..n-1 on ``problem`` from the evaluated (z, m), until ``deadline()``
+    (None: no deadline) passes, sigma from sigma[0] at round 0 to sigma[1] at round
+    ``horizon`` and after; returns (z, m, rounds run). Parents are drawn from the
+    front, kept as the rounds go (the non-dominated set of the old front and the round's
+    children: a dominated point stays dominated). With a deadline, checkpoints are written
+    at most every 10 s (a round can cost less than writing the archive)."""
+    settings, log = run.settings, run.log
+    (s0, s1), shown, saved = sigma, -np.inf, time.perf_counter()
+    keep = nondominated(*axes(m))
+    fz, fm = z[keep], {k: v[keep] for k, v in m.items()}
+    zs, ms = [z], [m]
+    for r in range(r0, n):
+        now, end = time.perf_counter(), None if deadline is None else deadline(len(fz))
+        if end is not None and sharding.first(now > end):
+            log(f"front: {what} rounds: {r} run, the stage's time is spent")
+            n = r
+            break
+        sig = s0 * (s1 / s0) ** min(r / horizon, 1.0)
+        zr = local_factors(fz, fm, settings.chunk, settings.points, sig, seed + r, run.space)
+        mr = run.evaluate(problem, zr, log=lambda _: None)
+        zs.append(zr)
+        ms.append(mr)
+        fz, fm = np.concatenate([fz, zr]), _join(fm, mr)
+        keep = nondominated(*axes(fm))
+        fz, fm = fz[keep], {k: v[keep] for k, v in fm.items()}
+        if end is None or time.perf_counter() - shown > 1.0:
+            shown = time.perf_counter()
+            total = f"/{n}" if end is None else f" ({max(0.0, end - shown):.1f} s left)"
+            log(f"front: {what} round {r + 1}{total}  sigma {sig:.4f}  {len(fz)} non-dominated  "
+                f"{time.perf_counter() - run.t0:7.1f} s")  # fmt: skip
+        due = settings.checkpoint_every and ((r + 1) % settings.checkpoint_every == 0 or r + 1 == n)
+        if due and (end is None or time.perf_counter() - saved > 10.0):
+            z, m = np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}
+            zs, ms = [z], [m]
+            save_at(r + 1, z, m)
+            saved = time.perf_counter()
+    return np.concatenate(zs), {k: np.concatenate([x[k] for x in ms]) for k in m}, n
+
+
+def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) -> dict[str, Any]:
+    """front.json's head: the front's points (non-dominated, sorted by chattering, no repeats)
+    and the stages' counts, with the work done (``stages["replay"]``)."""
+    settings, clock = run.settings, run.clock
     if clock.ends is not None:
         left = clock.end("end") - time.perf_counter()
-        log(f"front: the search ends {left:.1f} s before the run's deadline, kept for the final evaluations "
-            f"({reserve_per_point * 1e3:.1f} ms per point)" if left >= 0 else
-            f"front: the search ends {-left:.1f} s after the run's deadline: "
-            + ("the budget is shorter than compilation and one chunk of each stage"
-               if clock.ends["local"] == clock.ends["global"] else "its last round ran past it"))  # fmt: skip
-    if generations >= 10**9:  # the CMA-ES stage never started (a spent budget)
-        generations = 0
+        run.log(f"front: the search ends {left:.1f} s before the run's deadline, kept for the final evaluations "
+                f"({run.reserve_per_point * 1e3:.1f} ms per point)" if left >= 0 else
+                f"front: the search ends {-left:.1f} s after the run's deadline: "
+                + ("the budget is shorter than compilation and one chunk of each stage"
+                   if clock.ends["local"] == clock.ends["global"] else "its last round ran past it"))  # fmt: skip
+    generations = 0 if run.generations >= 10**9 else run.generations  # 10**9: the CMA-ES stage never started
     e, c = axes(mp)
     keep = np.flatnonzero(nondominated(e, c))
     keep = keep[np.unique(np.stack([c[keep], e[keep]], 1), axis=0, return_index=True)[1]]  # sorted, no repeats
-    params = from_factors(p0, zp[keep])
+    params = from_factors(run.p0, zp[keep])
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
-    work = Plan(drawn=n_cand, evaluated=evaluated, probe=bool(probe), cma_generations=generations,
-                local_rounds=rounds, local_horizon=horizon.get("local", 1), plain_rounds=polish,
-                plain_horizon=horizon.get("plain", 1))  # fmt: skip
-    stages = {"candidates": n_global, "grid_per_axis": grid_size(n_cand, settings.grid_share, len(space.params)),
+    work = Plan(drawn=run.n_cand, evaluated=run.evaluated, probe=bool(run.probe), cma_generations=generations,
+                local_rounds=run.rounds, local_horizon=run.horizon.get("local", 1), plain_rounds=run.polish,
+                plain_horizon=run.horizon.get("plain", 1))  # fmt: skip
+    n_global, n_cma = run.n_global, run.n_cma
+    grid = grid_size(run.n_cand, settings.grid_share, len(run.space.params))
+    stages = {"candidates": n_global, "grid_per_axis": grid,
               "cma_generations": generations,
-              "local_rounds": rounds, "plain_rounds": polish, "evaluations": n_train,
-              "plain_evaluations": len(zp) if surrogate else 0, "wall_time_s": time.perf_counter() - t0,
+              "local_rounds": run.rounds, "plain_rounds": run.polish, "evaluations": n_train,
+              "plain_evaluations": len(zp) if run.surrogate else 0, "wall_time_s": time.perf_counter() - run.t0,
               "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
               "from_plain_rounds": int(np.sum(idx[keep] < 0)),

@@ -324,6 +324,9 @@ def _simulate(
 
     Returns:
       :class:`Result` with the metrics of :mod:`fosmc_jax._simulator.metrics`.
+
+    Its length is this documentation of :func:`fosmc_jax.simulate`'s arguments; the body is
+    :func:`closed_loop_step` scanned over sample periods, then the metrics.
     """
     if integrator not in _STEPPERS:
         raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
