@@ -2,10 +2,10 @@
 its time loop in one compiled kernel (``arm_kernel.cc``, built by :mod:`fosmc_jax._simulator.native`).
 
 XLA:CPU copies the arm's closed form into every fusion that uses it (an RK4 step of the vmapped
-``simulate`` held about 217 sin/cos pairs where 10 are needed) and runs each of its ~100 fusions
-per step as one more pass over the batch; the arm ran 24-90x below a hand-written C kernel of
-the same loop. The kernel runs the loop of :func:`fosmc_jax.simulate` for the two
-controllers the tuner and the presets use:
+``simulate`` evaluates its sines and cosines many times over) and runs each of its fusions per
+step as one more pass over the batch, far below a hand-written C kernel of the same loop
+(BENCHMARKS.md, "Figures behind the code" and "Issue 21"). The kernel runs the loop of
+:func:`fosmc_jax.simulate` for the two controllers the tuner and the presets use:
 
 - :class:`fosmc_jax.FOSMC`, the ideal loop, every switching function and law;
 - :class:`fosmc_jax.DigitalLoop` around :class:`fosmc_jax.DiscreteFOSMC` without Gaussian noise
