@@ -21,6 +21,7 @@ from .._certificate.hitting import (
     vertex_values,
     z_samples,
 )
+from .._controllers import KINDS
 from .._design.box import code_of, vertex_codes, vertices_from_codes
 from .._design.gains import CONVENTIONS
 from .._problems import (
@@ -115,7 +116,7 @@ def certify(
 def _checked(cfg: Config, plant: str, n_s: int) -> str:
     """``plant``, once the config is one :func:`certify` checks (the FOSMC's ideal loop) and
     ``plant`` and ``n_s`` are in range."""
-    if cfg.controller.kind != "fosmc":
+    if not KINDS[cfg.controller.kind].hitting_condition:
         raise ConfigError(f"controller.kind: certify checks the FOSMC's hitting condition (20), not kind = "
                           f"'{cfg.controller.kind}'")  # fmt: skip
     if cfg.controller.sample_period:

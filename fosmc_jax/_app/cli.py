@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 from .. import _problems as problems
+from .._controllers.kind import load_entry_points
 from .._design import paper as _paper
 from .._design.gains import CONVENTIONS
 from .._io import VERSIONS_KEY, atomic_write, jsonable, stamped_arrays
@@ -630,6 +631,11 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     jax.config.update("jax_enable_x64", True)  # float64 available; each run picks its precision
     use_compilation_cache()  # a second run loads its programs (FOSMC_JAX_COMPILATION_CACHE=0: off)
+    try:
+        load_entry_points()  # the controller kinds installed packages register (group fosmc_jax.kinds)
+    except ValueError as e:
+        print(f"fosmc: error: controller kinds: {e}", file=sys.stderr)
+        return 2
     try:
         if processes.asked:  # first: before the command's own JAX operations (its config's checks)
             distributed.join(processes)

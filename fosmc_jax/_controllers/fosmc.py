@@ -242,4 +242,6 @@ KIND = Kind(
                              Param("poles", "poles", -1, (0.0, 2.0)))),
     {},
     _law,
+    tunes_params=True,
+    hitting_condition=True,
 )  # fmt: skip

@@ -11,6 +11,8 @@ nominal design rows (the ``[controller] C`` and ``[model]`` keys), which its law
 
 from __future__ import annotations
 
+import importlib
+import importlib.metadata
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any, NamedTuple
 
@@ -57,13 +59,18 @@ class Kind(NamedTuple):
     FOSMC parameters (C and the nominal rows; the FOSMC's own gains), the resolved, typed
     ``[controller]`` table (``controller.gains``: the kind's gains as arrays of the run's dtype)
     and the sample period T (an array; ``controller.sample_period`` = 0: the ideal loop). ``ideal``: the
-    ideal loop's controller around the law (None: the law itself).
+    ideal loop's controller around the law (None: the law itself). ``tunes_params``: its tunable
+    parameters are fields of the FOSMC parameters the law is made from (the FOSMC's own), not of
+    its law (every other kind's). ``hitting_condition``: the paper's hitting condition (20) is
+    this kind's, so that ``fosmc certify`` checks it (the FOSMC's).
     """
 
     space: Space
     gains: dict[str, tuple[float, float, float]]
     law: Callable[[Any, Any, Any], Any]
     ideal: Callable[[Any], Any] | None = None
+    tunes_params: bool = False
+    hitting_condition: bool = False
 
     @property
     def name(self) -> str:
@@ -83,6 +90,35 @@ def register(kind: Kind) -> Kind:
         raise ValueError(f"controller kind {kind.name!r}: config keys {sorted(taken & set(kind.gains))} are taken")
     KINDS[kind.name] = kind
     return kind
+
+
+#: The entry-point group through which an installed package registers its controller kinds: each
+#: entry point names a :class:`Kind` (``[project.entry-points."fosmc_jax.kinds"]``,
+#: ``mykind = "mypkg.mykind:KIND"``).
+ENTRY_POINTS = "fosmc_jax.kinds"
+
+
+def load(spec: str) -> Kind:
+    """The kind a ``module:attribute`` spec names (``[controller] kind = "mypkg.mykind:KIND"``),
+    imported and registered; a one-line ``ValueError`` when the module or the attribute is not
+    found or is not a :class:`Kind`."""
+    module, _, attribute = spec.partition(":")
+    try:
+        kind = getattr(importlib.import_module(module), attribute)
+    except (ImportError, AttributeError, ValueError) as e:
+        raise ValueError(f"cannot load the controller kind {spec!r} ({type(e).__name__}: {e})") from None
+    if not isinstance(kind, Kind):
+        raise ValueError(f"{spec!r} is a {type(kind).__name__}, not a controller kind (fosmc_jax.search.Kind)")
+    return register(kind)
+
+
+def load_entry_points() -> list[Kind]:
+    """Every kind installed packages declare in the :data:`ENTRY_POINTS` group, registered (a
+    one-line ``ValueError`` naming an entry point that does not load or is not a :class:`Kind`)."""
+    kinds = []
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINTS):
+        kinds.append(load(entry.value))
+    return kinds
 
 
 def space_of(params: Any) -> Space:

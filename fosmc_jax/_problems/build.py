@@ -192,7 +192,7 @@ def problem_of(cfg: Config) -> Problem:
     dt = jnp.asarray(sim.dt, dtype)
     params = controller_of(cfg, dtype)
     law, loop = _law_and_loop(cfg, dtype)
-    if ctl.kind == "fosmc":
+    if KINDS[ctl.kind].tunes_params:  # the kind's parameters are fields of the FOSMC parameters
         base, controller_from = params, lambda params: loop(law(params))
     else:  # the kind's parameters are fields of its law
         base, controller_from = law(params), loop

@@ -65,9 +65,7 @@ def front_problems(config: str | Path | dict | Config) -> FrontProblems:
     held = held_out_config(cfg)
     references = {}
     for label, switching in REFERENCES.items():
-        if switching is None and cfg.controller.kind == "fosmc":
-            references[label] = None
-        else:
-            switching = switching or cfg.controller.switching
-            references[label] = plain_problem(replace(cfg, controller={"switching": switching, "kind": "fosmc"}))
+        reference = replace(cfg, controller={"switching": switching or cfg.controller.switching, "kind": "fosmc"})
+        own = switching is None and reference == cfg  # the config's own controller: the plain problem is it
+        references[label] = None if own else plain_problem(reference)
     return FrontProblems(cfg, plain, train, p0, plain_problem(held), held_out_batch(held), references)

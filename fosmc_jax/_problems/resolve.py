@@ -18,6 +18,7 @@ import jax
 import numpy as np
 
 from .._controllers import SPACES
+from .._controllers.kind import load as load_kind
 from .._controllers.kind import space_of
 from .._design.gains import DesignError, check_design, stable_step
 from .._io import read_json
@@ -71,12 +72,26 @@ def resolve(user: Mapping | None = None) -> Config:
     Raises :class:`ConfigError` naming the first offending key.
     """
     user = user.as_dict() if isinstance(user, Config) else copy.deepcopy(user or {})
+    _load_kind(user)
     merged = _merge(full_schema(), defaults(), user, "")
     if "params" not in (user.get("tune", {}) if isinstance(user, Mapping) else {}):
         merged["tune"]["params"] = list(SPACES[merged["controller"]["kind"]].names)
     cfg = Config.of(merged)
     _check_consistency(merged, cfg)
     return cfg
+
+
+def _load_kind(user: Any) -> None:
+    """A ``[controller] kind`` naming a module's kind (``"mypkg.mykind:KIND"``): that kind
+    imported and registered, and the table's kind its name (a one-line :class:`ConfigError`
+    when it does not load)."""
+    controller = user.get("controller") if isinstance(user, Mapping) else None
+    kind = controller.get("kind") if isinstance(controller, dict) else None
+    if isinstance(kind, str) and ":" in kind:
+        try:
+            controller["kind"] = load_kind(kind).name
+        except ValueError as e:
+            raise ConfigError(f"controller.kind: {e}") from None
 
 
 def load(path: str | Path | None) -> Config:
