@@ -33,11 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, derive, reference_terms
-from .._controllers.smc import SMC
-from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
-from .._design.gains import input_matrix_product
-from .._design.linalg import inv3
+from .._controllers.base import ArmKernelLaw, KernelLaw
+from .._controllers.fosmc import reference_terms
 from .._loop.digital import DigitalLoop
 from .._plants.arm import Arm, ArmParams, cast_params
 from .._plants.reference import desired_state
@@ -57,50 +54,33 @@ MAX_DELAY = 8
 TABLE_BYTES = 24 * 1024
 
 
-# The laws the kernel runs, by its code (h.kind in arm_kernel.cc): in the ideal loop, and sampled
-# in a DigitalLoop
-IDEAL = {FOSMC: 0, SMC: 1, ContinuousSuperTwisting: 2}
-SAMPLED = {DiscreteFOSMC: 0, SMC: 1, SuperTwisting: 2}
+def _kernel_law(ctrl):
+    """(the law the kernel would run, its code in arm_kernel.cc or None where the kernel does not
+    run it): a DigitalLoop's law, sampled, or the ideal loop's controller itself
+    (:class:`fosmc_jax._controllers.base.ArmKernelLaw`, declared by the laws themselves)."""
+    sampled = type(ctrl) is DigitalLoop
+    law = ctrl.law if sampled else ctrl
+    return law, law.arm_kernel_code(sampled) if isinstance(law, ArmKernelLaw) else None
 
 
 def supports(plants, ctrl, integrator: str) -> bool:
-    """Whether the kernel runs this batch: arms under the FOSMC, SMC or super-twisting, in the
-    ideal loop or in a DigitalLoop without noise, on a CPU where the kernel is built."""
+    """Whether the kernel runs this batch: arms under a law the kernel runs (the FOSMC, SMC or
+    super-twisting), in the ideal loop or in a DigitalLoop without noise, on a CPU where the
+    kernel is built."""
     if not isinstance(plants, Arm) or integrator not in ("euler", "rk4"):
         return False
+    ok = _kernel_law(ctrl)[1] is not None
     if type(ctrl) is DigitalLoop:
-        ok = type(ctrl.law) in SAMPLED and ctrl.sensors.noise_std is None and ctrl.delay <= MAX_DELAY
-    else:
-        ok = type(ctrl) in IDEAL
+        ok = ok and ctrl.sensors.noise_std is None and ctrl.delay <= MAX_DELAY
     return ok and jax.default_backend() == "cpu" and _native.available()
 
 
-def _law_of(ctrl):
-    """The law inside the loop: the FOSMC or DiscreteFOSMC, SMC or SuperTwisting."""
-    return ctrl.law if type(ctrl) in (DigitalLoop, ContinuousSuperTwisting) else ctrl
-
-
-def _surface_of(law):
-    """(C, a_rows, b_rows) of any of the laws."""
-    q = law.params if isinstance(law, (FOSMC, DiscreteFOSMC)) else law.surface
-    return q.C, q.a_rows, q.b_rows
-
-
-def _law_rows(law, dtype) -> Array:
+def _law_rows(kernel: KernelLaw, dtype) -> Array:
     """The law's lane rows of arm_kernel.cc (96), then its period (0 in the ideal loop)."""
-    if isinstance(law, (FOSMC, DiscreteFOSMC)):
-        c, d = law.params, derive(law.params)
-        rows = (c.C, d.S, d.CB_inv, d.K, c.gamma, c.delta)
-    else:
-        C, a_rows, b_rows = _surface_of(law)
-        CB_inv = inv3(input_matrix_product(C, b_rows))
-        gains = (law.k, law.phi) if type(law) is SMC else (law.k1, law.k2)
-        rows = (C, a_rows, CB_inv, jnp.zeros(27), *gains)
-    period = getattr(law, "period", 0.0)
-    return jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in (*rows, period)])
+    return jnp.concatenate([jnp.ravel(jnp.asarray(x, dtype)) for x in (*kernel.rows, kernel.period)])
 
 
-def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
+def _lane_rows(plants: Arm, ctrl, kernel: KernelLaw, O: int, dtype) -> Array:
     """(LANE_ROWS, P O): the arm's parameters (each plant O times: plant-major), then the law's and
     the loop's, as in arm_kernel.cc."""
     p = cast_params(plants.params, dtype)
@@ -115,22 +95,23 @@ def _lane_rows(plants: Arm, ctrl, O: int, dtype) -> Array:
         loop = [jnp.broadcast_to(step, (3,)), jnp.broadcast_to(ctrl.u_max, (3,)), ctrl.period]
     else:
         loop = [jnp.zeros(3), jnp.full(3, jnp.inf), 0.0]
-    law = _law_rows(_law_of(ctrl), dtype)
+    law = _law_rows(kernel, dtype)
     rest = jnp.concatenate([law[:-1], *(jnp.ravel(jnp.asarray(x, dtype)) for x in loop), law[-1:]])
     lanes = jnp.concatenate([jnp.repeat(arm, O, axis=0), jnp.broadcast_to(rest, (P * O, rest.shape[0]))], axis=1)
     assert lanes.shape[1] == LANE_ROWS, lanes.shape
     return lanes.T
 
 
-def _pack(carry, acc3: Array, digital: bool, delay: int) -> Array:
+def _pack(carry, acc3: Array, digital: bool, delay: int, integral) -> Array:
     """The kernel's carry rows (56 + 3 delay, N) from a batch of :class:`_simulator._Carry`
-    (leading axis N) and the accelerations of its plant states (N, 3)."""
+    (leading axis N) and the accelerations of its plant states (N, 3); ``integral``: the law's
+    state -> its integral (:attr:`KernelLaw.memory`; None: zeros)."""
     ps, cs = carry.plant_state, carry.ctrl_state
     law = cs.law if digital else cs
     N = acc3.shape[0]
     dtype = acc3.dtype
     col = lambda x: jnp.asarray(x, dtype).reshape(N, -1)
-    w = law.w if hasattr(law, "w") else law.v if hasattr(law, "v") else jnp.zeros((N, 3), dtype)  # SMC: none
+    w = integral(law) if integral is not None else jnp.zeros((N, 3), dtype)
     memory = [cs.memory.theta, cs.memory.dtheta] if digital else [jnp.zeros((N, 6), dtype)]
     a = carry.acc
     metrics = [jnp.broadcast_to(col(a.count), (N, 3))] + [col(f) for f in a[1:]]
@@ -220,18 +201,17 @@ def _native_batch(plants, ctrl, reference, X0s, dt, *, n_steps, integrator, dive
         jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants), carry.plant_state
     )
     delay = ctrl.delay if digital else 0
-    law = _law_of(ctrl)
-    fosmc = isinstance(law, (FOSMC, DiscreteFOSMC))
-    flags = dict(kind=(SAMPLED if digital else IDEAL)[type(law if digital else ctrl)], delay=delay,
-                 switching=SWITCHING.index(law.switching) if fosmc else 0, law=LAWS.index(law.law) if fosmc else 0,
+    law, code = _kernel_law(ctrl)
+    kernel = law.arm_kernel_law()
+    flags = dict(kind=code, delay=delay, switching=kernel.switching, law=kernel.law,
                  difference=digital and ctrl.sensors.derivatives == "difference",
                  m=ctrl.sample_steps if digital else 1)  # fmt: skip
     gain = _metrics.lowpass(dt, jnp.asarray(chattering_cutoff, dtype))
-    shared = (reference, *_surface_of(law)[1:], dt, gain, bound)
+    shared = (reference, *kernel.surface[1:], dt, gain, bound)
     advance = _folded(
         functools.partial(_advance, n_steps=n_steps, rk4=integrator == "rk4", digital=digital, flags=flags)
     )
-    out = advance(_pack(carry, acc3, digital, delay), _lane_rows(plants, ctrl, O, dtype), shared)
+    out = advance(_pack(carry, acc3, digital, delay, kernel.memory), _lane_rows(plants, ctrl, kernel, O, dtype), shared)
     fields = out[METRICS].reshape(_native.ACC, 3, N)
     acc = _metrics.Accumulator(*(jnp.moveaxis(f, 0, -1) for f in fields))
     acc = acc._replace(count=acc.count[:, :1])
