@@ -390,6 +390,8 @@ def study_config(name: str, cfg: dict, args) -> dict:
     t_cfg = time.perf_counter()
     if args.quick:
         cfg = _config.replace(cfg, tune={"global_candidates": min(cfg.tune.global_candidates, QUICK_GLOBAL)})
+    if args.window is not None:  # tune's gradient window (s; beyond the horizon: the whole horizon)
+        cfg = _config.replace(cfg, tune={"gradient_window": args.window})
     tcfg = cfg["tune"]
     plain, train, p0 = _config.tuning_problems(cfg)  # as run_tune
     m = fs.evaluate(train, p0)["metrics"]
@@ -776,6 +778,8 @@ def main() -> int:
         help="where the race from p0 (no global stage) runs too (default: the ideal loops)",
     )
     ap.add_argument("--optimizer", choices=T.OPTIMIZERS, help="tune's optimizer (default: the config's)")
+    ap.add_argument("--window", type=float, help="tune's [tune] gradient_window, s (default: the config's; a window "
+                    "longer than the training horizon gives the whole horizon's gradient)")  # fmt: skip
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
