@@ -775,7 +775,7 @@ def delay_warning(costs: dict[int, float], delay: int, margin: float = DELAY_MAR
     squared residuals in units of the noise, :func:`identify`'s delay check) are below the
     configured ``delay``'s by more than ``margin`` of it: a drive logs its voltages either as it
     writes them (the loop's delay) or as they act (0), and a wrong delay biases the estimates by
-    more than their standard deviations (measured: docs/identify.md); else None."""
+    more than their standard deviations (docs/identify.md); else None."""
     best = min(costs, key=costs.get)
     if best == delay or not costs[best] < (1 - margin) * costs[delay]:
         return None
