@@ -568,16 +568,82 @@ def _pad(x: Array, W: int) -> Array:
     return jnp.pad(x, ((0, 0), (0, (-x.shape[1]) % W)), mode="edge")
 
 
-def _linear_call_batched(args, dims, **params):
-    """A batching rule for ``linear_call`` (JAX has none): the batch mapped one element after
-    another (``lax.map``), as the kernels' FFI calls are (``vmap_method="sequential"``); its
-    transpose is the map's, each element's the adjoint kernel. ``jax.jacfwd`` and ``vmap`` of a
-    gradient need it."""
-    size = next(x.shape[d] for x, d in zip(args, dims) if d is not None)
-    lead = [jnp.broadcast_to(x, (size, *x.shape)) if d is None else jnp.moveaxis(x, d, 0)
-            for x, d in zip(args, dims)]  # fmt: skip
-    out = jax.lax.map(lambda xs: _LINEAR_CALL.bind(*xs, **params), lead)
+def _linear_call_batched(axis_data, args, dims, *, callee, transpose_thunk, num_callee_consts, num_res):
+    """A batching rule for ``linear_call`` (JAX has none): the call with its function and its
+    transpose batched (``batching.batch_jaxpr``), so that under ``vmap`` of a gradient the
+    adjoint kernel runs once for the whole batch (:func:`_folded_call`). ``jax.jacfwd`` and
+    ``vmap`` of a gradient need it."""
+    size = axis_data.size
+    res = [d is not None for d in dims[num_callee_consts : num_callee_consts + num_res]]
+    lin = [True] * (len(args) - num_callee_consts - num_res)  # their cotangents are mapped anyway
+    batched = [d is not None for d in dims[:num_callee_consts]] + res + lin
+    args = [jnp.moveaxis(x, d, 0) if d is not None else jnp.broadcast_to(x, (size, *x.shape)) if b else x
+            for x, d, b in zip(args, dims, batched)]  # fmt: skip
+    callee = batching.batch_jaxpr(callee, axis_data, batched, [True] * len(callee.out_avals))[0]
+
+    def batched_transpose():
+        transpose, consts = transpose_thunk()
+        mapped = [False] * len(consts) + res + [True] * (len(transpose.in_avals) - len(consts) - num_res)
+        return batching.batch_jaxpr(transpose, axis_data, mapped, [True] * len(transpose.out_avals))[0], consts
+
+    out = _LINEAR_CALL.bind(*args, callee=callee, transpose_thunk=batched_transpose,
+                            num_callee_consts=num_callee_consts, num_res=num_res)  # fmt: skip
     return out, [0] * len(out)
+
+
+def _folded_call(target: str, shapes, n: int, W: int, ckpt_in: bool = False, ckpt_out: bool = False, **attrs):
+    """``jax.ffi.ffi_call(target, shapes)`` with ``attrs``, on buffers whose last axis holds the
+    rollouts (``n`` of them, padded to whole blocks of ``W``), but for the table (the second
+    input) and the checkpoints (``ckpt_in``: the third input; ``ckpt_out``: the second output),
+    whose layout is the kernel's own (block-major). Under ``vmap`` with a shared table, the
+    mapped axis C is folded into the rollouts: one call runs C x n rollouts in whole blocks (C
+    calls of a block each waste most of their lanes on padding where n is small, as in tuning,
+    and run on one core); the checkpoints of the folded call are kept as C rows of the declared
+    shape (the first ones hold them), which only a folded adjoint call reads. Where the table is
+    mapped, or the checkpoints are not (a ``vmap`` over the cotangents alone), one call per element."""
+    run = jax.custom_batching.custom_vmap(
+        lambda *xs: jax.ffi.ffi_call(target, shapes, vmap_method="sequential")(*xs, **attrs)
+    )
+
+    @run.def_vmap
+    def rule(C, batched, *xs):
+        if batched[1] or (ckpt_in and not batched[2]):
+            mapped = [i for i, b in enumerate(batched) if b]
+
+            def one(values):
+                args = list(xs)
+                for i, v in zip(mapped, values):
+                    args[i] = v
+                return run(*args)
+
+            out = jax.lax.map(one, [xs[i] for i in mapped])
+            return out, jax.tree.map(lambda _: True, out)
+        F = C * n
+        Fp = F + (-F) % W
+
+        def fold(x, b):  # (C, ..., n + padding) -> (..., Fp)
+            x = (x if b else jnp.broadcast_to(x, (C, *x.shape)))[..., :n]
+            x = jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], F)
+            return jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, Fp - F)], mode="edge")
+
+        def unfold(y):  # (..., Fp) -> (C, ..., n + padding)
+            y = jnp.moveaxis(y[..., :F].reshape(*y.shape[:-1], C, n), -2, 0)
+            return jnp.pad(y, [(0, 0)] * (y.ndim - 1) + [(0, (-n) % W)], mode="edge")
+
+        outs = list(shapes) if isinstance(shapes, (tuple, list)) else [shapes]
+        wide = [jax.ShapeDtypeStruct((*s.shape[:-1], Fp), s.dtype) for s in outs]
+        if ckpt_out:  # the folded checkpoints (their first B x rows x Fp values) in C of the declared rows
+            wide[1] = jax.ShapeDtypeStruct((C, *outs[1].shape), outs[1].dtype)
+        args = [x if i == 1 else fold(x, b) for i, (x, b) in enumerate(zip(xs, batched))]
+        if ckpt_in:
+            args[2] = xs[2].reshape(-1)[: xs[2][0].size // xs[2].shape[-1] * Fp]
+        out = jax.ffi.ffi_call(target, wide if len(wide) > 1 else wide[0], vmap_method="sequential")(*args, **attrs)
+        out = [out] if len(wide) == 1 else list(out)
+        out = [y if ckpt_out and i == 1 else unfold(y) for i, y in enumerate(out)]
+        out = tuple(out) if isinstance(shapes, (tuple, list)) else out[0]
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run
 
 
 def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, truncate: int = 0) -> Array:
@@ -601,8 +667,8 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
     def forward(x0, varying, fixed, table):
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
         target = model.kernels().targets[0]
-        call = jax.ffi.ffi_call(target, jax.ShapeDtypeStruct(xp.shape, dtype), vmap_method="sequential")
-        return call(lp, table, xp, k0=np.int64(0))[:, :N]
+        call = _folded_call(target, jax.ShapeDtypeStruct(xp.shape, dtype), N, W, k0=np.int64(0))
+        return call(lp, table, xp)[:, :N]
 
     def scan(x0, varying, fixed, table):
         dyn = jnp.asarray(model.dynamic)[:, None]
@@ -634,8 +700,9 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
             _, varying, fixed, table, ckpt = res
             lp, cp = _pad(model.assemble((varying, fixed)), W), _pad(ct, W)
             shapes = (jax.ShapeDtypeStruct(cp.shape, dtype), jax.ShapeDtypeStruct(lp.shape, dtype))
-            call = jax.ffi.ffi_call(kernels.targets[2], shapes, vmap_method="sequential")
-            g_x, g_lanes = call(lp, table, ckpt, cp, k0=np.int64(0), K=np.int64(K), truncate=np.int64(truncate))
+            call = _folded_call(kernels.targets[2], shapes, N, W, ckpt_in=True, k0=np.int64(0), K=np.int64(K),
+                                truncate=np.int64(truncate))  # fmt: skip
+            g_x, g_lanes = call(lp, table, ckpt, cp)
             g_lanes = g_lanes[model.rows, :N]
             g = (g_x[:, :N], g_lanes[: model.n_varying], g_lanes[model.n_varying :])
             return tuple(g[i] for i in moving)
@@ -655,8 +722,8 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
         rows = kernels.saved if K == 1 else n_state
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
         shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((-(-L // K), rows, xp.shape[1]), dtype))
-        call = jax.ffi.ffi_call(kernels.targets[1], shapes, vmap_method="sequential")
-        out, ckpt = call(lp, table, xp, k0=np.int64(0), K=np.int64(K))
+        call = _folded_call(kernels.targets[1], shapes, N, W, ckpt_out=True, k0=np.int64(0), K=np.int64(K))
+        out, ckpt = call(lp, table, xp)
         lin = tuple(tangents[i] for i in moving)
         return out[:, :N], linear_call(tangent, transpose, (x0, varying, fixed, table, ckpt), lin)
 
@@ -700,7 +767,7 @@ def jvp_perturbed(fn, primals: tuple, tangents: tuple):
 
 
 if _LINEAR_CALL not in batching.fancy_primitive_batchers:  # a later JAX may bring its own
-    batching.primitive_batchers[_LINEAR_CALL] = _linear_call_batched
+    batching.fancy_primitive_batchers[_LINEAR_CALL] = _linear_call_batched
 
 
 def warn_unsupported(reason: Exception) -> None:
