@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -239,6 +240,17 @@ def _kernel_law(params: FOSMCParams, period, switching: str, law: str) -> Kernel
     rows = (params.C, d.S, d.CB_inv, d.K, params.gamma, params.delta)
     surface = (params.C, params.a_rows, params.b_rows)
     return KernelLaw(surface, rows, period, SWITCHING.index(switching), LAWS.index(law), lambda state: state.w)
+
+
+def as_controller(controller, switching: str = "ratio", law: str = "paper"):
+    """A :class:`FOSMCParams` (FOSMC parameters) as the ideal-loop :class:`FOSMC`, with a
+    DeprecationWarning (the simulator takes controllers: ``FOSMC(params, switching, law)``);
+    any other controller as it is."""
+    if not isinstance(controller, FOSMCParams):
+        return controller
+    warnings.warn("simulate: bare FOSMC parameters with switching= and law= are deprecated; pass the controller "
+                  "fosmc_jax.FOSMC(params, switching, law)", DeprecationWarning, stacklevel=3)  # fmt: skip
+    return FOSMC(controller, switching, law)
 
 
 class Tunable(NamedTuple):

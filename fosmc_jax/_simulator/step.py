@@ -31,7 +31,6 @@ their last finite state and flagged, so one bad rollout never spoils a batch.
 from __future__ import annotations
 
 import functools
-import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -39,7 +38,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._controllers.base import ContinuousLaw, HasSlidingVariable, SampledLoop, check_controller
-from .._controllers.fosmc import FOSMC, FOSMCParams
+from .._controllers.fosmc import as_controller
 from .._plants.base import check_plant, derivative_at, derivative_observed_at, observe_at, reuses_observation
 from .._plants.reference import desired_state
 from . import metrics as _metrics
@@ -155,17 +154,6 @@ def _finite_and_bounded(tree, X, bound) -> Array:
     leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
     return finite & jnp.all(jnp.abs(X) <= bound)
-
-
-def as_controller(controller, switching: str = "ratio", law: str = "paper"):
-    """A :class:`FOSMCParams` (FOSMC parameters) as the ideal-loop :class:`FOSMC`, with a
-    DeprecationWarning (the simulator takes controllers: ``FOSMC(params, switching, law)``);
-    any other controller as it is."""
-    if not isinstance(controller, FOSMCParams):
-        return controller
-    warnings.warn("simulate: bare FOSMC parameters with switching= and law= are deprecated; pass the controller "
-                  "fosmc_jax.FOSMC(params, switching, law)", DeprecationWarning, stacklevel=3)  # fmt: skip
-    return FOSMC(controller, switching, law)
 
 
 def _sliding_variable(ctrl, state, dtype) -> Array:
