@@ -30,18 +30,18 @@ WORKER = textwrap.dedent(
     from jax.experimental import multihost_utils
     import fosmc_jax as fj
     from fosmc_jax._simulator.sharding import simulate_sharded
-    import test_performance_paths as t
+    import test_performance_paths as performance_paths
 
     assert jax.process_count() == 2 and jax.device_count() == 2 and jax.local_device_count() == 1, jax.devices()
     for P, O, opts in ((3, 4, dict(n_steps=300, integrator="rk4")),  # X0s split over the processes
                        (2, 3, dict(n_steps=90, save_every=30))):     # plants split, with a trace
-        args = t.setup(P, O)
+        args = performance_paths.setup(P, O)
         a = simulate_sharded(*args, 1e-3, devices=None, **opts)
         assert len(a.metrics.rms_error.sharding.device_set) == 2
         assert {d.process_index for d in a.metrics.rms_error.sharding.device_set} == {0, 1}
         a = multihost_utils.process_allgather(a, tiled=True)
         b = fj.simulate_batch(*args, 1e-3, **opts)  # this process alone, its own device
-        t.assert_close(a, b, rtol=1e-12)
+        performance_paths.assert_close(a, b, rtol=1e-12)
     multihost_utils.sync_global_devices("done")
     print(f"process {pid}: ok", flush=True)
     """
