@@ -14,6 +14,11 @@ so the build is a cold one), then timed in ``--rounds`` interleaved rounds of ``
 each on both cores; the ratio is the median of the rounds' (generated / hand-written). The
 rollouts' rms errors of the two paths are compared (max relative difference). The 1-minute load
 average is recorded with every round.
+
+``--flags "-fschedule-insns -fsched-pressure"`` adds a third path to every cell: the generated
+kernel built again with those extra compiler flags (``FOSMC_JAX_GENERATED_FLAGS``; its build
+timed too), in the same interleaved rounds; its ratio to the plain generated one, and whether
+its rms errors equal the plain one's bit for bit.
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--round-s", type=float, default=0.5)
     ap.add_argument("--cache", help="the kernel cache folder (default: a fresh temporary one: cold builds)")
+    ap.add_argument("--flags", help="extra compiler flags for a third path, the generated kernel built with them")
+    ap.add_argument("--only", help="the cells whose 'loop integrator dtype' contains this (e.g. 'digital rk4')")
     ap.add_argument("--out", help="write the rows as JSON")
     args = ap.parse_args(argv)
     tmp = tempfile.TemporaryDirectory()
@@ -56,6 +63,8 @@ def main(argv=None):
              for i in ("euler", "rk4") for d in ("float32", "float64") for b in ((1024,) if args.quick else (1024, 4096))]  # fmt: skip
     cells += [dict(loop="digital", integrator="rk4", dtype=d, batch=1024, steps=500 if args.quick else 4000, case=None)
               for d in ("float64", "float32")]  # fmt: skip
+    if args.only:
+        cells = [c for c in cells if args.only in f"{c['loop']} {c['integrator']} {c['dtype']}"]
     rows = []
     print(f"start: load {os.getloadavg()[0]:.2f}", flush=True)
     for cell in cells:
@@ -75,11 +84,16 @@ def main(argv=None):
             return generated.simulate_batch(a, paired=False, **opts).metrics.rms_error
 
         runs, out = {}, {}
-        for name, fn in (("hand", hand), ("generated", gen)):
+        paths = [("hand", hand), ("generated", gen)] + ([("flags", lambda p, x: gen(p, x))] if args.flags else [])
+        for name, fn in paths:
+            if name == "flags":  # white-box: the printed model forgotten, so that it is built again
+                generated._MODELS.clear()
+                os.environ["FOSMC_JAX_GENERATED_FLAGS"] = args.flags
             t0 = time.perf_counter()
             run = jax.jit(fn).lower(plants, X0s).compile()
             out[name] = np.asarray(jax.block_until_ready(run(plants, X0s)))
             runs[name] = [run, time.perf_counter() - t0, []]
+            os.environ.pop("FOSMC_JAX_GENERATED_FLAGS", None)
         for _ in range(args.rounds):
             for r in runs.values():
                 t0, calls = time.perf_counter(), 0
@@ -94,6 +108,14 @@ def main(argv=None):
                    generated_build_and_compile_s=runs["generated"][1],
                    rms_rel_diff=float(np.nanmax(np.abs(out["generated"] - out["hand"]) / np.abs(out["hand"]))),
                    rollout_steps_per_s=cell["batch"] * cell["steps"] / hand_s, load=os.getloadavg()[0])  # fmt: skip
+        if args.flags:
+            flagged = [f / g for f, g in zip(runs["flags"][2], runs["generated"][2])]
+            row.update(flags=args.flags, flags_s=statistics.median(runs["flags"][2]), flags_over_generated=
+                       statistics.median(flagged), flags_ratios=flagged, flags_build_and_compile_s=runs["flags"][1],
+                       flags_bitwise=bool(np.array_equal(out["flags"], out["generated"], equal_nan=True)))  # fmt: skip
+            print(f"  with {args.flags}: {1e3 * row['flags_s']:.1f} ms = {row['flags_over_generated']:.3f}x the "
+                  f"generated (rounds {min(flagged):.3f}-{max(flagged):.3f}); build + compile "
+                  f"{row['flags_build_and_compile_s']:.1f} s; bitwise {row['flags_bitwise']}", flush=True)  # fmt: skip
         rows.append(row)
         print(f"{cell['loop']:7s} {cell['integrator']:5s} {cell['dtype']:7s} {cell['batch']:5d} x {cell['steps']}: "
               f"hand {1e3 * row['hand_s']:.1f} ms, generated {1e3 * row['generated_s']:.1f} ms = {row['ratio']:.2f}x "

@@ -23,6 +23,16 @@ reaches both alike; the ratio is the median of the rounds' ratios):
   ``vmap`` path, what a gradient cost before; slow: off by default).
 The gradients of the two paths are compared (max relative difference) where both run. The
 1-minute load average is recorded with every round; ``--out`` writes all as JSON.
+
+``--build`` times the generated model's cold builds instead, per shape, each in a process of
+its own with a fresh kernel cache (``FOSMC_JAX_CACHE``, a new temporary folder): the value and
+gradient alone (the default path's first derivative: the adjoint's
+library), then the generated forward compiled and run once (the forward's library alone)
+followed by its value and gradient (the adjoint's library on top), each with its XLA
+compilation: wall seconds and CPU seconds (the process's and the compiler's, less swayed by
+other work on the machine than the wall time), and the load:
+
+    python benchmarks/generated_gradient.py --build --steps 100
 """
 
 from __future__ import annotations
@@ -30,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -120,6 +131,55 @@ def interleaved(runs: dict, args, rounds: int, round_s: float) -> dict:
     return out
 
 
+def cold_builds(args) -> None:
+    """``--build``: per shape, the cold builds (see the docstring), each sequence in a process of
+    its own (``--build-run``) with a fresh kernel cache."""
+    import tempfile
+
+    info = {"command": "python benchmarks/generated_gradient.py " + " ".join(sys.argv[1:]), "shapes": {}}
+    for shape in args.only or ["ideal", "digital", "euler32"]:
+        row = {"load_start": load()}
+        for sequence in ("gradient_alone", "forward,gradient_after_forward"):
+            with tempfile.TemporaryDirectory() as cache:
+                cmd = [sys.executable, __file__, "--only", shape, "--build-run", sequence]
+                cmd += ["--steps", str(args.steps)] if args.steps else []
+                run = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "FOSMC_JAX_CACHE": cache})
+                if run.returncode:
+                    raise SystemExit(run.stderr)
+                row.update(json.loads(run.stdout.strip().splitlines()[-1]))
+        row["load_end"] = load()
+        print(f"{shape}: cold value and gradient alone {row['gradient_alone_s']:.1f} s "
+              f"({row['gradient_alone_cpu_s']:.1f} CPU s); cold forward {row['forward_s']:.1f} s "
+              f"({row['forward_cpu_s']:.1f} CPU s), then value and gradient {row['gradient_after_forward_s']:.1f} s "
+              f"({row['gradient_after_forward_cpu_s']:.1f} CPU s); load {row['load_start']}-{row['load_end']}",
+              flush=True)  # fmt: skip
+        info["shapes"][shape] = row
+    if args.out:
+        Path(args.out).write_text(json.dumps(info, indent=1, default=float))
+
+
+def build_run(args) -> None:
+    """``--build-run``: one sequence of cold builds in this process; prints its times as JSON."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    problem, steps = build(args.only[0], args.steps)
+    p0 = problem.params()
+    loss = lambda p: generated_loss(problem, p)
+    row = {"rollouts": problem.rollouts, "steps": steps}
+
+    def cpu() -> float:  # this process's and its finished children's (the compiler's) CPU seconds
+        return sum(resource.getrusage(who).ru_utime + resource.getrusage(who).ru_stime
+                   for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))  # fmt: skip
+
+    for name in args.build_run.split(","):
+        t0, c0 = time.perf_counter(), cpu()
+        jax.block_until_ready(jax.jit(loss if name == "forward" else jax.value_and_grad(loss))(p0))
+        row[name + "_s"], row[name + "_cpu_s"] = time.perf_counter() - t0, cpu() - c0
+        row[name + "_libraries"] = len(list(Path(os.environ["FOSMC_JAX_CACHE"]).glob("generated-*.so")))
+    print(json.dumps(row))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", choices=["ideal", "digital", "euler32"], action="append", help="shapes (default all)")
@@ -127,8 +187,14 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--round-s", type=float, default=1.0)
     ap.add_argument("--vmap", action="store_true", help="also time the vmap path's value and gradient (slow)")
+    ap.add_argument("--build", action="store_true", help="time the cold builds of the forward and the adjoint")
+    ap.add_argument("--build-run", help=argparse.SUPPRESS)  # one sequence of --build, in its own process
     ap.add_argument("--out", help="write the results as JSON")
     args = ap.parse_args(argv)
+    if args.build_run:
+        return build_run(args)
+    if args.build:
+        return cold_builds(args)
     import jax
     import jax.numpy as jnp
     import numpy as np

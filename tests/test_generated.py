@@ -49,14 +49,19 @@ def _smc_loop(k, dtype=jnp.float64):
     return fj.DigitalLoop(law, fj.Sensors(jnp.zeros(3), None, "difference"), c(jnp.full(3, 24.0)), c(2e-3), 2, 1)
 
 
-def _both(args, n, integrator, truncate=0):
-    """The generated kernel's result and the vmap path's (simulate_batch with fast=False)."""
+def _run(args, n, integrator, path, truncate=0):
+    """The generated kernel's result (``path`` "gen") or the vmap path's (simulate_batch with fast=False)."""
     plants, ctrl, ref, X0s, dt = args
+    if path == "vmap":
+        return rollout.simulate_batch(plants, ctrl, ref, X0s, dt, n_steps=n, integrator=integrator, fast=False,
+                                      truncate_every=truncate)  # fmt: skip
     full = (plants, ctrl, ref, X0s, dt, KEY, jnp.asarray(1e6, X0s.dtype), jnp.asarray(10.0, X0s.dtype))
-    gen = generated.simulate_batch(full, n_steps=n, integrator=integrator, paired=False, truncate_every=truncate)
-    ref_ = rollout.simulate_batch(plants, ctrl, ref, X0s, dt, n_steps=n, integrator=integrator, fast=False,
-                                  truncate_every=truncate)  # fmt: skip
-    return gen, ref_
+    return generated.simulate_batch(full, n_steps=n, integrator=integrator, paired=False, truncate_every=truncate)
+
+
+def _both(args, n, integrator, truncate=0):
+    """The generated kernel's result and the vmap path's."""
+    return _run(args, n, integrator, "gen", truncate), _run(args, n, integrator, "vmap", truncate)
 
 
 def _loss(res):
@@ -85,26 +90,64 @@ class TanhPD:
         return 24.0 * jnp.tanh(U / 24.0), state
 
 
-def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients(monkeypatch):
-    """The default tier's one build (a small model: the linear plant, a user's law, Euler, 60
-    steps): values and gradients in the law's gains and in the plants; the same gradients where
-    the checkpoints' budget admits only every K-th carry (the adjoint recomputes each block)."""
+def _users_law_loss(path):
+    """mean rms + chattering of a user's law (:class:`TanhPD`) on two linear plants, Euler, 60
+    steps, in the law's gains and the plants' rows, on ``path`` ("gen" or "vmap")."""
     plants, ref, X0s, dt = _linear()
-    K0 = -jnp.kron(jnp.eye(3), jnp.array([[60.0, 12.0, 0.5]]))
 
-    def loss(K, a_rows, path):
-        gen, vm = _both((plants._replace(a_rows=a_rows), TanhPD(K, plants.a_rows[0], plants.b_rows[0]), ref, X0s,
-                         dt), 60, "euler")  # fmt: skip
-        return _loss(gen if path == "gen" else vm)
+    def loss(K, a_rows):
+        law = TanhPD(K, plants.a_rows[0], plants.b_rows[0])
+        return _loss(_run((plants._replace(a_rows=a_rows), law, ref, X0s, dt), 60, "euler", path))
 
-    v, g = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "gen"), argnums=(0, 1)))(K0, plants.a_rows)
-    w, h = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "vmap"), argnums=(0, 1)))(K0, plants.a_rows)
+    return loss, (-jnp.kron(jnp.eye(3), jnp.array([[60.0, 12.0, 0.5]])), plants.a_rows)
+
+
+def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients():
+    """The default tier's one model (the linear plant, a user's law, Euler, 60 steps): a forward
+    builds the forward's library alone; a gradient in the law's gains and in the plants then
+    builds the adjoint's, whose checkpointing forward gives the forward's value bit for bit;
+    values and gradients equal the vmap path's."""
+    gen, args = _users_law_loss("gen")
+    before = set(generated._MODELS)
+    v = jax.jit(gen)(*args)
+    new = [m for key, m in generated._MODELS.items() if key not in before]
+    assert len(new) == 1 and set(new[0].built) == {"steps", "forward"}  # no adjoint built for a forward
+    v_g, g = jax.jit(jax.value_and_grad(gen, argnums=(0, 1)))(*args)
+    assert True in new[0].built  # the adjoint with the plant's cotangents (the gradient in a_rows)
+    assert np.asarray(v_g) == np.asarray(v)
+    w, h = jax.jit(jax.value_and_grad(_users_law_loss("vmap")[0], argnums=(0, 1)))(*args)
     assert np.isfinite(v) and v > 0 and _rel(v, w) < 1e-12
     assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
     assert np.any(np.asarray(g[0]) != 0) and np.any(np.asarray(g[1]) != 0)
+
+
+@pytest.mark.slow
+def test_the_adjoint_from_every_kth_carry_gives_the_gradients_of_every_carry(monkeypatch):
+    """Where the checkpoints' budget admits only every K-th carry, the adjoint recomputes each
+    block from it: the same gradients as from every step's carry."""
+    gen, args = _users_law_loss("gen")
+    g = jax.jit(jax.grad(gen, argnums=(0, 1)))(*args)
     monkeypatch.setattr(generated, "CHECKPOINT_BYTES", 4096)  # 60 steps of 64-byte rows: K >= 2
-    _, g_k = jax.jit(jax.value_and_grad(lambda K, a: loss(K, a, "gen"), argnums=(0, 1)))(K0, plants.a_rows)
+    g_k = jax.jit(jax.grad(gen, argnums=(0, 1)))(*args)
     assert _rel(g_k[0], g[0]) < 1e-12 and _rel(g_k[1], g[1]) < 1e-12
+    assert np.any(np.asarray(g[0]) != 0)
+
+
+@pytest.mark.slow
+def test_a_vjp_that_does_not_print_leaves_the_derivative_to_the_scan_with_a_warning(monkeypatch):
+    """The adjoint is printed at a derivative's first use: where its VJP does not print, that
+    derivative differentiates the lax.scan of the split step, one warning naming why."""
+
+    def refuse(*args):
+        raise codegen.Unsupported("a primitive of the VJP")
+
+    monkeypatch.setattr(generated, "_MODELS", {})  # the model printed anew
+    monkeypatch.setattr(generated, "_print_vjps", refuse)
+    gen, args = _users_law_loss("gen")
+    with pytest.warns(UserWarning, match="adjoint cannot be built .*a primitive of the VJP.*lax.scan"):
+        g = jax.jit(jax.grad(gen, argnums=(0, 1)))(*args)
+    h = jax.jit(jax.grad(_users_law_loss("vmap")[0], argnums=(0, 1)))(*args)
+    assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
 
 
 @pytest.mark.slow

@@ -1,8 +1,10 @@
 // The skeleton of the generated kernels (fosmc_jax/_simulator/generated.py): the time loop, the
 // blocks of lanes over XLA's thread pool, the checkpointed reverse sweep and the XLA FFI glue.
 // No formula of the closed loop is here: a model's file defines FOSMC_T, includes this header,
-// then defines `struct Model` with the step and its vector-Jacobian product printed from the
-// JAX model (fosmc_jax._simulator.codegen), and ends with FOSMC_GENERATED_HANDLERS(Model).
+// then defines `struct Model` with the step printed from the JAX model
+// (fosmc_jax._simulator.codegen) and ends with FOSMC_GENERATED_FORWARD(Model): the forward's
+// library. The adjoint's library (built apart, on a derivative's first use) has the step's
+// vector-Jacobian product in its Model too (kAdjoint) and ends with FOSMC_GENERATED_ADJOINT(Model).
 //
 // Layouts (rows of N lanes, lane-minor; T the model's float):
 //   lanes  (kLaneHeld + kLaneSampled, N)  per rollout, what the steps take from the rollout's
@@ -107,12 +109,17 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
   for (int r = 0; r < n; r++) a[r] = fosmc::Simd<T>::Load(in + r * s.N + c);
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
   V *x = a, *y = b;
-  if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
+  if constexpr (Mo::kAdjoint) {
+    if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
+  }
   for (int64_t k = 0; k < s.L; k++) {
-    if (ckpt && s.K == 1)
-      for (int i = 0; i < Mo::kSaved; i++) fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * W, x[Mo::kSavedRows[i]]);
-    else if (ckpt && k % s.K == 0)
-      for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * W, x[r]);
+    if constexpr (Mo::kAdjoint) {  // the forward's own library stores nothing
+      if (ckpt && s.K == 1)
+        for (int i = 0; i < Mo::kSaved; i++)
+          fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * W, x[Mo::kSavedRows[i]]);
+      else if (ckpt && k % s.K == 0)
+        for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * W, x[r]);
+    }
     Step<Mo>(s.k0 + k + 1, x, lv, table + k * nt, y);
     std::swap(x, y);
   }
@@ -207,16 +214,10 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
 
 }  // namespace gen
 
-#define FOSMC_GENERATED_HANDLERS(Mo)                                                                              \
+#define FOSMC_GENERATED_FORWARD(Mo)                                                                               \
   static ffi::Error GenForward(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer in, \
                                ffi::Result<ffi::AnyBuffer> out, int64_t k0) {                                     \
     return gen::RunForward<Mo>(pool, lanes, table, in, out, nullptr, k0, 1);                                      \
-  }                                                                                                               \
-  static ffi::Error GenForwardCk(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table,                \
-                                 ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out,                              \
-                                 ffi::Result<ffi::AnyBuffer> ckpt, int64_t k0, int64_t K) {                       \
-    gen::HugePages(ckpt->untyped_data(), ckpt->size_bytes());                                                     \
-    return gen::RunForward<Mo>(pool, lanes, table, in, out, ckpt->typed_data<gen::T>(), k0, K);                   \
   }                                                                                                               \
   XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenForward, GenForward,                                                      \
                                 ffi::Ffi::Bind()                                                                  \
@@ -225,7 +226,15 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
                                     .Arg<ffi::AnyBuffer>()                                                        \
                                     .Arg<ffi::AnyBuffer>()                                                        \
                                     .Ret<ffi::AnyBuffer>()                                                        \
-                                    .Attr<int64_t>("k0"));                                                        \
+                                    .Attr<int64_t>("k0"));
+
+#define FOSMC_GENERATED_ADJOINT(Mo)                                                                               \
+  static ffi::Error GenForwardCk(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer table,                \
+                                 ffi::AnyBuffer in, ffi::Result<ffi::AnyBuffer> out,                              \
+                                 ffi::Result<ffi::AnyBuffer> ckpt, int64_t k0, int64_t K) {                       \
+    gen::HugePages(ckpt->untyped_data(), ckpt->size_bytes());                                                     \
+    return gen::RunForward<Mo>(pool, lanes, table, in, out, ckpt->typed_data<gen::T>(), k0, K);                   \
+  }                                                                                                               \
   XLA_FFI_DEFINE_HANDLER_SYMBOL(FosmcGenForwardCk, GenForwardCk,                                                  \
                                 ffi::Ffi::Bind()                                                                  \
                                     .Ctx<ffi::ThreadPool>()                                                       \

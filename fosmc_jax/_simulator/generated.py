@@ -14,14 +14,19 @@ too), is traced on one rollout's flat state and split by what each value depends
 The skeleton ``gen_kernel.h`` runs the time loop over blocks of lanes on every core, the forward
 storing the state every step (every K steps where that would not fit in
 :data:`CHECKPOINT_BYTES`), the adjoint recomputing each block from its checkpoint and sweeping
-it backwards. In JAX the kernel is one function of (state, lanes,
-table) with a ``custom_jvp`` whose tangent is a ``linear_call``: forward mode runs a
-``lax.scan`` of the same split step, reverse mode the transpose, the adjoint kernel. The
-hoisted parts are plain JAX, so derivatives reach every parameter through them.
+it backwards. The forward and the adjoint are two libraries, each built on its first use: a run
+without derivatives compiles the printed step alone, a derivative the adjoint's library (the
+step, its vector-Jacobian product and the checkpointing forward; the step's object compiled
+once for both, :func:`fosmc_jax._simulator.native.build_generated`). In JAX the kernel is one
+function of (state, lanes, table) with a ``custom_jvp`` whose tangent is a ``linear_call``:
+forward mode runs a ``lax.scan`` of the same split step, reverse mode the transpose, the adjoint
+kernel. The hoisted parts are plain JAX, so derivatives reach every parameter through them.
 
 What cannot be printed (a primitive the printer does not know, a value that is an integer per
 rollout) raises :class:`fosmc_jax._simulator.codegen.Unsupported`; the callers then run the
-``vmap`` path, with one warning naming it.
+``vmap`` path, with one warning naming it. A step that prints but whose vector-Jacobian product
+does not (or whose adjoint does not build) is found at its first derivative: that derivative
+differentiates the ``lax.scan`` of the split step instead, with one warning.
 """
 
 from __future__ import annotations
@@ -268,15 +273,16 @@ def _size(avals) -> int:
 
 
 class Kernels(NamedTuple):
-    """A model's compiled library: the FFI targets and the checkpoints' rows."""
+    """A model's adjoint library: its FFI targets and the checkpoints' rows."""
 
-    targets: tuple[str, str, str]  # forward, forward with checkpoints, adjoint
+    targets: tuple[str, str]  # the forward that stores the checkpoints, the adjoint
     saved: int  # the carry's rows a checkpoint of every step stores: those the VJPs read
 
 
 class Model(NamedTuple):
-    """A generated model: the split steps (held and sampled), printed and built on first use
-    (:meth:`kernels`)."""
+    """A generated model: the split steps (held and sampled), printed and built on first use,
+    the forward (:meth:`forward`) apart from the adjoint (:meth:`kernels`), which only a
+    derivative builds."""
 
     held: Split | None  # None in the ideal loop (m = 1)
     sampled: Split
@@ -286,17 +292,33 @@ class Model(NamedTuple):
     dynamic: np.ndarray  # (n_state,) bool: the rows whose derivative a truncation stops
     rows: np.ndarray  # the lane rows, the controller's (Split.varies) first: lanes[rows] = (varying, fixed)
     n_varying: int
-    built: dict  # with_plant -> Kernels
+    built: dict  # "steps": the printed steps' sources; "forward": its target; with_plant -> Kernels
 
-    def kernels(self, with_plant: bool | None = None) -> Kernels:
-        """The library whose adjoint gives cotangents to the fixed lane rows (the plant's) too
-        (``with_plant``) or to the controller's only: a derivative in the controller alone
-        (the tuner's) skips the plant's share of the reverse sweep. ``None``: any built one."""
-        if with_plant is None:
-            with_plant = next(iter(self.built), False)
+    def steps(self) -> list[str]:
+        """The printed steps' sources (held, sampled), printed once: both libraries compile them."""
+        if "steps" not in self.built:
+            self.built["steps"] = _print_steps(self)
+        return self.built["steps"]
+
+    def forward(self) -> str:
+        """The FFI target of the forward's library (the step alone), built on first use."""
+        if "forward" not in self.built:
+            self.built["forward"] = _load(
+                (_print_main(self, None), *self.steps()), ("FosmcGenForward",), _native.generated_flags()
+            )[0]
+        return self.built["forward"]
+
+    def kernels(self, with_plant: bool) -> Kernels:
+        """The adjoint's library, whose vector-Jacobian products give cotangents to the fixed
+        lane rows (the plant's) too (``with_plant``) or to the controller's only: a derivative
+        in the controller alone (the tuner's) skips the plant's share of the reverse sweep. Its
+        library holds the printed steps too (their objects compiled once, :func:`native.build_generated`)."""
         if with_plant not in self.built:
-            source, saved = _print_model(self, with_plant)
-            self.built[with_plant] = Kernels(_load(tuple(source)), saved)
+            vjps, saved = _print_vjps(self, with_plant)
+            sources = (_print_main(self, saved), *self.steps(), *vjps)
+            self.built[with_plant] = Kernels(
+                _load(sources, ("FosmcGenForwardCk", "FosmcGenAdjoint"), _native.generated_flags()), len(saved)
+            )
         return self.built[with_plant]
 
     def lanes(self, lane_leaves) -> tuple[Array, Array]:
@@ -337,27 +359,43 @@ _SIGNATURES = {
 }
 
 
-def _print_model(model: Model, with_plant: bool) -> tuple[list[str], int]:
-    """The model's C++ sources: the skeleton's (the layout and the FFI handlers), then one per
-    printed function (compiled in parallel); and how many rows of the carry the vector-Jacobian
-    products read (the rows a checkpoint of every step stores). ``with_plant``: cotangents for
-    the lane values of the plant's alone too."""
-    held, sampled, n_state, m, dtype, dynamic = (model.held, model.sampled, model.n_state, model.m, model.dtype,
-                                                 model.dynamic)  # fmt: skip
+def _head(dtype) -> list[str]:
     ctype = "double" if np.dtype(dtype) == np.float64 else "float"
-    head = ["// Generated by fosmc_jax._simulator.generated from the JAX model: do not edit.",
+    return ["// Generated by fosmc_jax._simulator.generated from the JAX model: do not edit.",
             f"#define FOSMC_T {ctype}", '#include "gen_kernel.h"', "namespace gen {"]  # fmt: skip
-    x_aval = jax.ShapeDtypeStruct((n_state,), dtype)
-    sig = [("x", "V"), ("lv", "V"), ("tv", "T")]
-    functions = []
-    for name, s in (("held", held), ("sampled", sampled)):
-        if s is None:  # the ideal loop: never called
-            functions += [f"void {name}{k}({v}) {{}}\n" for k, v in _SIGNATURES.items()]
+
+
+def _one_file(dtype, text: str) -> str:
+    return "\n".join([*_head(dtype), text, "}  // namespace gen", ""])
+
+
+def _print_steps(model: Model) -> list[str]:
+    """The sources of the printed steps, held and sampled (one file each: compiled in parallel)."""
+    x_aval = jax.ShapeDtypeStruct((model.n_state,), model.dtype)
+    sig = [("x", "V"), ("lv", "V"), ("tv", "T"), ("y", "out")]
+    out = []
+    for name, s in (("held", model.held), ("sampled", model.sampled)):
+        if s is None:  # the ideal loop: an empty step in the skeleton's file (:func:`_print_main`)
             continue
         lv, tv = list(s.lane_avals), list(s.time_avals)
         fwd = jax.make_jaxpr(s.core)(x_aval, lv, tv)
         inputs = [("x", "V")] + [("lv", "V")] * len(lv) + [("tv", "T")] * len(tv)
-        functions.append(codegen.print_function(name, fwd, dtype, inputs, [("y", False)], sig + [("y", "out")]))
+        out.append(_one_file(model.dtype, codegen.print_function(name, fwd, model.dtype, inputs, [("y", False)], sig)))
+    return out
+
+
+def _print_vjps(model: Model, with_plant: bool) -> tuple[list[str], list[int]]:
+    """The sources of the steps' vector-Jacobian products (held, sampled) and the carry's rows
+    they read (the rows a checkpoint of every step stores; their other inputs, e.g. the metric
+    sums, enter linearly). ``with_plant``: cotangents for the lane values of the plant's alone too."""
+    x_aval = jax.ShapeDtypeStruct((model.n_state,), model.dtype)
+    sig = [("x", "V"), ("lv", "V"), ("tv", "T"), ("ct", "V"), ("gx", "out"), ("glv", "out")]
+    texts = []
+    for name, s in (("held", model.held), ("sampled", model.sampled)):
+        if s is None:
+            continue
+        lv, tv = list(s.lane_avals), list(s.time_avals)
+        inputs = [("x", "V")] + [("lv", "V")] * len(lv) + [("tv", "T")] * len(tv)
         diff = [jnp.issubdtype(a.dtype, jnp.floating) and (with_plant or c) for a, c in zip(lv, s.varies)]
 
         def vjp(x, lv_, tv_, ct, s=s, diff=diff):
@@ -367,42 +405,50 @@ def _print_model(model: Model, with_plant: bool) -> tuple[list[str], int]:
         bwd = jax.make_jaxpr(vjp)(x_aval, lv, tv, x_aval)
         # the lane rows of a non-float or skipped hoisted value get no cotangent (they stay zero)
         outs = [("gx", False)] + [("glv", True)] * sum(diff)
-        text = codegen.print_function(name + "_vjp", bwd, dtype, inputs + [("ct", "V")], outs,
-                                      sig + [("ct", "V"), ("gx", "out"), ("glv", "out")], derivative=True)  # fmt: skip
+        text = codegen.print_function(name + "_vjp", bwd, model.dtype, inputs + [("ct", "V")], outs, sig,
+                                      derivative=True)  # fmt: skip
         if not all(diff):  # a skipped row still takes its place in glv: renumber
             text = _renumber_glv(text, lv, diff)
-        functions.append(text)
-    # the carry's rows the VJPs read (their other inputs, e.g. the metric sums, enter linearly)
-    saved = sorted({int(r) for text in functions[1::2] for r in re.findall(r"(?<![\w])x\[(\d+)\]", text)}) or [0]
+        texts.append(text)
+    saved = sorted({int(r) for text in texts for r in re.findall(r"(?<![\w])x\[(\d+)\]", text)}) or [0]
+    return [_one_file(model.dtype, t) for t in texts], saved
+
+
+def _print_main(model: Model, saved: list[int] | None) -> str:
+    """The skeleton's source of a library: the layout and the FFI handlers of the forward
+    (``saved`` None) or of the checkpointing forward and the adjoint (``saved``: the carry's
+    rows a checkpoint of every step stores)."""
+    held, sampled, n_state = model.held, model.sampled, model.n_state
     nl = [0 if s is None else _size(s.lane_avals) for s in (held, sampled)]
     nt = [0 if s is None else _size(s.time_avals) for s in (held, sampled)]
-    flags = ", ".join("true" if d else "false" for d in dynamic)
-    declarations = [f"void {name}{k}({v});" for name in ("held", "sampled") for k, v in _SIGNATURES.items()]
-    main = "\n".join([
-        *head,
-        *declarations,
-        "}  // namespace gen",
-        "namespace {",
-        "using namespace gen;",
-        "struct Model {",
+    kinds = {"": _SIGNATURES[""]} if saved is None else _SIGNATURES
+    # the ideal loop's held step, never called, is empty here: a file of its own would cost a
+    # compiler run (the headers alone take seconds)
+    declarations = [f"void {name}{k}({v}){' {}' if s is None else ';'}" for name, s in (("held", held),
+                    ("sampled", sampled)) for k, v in kinds.items()]  # fmt: skip
+    struct = [
         f"  static constexpr int kState = {n_state}, kLaneHeld = {nl[0]}, kLaneSampled = {nl[1]}, "
-        f"kTimeHeld = {nt[0]}, kTimeSampled = {nt[1]}, kM = {m};",
-        f"  static constexpr bool kDynamic[{n_state}] = {{{flags}}};",
-        f"  static constexpr int kSaved = {len(saved)}, kSavedRows[{len(saved)}] = {{{', '.join(map(str, saved))}}};",
+        f"kTimeHeld = {nt[0]}, kTimeSampled = {nt[1]}, kM = {model.m};",
+        f"  static constexpr bool kAdjoint = {'false' if saved is None else 'true'};",
         "  static void Held(const V* x, const V* lv, const T* tv, V* y) { held(x, lv, tv, y); }",
         "  static void Sampled(const V* x, const V* lv, const T* tv, V* y) { sampled(x, lv, tv, y); }",
-        "  static void HeldVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
-        "    held_vjp(x, lv, tv, ct, gx, glv);",
-        "  }",
-        "  static void SampledVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
-        "    sampled_vjp(x, lv, tv, ct, gx, glv);",
-        "  }",
-        "};",
-        "}  // namespace",
-        "FOSMC_GENERATED_HANDLERS(Model)",
-        "",
-    ])  # fmt: skip
-    return [main] + ["\n".join([*head, text, "}  // namespace gen", ""]) for text in functions], len(saved)
+    ]
+    if saved is not None:
+        flags = ", ".join("true" if d else "false" for d in model.dynamic)
+        struct += [
+            f"  static constexpr bool kDynamic[{n_state}] = {{{flags}}};",
+            f"  static constexpr int kSaved = {len(saved)}, "
+            f"kSavedRows[{len(saved)}] = {{{', '.join(map(str, saved))}}};",
+            "  static void HeldVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
+            "    held_vjp(x, lv, tv, ct, gx, glv);",
+            "  }",
+            "  static void SampledVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
+            "    sampled_vjp(x, lv, tv, ct, gx, glv);",
+            "  }",
+        ]  # fmt: skip
+    handlers = "FOSMC_GENERATED_FORWARD(Model)" if saved is None else "FOSMC_GENERATED_ADJOINT(Model)"
+    return "\n".join([*_head(model.dtype), *declarations, "}  // namespace gen", "namespace {", "using namespace gen;",
+                      "struct Model {", *struct, "};", "}  // namespace", handlers, ""])  # fmt: skip
 
 
 def _merge(lv, diff_values, diff):
@@ -421,17 +467,18 @@ def _renumber_glv(text: str, lv, diff) -> str:
 
 
 @functools.lru_cache(maxsize=64)
-def _load(sources: tuple[str, ...]) -> tuple[str, str, str]:
-    """Builds and registers a model's library (once per source in a process); its FFI targets."""
-    tag = hashlib.sha256("\n".join(sources).encode()).hexdigest()[:16]
+def _load(sources: tuple[str, ...], symbols: tuple[str, ...], flags: tuple[str, ...] = ()) -> tuple[str, ...]:
+    """Builds and registers a library of ``sources`` (once per source and extra compiler ``flags``,
+    :func:`native.generated_flags`, in a process); the FFI targets of its handlers ``symbols``."""
+    tag = hashlib.sha256("\n".join([*sources, *flags]).encode()).hexdigest()[:16]
     if os.environ.get("FOSMC_JAX_GENERATED_DUMP"):  # a folder to keep the printed sources in, to read them
         folder = Path(os.environ["FOSMC_JAX_GENERATED_DUMP"])
         folder.mkdir(parents=True, exist_ok=True)
         for i, source in enumerate(sources):
             (folder / f"{tag}-{i}.cc").write_text(source)
     lib = ctypes.cdll.LoadLibrary(str(_native.build_generated(list(sources))))
-    names = (f"fosmc_gen_{tag}_fwd", f"fosmc_gen_{tag}_fwd_ck", f"fosmc_gen_{tag}_adj")
-    for name, symbol in zip(names, ("FosmcGenForward", "FosmcGenForwardCk", "FosmcGenAdjoint")):
+    names = tuple(f"fosmc_gen_{tag}_{symbol}" for symbol in symbols)
+    for name, symbol in zip(names, symbols):
         jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
     _LIBRARIES.append(lib)
     return names
@@ -442,8 +489,9 @@ _LIBRARIES: list = []  # the loaded libraries stay loaded while their targets ar
 
 def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic, n_plant: int = 0) -> Model:
     """The model of ``step_of(sample) -> step(x, lane_leaves, glob_leaves, k) -> x'`` (the first
-    ``n_plant`` lane leaves the plant's), split, printed, compiled (cached) and registered (the
-    adjoint for the plant's lanes too on first use, :meth:`Model.kernels`). Raises
+    ``n_plant`` lane leaves the plant's), split and its steps printed; each library is compiled
+    (cached) and registered on first use: the forward's by a forward (:meth:`Model.forward`), the
+    adjoint's by a derivative (:meth:`Model.kernels`). Raises
     :class:`codegen.Unsupported` or OSError. A model traced again (the same jaxprs
     and constants: a second trace of the same loss) is the one already printed: printing the
     arm's takes tens of seconds."""
@@ -464,7 +512,9 @@ def build(step_of, state_aval, lane_avals, glob_avals, m: int, dynamic, n_plant:
     n_varying = sum(n for n, c in zip(sizes, varies) if c)
     dtype, n = state_aval.dtype, state_aval.shape[0]
     model = Model(held, sampled, n, m, dtype, np.asarray(dynamic, bool), rows, n_varying, {})
-    model.kernels(False)  # built now, so that what cannot be printed is known here
+    # printed now, so that what cannot be printed is known here; compiled where it runs: the forward's
+    # library by a forward, the adjoint's (with the steps, not the forward's) by a derivative
+    model.steps()
     if key is not None:
         _MODELS[key] = model
     return model
@@ -666,7 +716,7 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
 
     def forward(x0, varying, fixed, table):
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
-        target = model.kernels().targets[0]
+        target = model.forward()
         call = _folded_call(target, jax.ShapeDtypeStruct(xp.shape, dtype), N, W, k0=np.int64(0))
         return call(lp, table, xp)[:, :N]
 
@@ -700,7 +750,7 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
             _, varying, fixed, table, ckpt = res
             lp, cp = _pad(model.assemble((varying, fixed)), W), _pad(ct, W)
             shapes = (jax.ShapeDtypeStruct(cp.shape, dtype), jax.ShapeDtypeStruct(lp.shape, dtype))
-            call = _folded_call(kernels.targets[2], shapes, N, W, ckpt_in=True, k0=np.int64(0), K=np.int64(K),
+            call = _folded_call(kernels.targets[1], shapes, N, W, ckpt_in=True, k0=np.int64(0), K=np.int64(K),
                                 truncate=np.int64(truncate))  # fmt: skip
             g_x, g_lanes = call(lp, table, ckpt, cp)
             g_lanes = g_lanes[model.rows, :N]
@@ -713,16 +763,21 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
 
     def rule(primals, tangents):
         zero = [isinstance(t, SymbolicZero) for t in tangents]
+        full = lambda: tuple(jnp.zeros(t.aval.shape, t.aval.dtype) if z else t for t, z in zip(tangents, zero))
         if not zero[3]:  # a derivative in dt or the reference: the scan
-            full = [jnp.zeros(t.aval.shape, t.aval.dtype) if z else t for t, z in zip(tangents, zero)]
-            return jax.jvp(scan, primals, tuple(full))
+            return jax.jvp(scan, primals, full())
         x0, varying, fixed, table = primals
         moving = tuple(i for i in range(3) if not zero[i])
-        kernels, K, tangent, transpose = linear(moving)
+        try:  # the adjoint is printed and built here, on a derivative's first use
+            kernels, K, tangent, transpose = linear(moving)
+        except (codegen.Unsupported, OSError) as e:  # what the forward printed but its VJP does not
+            warnings.warn(f"fosmc_jax: the generated adjoint cannot be built ({e}); the derivatives "
+                          "differentiate a lax.scan of the split step", stacklevel=2)  # fmt: skip
+            return jax.jvp(scan, primals, full())
         rows = kernels.saved if K == 1 else n_state
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
         shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((-(-L // K), rows, xp.shape[1]), dtype))
-        call = _folded_call(kernels.targets[1], shapes, N, W, ckpt_out=True, k0=np.int64(0), K=np.int64(K))
+        call = _folded_call(kernels.targets[0], shapes, N, W, ckpt_out=True, k0=np.int64(0), K=np.int64(K))
         out, ckpt = call(lp, table, xp)
         lin = tuple(tangents[i] for i in moving)
         return out[:, :N], linear_call(tangent, transpose, (x0, varying, fixed, table, ckpt), lin)

@@ -162,34 +162,49 @@ def _build() -> Path:
     return lib
 
 
+def generated_flags() -> tuple[str, ...]:
+    """The extra compiler flags of the generated kernels: ``FOSMC_JAX_KERNEL_FLAGS`` (every kernel's),
+    then ``FOSMC_JAX_GENERATED_FLAGS`` (theirs alone: benchmarks/generated_forward.py's ablations,
+    the hand-written kernel unchanged beside them)."""
+    return (
+        *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(),
+        *os.environ.get("FOSMC_JAX_GENERATED_FLAGS", "").split(),
+    )
+
+
 def build_generated(sources: list[str]) -> Path:
-    """The shared library of a generated kernel's ``sources`` (C++ that includes gen_kernel.h),
-    each compiled in its own process (as many at once as there are cores), then linked; once per
-    sources, headers, flags, compiler, jaxlib and CPU, cached as the kernels are."""
+    """The shared library of a generated kernel's ``sources`` (C++ that includes gen_kernel.h):
+    each source compiled in its own process (as many at once as there are cores, the largest
+    first) into an object cached on its own, then linked; once per sources, headers, flags,
+    compiler, jaxlib and CPU, cached as the kernels are. The forward's and the adjoint's
+    libraries share the printed steps' sources: the adjoint's build compiles them no more."""
     cxx = _compiler()
     if cxx is None:
         raise OSError("no C++ compiler found (set CXX)")
     # -O2: as fast as -O3 on the printed straight-line code, and builds sooner (BENCHMARKS.md)
     flags = [f if f != "-O3" else "-O2" for f in _FLAGS]
-    cmd = [cxx, *flags, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}",
-           f"-I{_HERE}"]  # fmt: skip
+    cmd = [cxx, *flags, *generated_flags(), f"-I{jax.ffi.include_dir()}", f"-I{_HERE}"]
     headers = [path.read_text() for path in (*_HEADERS, _HERE / "gen_kernel.h")]
-    key = "\n".join([*sources, *headers, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
+    common = "\n".join([*headers, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
+    digest = lambda *parts: hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
     cache = cache_dir()
-    lib = cache / f"generated-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
+    lib = cache / f"generated-{digest(*sources, common)}.so"
     if not lib.exists():
         cache.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=cache) as tmp:  # written whole, then renamed
-            out = Path(tmp) / lib.name
-            objects = []
-            for i, source in enumerate(sources):
-                (Path(tmp) / f"part{i}.cc").write_text(source)
-                objects.append(Path(tmp) / f"part{i}.o")
-            jobs = [[*cmd, "-c", str(obj.with_suffix(".cc")), "-o", str(obj)] for obj in objects]
+        objects = [cache / f"generated-{digest(source, common)}.o" for source in sources]
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:  # each file written whole, then renamed
+            todo = sorted({o: s for s, o in zip(sources, objects) if not o.exists()}.items(), key=lambda j: -len(j[1]))
+            for obj, source in todo:
+                (Path(tmp) / obj.name).with_suffix(".cc").write_text(source)
+            jobs = [[*cmd, "-c", str((Path(tmp) / obj.name).with_suffix(".cc")), "-o", str(Path(tmp) / obj.name)]
+                    for obj, _ in todo]  # fmt: skip
             with concurrent.futures.ThreadPoolExecutor(os.cpu_count() or 1) as pool:
                 runs = list(pool.map(lambda c: subprocess.run(c, capture_output=True, text=True, timeout=900), jobs))
             for run in runs:
                 _check(cxx, run.returncode, run.stderr)
+            for obj, _ in todo:
+                os.replace(Path(tmp) / obj.name, obj)
+            out = Path(tmp) / lib.name
             link = subprocess.run([*cmd, *map(str, objects), "-o", str(out)], capture_output=True, text=True,
                                   timeout=600)  # fmt: skip
             _check(cxx, link.returncode, link.stderr)
