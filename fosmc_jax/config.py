@@ -19,6 +19,7 @@ without the command line's layer.
 """
 
 from ._problems import (
+    GRADIENT_GUARD,
     GRADIENT_WINDOW,
     PRESETS,
     Config,
@@ -33,10 +34,12 @@ from ._problems import (
     design_model,
     design_summary,
     draws,
+    fallback_problem,
     held_out_config,
     load,
     replace,
     resolve,
+    rough_loop,
     sample_steps,
     tuning_problems,
     with_params,
@@ -44,6 +47,7 @@ from ._problems import (
 from ._simulator.problem import Problem
 
 __all__ = [
+    "GRADIENT_GUARD",
     "GRADIENT_WINDOW",
     "PRESETS",
     "Config",
@@ -59,11 +63,13 @@ __all__ = [
     "design_model",
     "design_summary",
     "draws",
+    "fallback_problem",
     "held_out_config",
     "load",
     "references",  # noqa: F822 (imported on first use: __getattr__)
     "replace",
     "resolve",
+    "rough_loop",
     "sample_steps",
     "study",  # noqa: F822
     "tuning_problems",

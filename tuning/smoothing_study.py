@@ -179,7 +179,7 @@ class Loop:
         self.obj = fs.objective_of(self.tcfg, fs.evaluate(self.train, self.p0)["metrics"])
         counts = [c for c in np.atleast_1d(cfg["sensors"]["encoder_counts"]) if c > 0]
         self.q = 2 * np.pi / counts[0] if counts else STANDARD_Q
-        self.lr = fs.learning_rate(self.tcfg["learning_rate"], self.train)
+        self.lr = fs.learning_rate(self.tcfg["learning_rate"], bool(self.train.options.get("truncate_every")))
         self.devices = jax.local_devices()
         self.mesh = Mesh(
             np.asarray(self.devices), ("batch",)

@@ -410,7 +410,7 @@ def tune_vs_cma(name: str, cfg: dict, s: dict, args) -> dict:
     for w in args.tune_windows:
         _, train, _ = problems(cfg, w)
         # the rate fosmc tune would use (0 in the config means automatic; 0.0 itself never moved)
-        lr = fs.learning_rate(tcfg["learning_rate"], train)
+        lr = fs.learning_rate(tcfg["learning_rate"], bool(train.options.get("truncate_every")))
         settings = fs.TuneSettings(args.tune_steps, lr, tcfg["schedule"], tcfg["clip"], "reverse",
                                    tuple(tcfg["params"]), 0)  # fmt: skip
         stamps = []

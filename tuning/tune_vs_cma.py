@@ -407,7 +407,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     u_p0 = fs.to_internal(p0, plain.base, None)
     flat_p0, unravel = ravel_pytree(u_p0)
     flat_start = ravel_pytree(fs.to_internal(start, plain.base, None))[0]
-    s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], train),
+    s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], _config.rough_loop(cfg)),
          "optimizer": args.optimizer or tcfg.get("optimizer", "adam"),
          "loss": fs.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
          "plain_eval": Batched(plain, obj, unravel)}  # fmt: skip
@@ -419,8 +419,18 @@ def study_config(name: str, cfg: dict, args) -> dict:
     trace_s = time.perf_counter() - t
     vg = fs.value_and_grad(s["loss"], "reverse")
     t = time.perf_counter()
-    jax.block_until_ready(vg(u0))
+    (value, _), grad = jax.block_until_ready(vg(u0))
     grad_compile = time.perf_counter() - t
+    # as fosmc tune: on a rough loop the whole horizon, or the window where its gradient explodes at the start
+    fallback = None
+    if (truncated := _config.fallback_problem(cfg, train)) is not None:
+        fallback = bool(not (np.isfinite(float(value)) and T._norm(grad) <= _config.GRADIENT_GUARD))
+        log(f"{name}: the whole horizon's gradient at the start has norm {T._norm(grad):.3e}"
+            + (f": the {_config.GRADIENT_WINDOW:g} s window's instead" if fallback else ""))  # fmt: skip
+        if fallback:
+            s["loss"] = fs.make_loss(truncated, obj, None)
+            vg = fs.value_and_grad(s["loss"], "reverse")
+            jax.block_until_ready(vg(u0))
     ts = []
     for _ in range(2):
         t = time.perf_counter()
@@ -437,7 +447,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
         f"{per_step:.3f} s per gradient), batched training loss {s['train_eval'].compile_s[POPSIZE]:.1f} s "
         f"({per_gen:.3f} s per 16), plain {s['plain_eval'].compile_s[POPSIZE]:.1f} s; load {load()}")  # fmt: skip
     res = {
-        "loop": loop_of(cfg), "not_tuned_on": name in NOT_TUNED_ON,
+        "loop": loop_of(cfg), "not_tuned_on": name in NOT_TUNED_ON, "fallback": fallback,
         "plant": cfg["plant"]["kind"], "switching": cfg["controller"]["switching"],
         "train": {"dt": float(train.dt), "n_steps": int(train.options["n_steps"]), "rollouts": int(train.rollouts),
                   "truncate_every": int(train.options.get("truncate_every") or 0)},

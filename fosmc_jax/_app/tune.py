@@ -173,7 +173,9 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         u0 = tuner.to_internal(start_params, plain.base, floor)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    lr = tuner.learning_rate(tcfg.learning_rate, problem)
+    lr = tuner.learning_rate(tcfg.learning_rate, problems.rough_loop(cfg))
+    truncated = problems.fallback_problem(cfg, problem)
+    fallback = None if truncated is None else tuner.make_loss(truncated, obj, floor)
     settings = tuner.Settings(tcfg.steps, lr, tcfg.schedule, tcfg.clip, tcfg.mode, tuple(tcfg.params),
                               tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     start = time.perf_counter()
@@ -183,7 +185,8 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     if deadline is not None and time.perf_counter() > deadline:
         log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
     u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                           terms=terms, extra=keep, deadline=deadline, log=log)  # fmt: skip
+                           terms=terms, extra=keep, deadline=deadline, fallback=fallback,
+                           guard=problems.GRADIENT_GUARD, log=log)  # fmt: skip
     final_params = tuner.to_physical(u, plain.base, floor)
     final = tuner.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)

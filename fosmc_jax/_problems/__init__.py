@@ -5,6 +5,9 @@ the problems a config describes (:mod:`.build`, :mod:`.front_problems`)."""
 
 from . import memory as memory
 from .build import (
+    GRADIENT_GUARD as GRADIENT_GUARD,
+)
+from .build import (
     GRADIENT_WINDOW as GRADIENT_WINDOW,
 )
 from .build import (
@@ -15,6 +18,9 @@ from .build import (
 )
 from .build import (
     controller_of as controller_of,
+)
+from .build import (
+    fallback_problem as fallback_problem,
 )
 from .build import (
     gradient_window as gradient_window,
@@ -33,6 +39,9 @@ from .build import (
 )
 from .build import (
     reference_of as reference_of,
+)
+from .build import (
+    rough_loop as rough_loop,
 )
 from .build import (
     sample_steps as sample_steps,

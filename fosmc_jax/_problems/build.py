@@ -200,9 +200,13 @@ def problem_of(cfg: Config) -> Problem:
     return Problem(plants, base, reference, X0s, dt, options, keys_of(cfg), controller_from, ctl.kind, arm)
 
 
-#: The automatic ``[tune] gradient_window`` (s) where the whole horizon's gradient explodes, shorter
-#: than where its growth starts (docs/configuration.md, the [tune] table).
+#: The ``[tune] gradient_window`` (s) of the sign law, and of a rough loop where the whole horizon's
+#: gradient explodes: shorter than where its growth starts (docs/configuration.md, the [tune] table).
 GRADIENT_WINDOW = 0.02
+#: The largest norm of the whole horizon's gradient (internal coordinates) at ``fosmc tune``'s start
+#: on a rough loop that tune keeps: an exploding one lies orders of magnitude above it, a finite one
+#: orders below (tuning/results/tune_vs_cma_window.md); above it tune falls back to :data:`GRADIENT_WINDOW`.
+GRADIENT_GUARD = 1e3
 
 
 def training_config(cfg: Config) -> Config:
@@ -221,19 +225,35 @@ def training_config(cfg: Config) -> Config:
     return replace(cfg, sim=sim) if sim else cfg
 
 
+def rough_loop(cfg: Config) -> bool:
+    """Whether ``cfg``'s loop is digital and quantizes (``encoder_counts``) or differences
+    (``derivatives = "difference"``) its measurements: its gradients may grow exponentially over a
+    long horizon, and tune's automatic learning rate is smaller there."""
+    sensors = cfg.sensors
+    return cfg.controller.sample_period > cfg.sim.dt and (
+        any(n > 0 for n in sensors.encoder_counts) or sensors.derivatives == "difference"
+    )
+
+
 def gradient_window(cfg: Config) -> float:
-    """``tune.gradient_window`` (s), or where it is 0, :data:`GRADIENT_WINDOW` for a digital
-    loop that quantizes or differences its measurements or for the sign law, else 0 (the whole
-    horizon). Over the whole horizon the gradient grows exponentially on such a loop (at tune's
-    start, with the near-sign law of the global stage) and is uphill under the sign law, while
-    short windows give finite gradients that lower the plain loss; in the ideal loop with a
-    smooth law the whole horizon's is finite and tunes best (docs/configuration.md, the [tune] table)."""
-    window_s = cfg.tune.gradient_window
-    sensors, period = cfg.sensors, cfg.controller.sample_period
-    rough = period > cfg.sim.dt and (any(n > 0 for n in sensors.encoder_counts) or sensors.derivatives == "difference")
-    if not window_s and (rough or cfg.controller.switching == "sign"):
-        window_s = GRADIENT_WINDOW
-    return window_s
+    """``tune.gradient_window`` (s), or where it is 0 (automatic): :data:`GRADIENT_WINDOW` under the
+    sign law, where the gradient over any longer horizon points uphill, else 0: the whole
+    horizon, finite and exact in the ideal loop and, from tune's start, on most rough loops
+    (:func:`rough_loop`), where tune falls back to :data:`GRADIENT_WINDOW` if the whole horizon's
+    gradient at its start is not finite or above :data:`GRADIENT_GUARD` (docs/configuration.md,
+    the [tune] table)."""
+    return cfg.tune.gradient_window or (GRADIENT_WINDOW if cfg.controller.switching == "sign" else 0.0)
+
+
+def fallback_problem(cfg: Config, train: Problem) -> Problem | None:
+    """The training problem ``train`` (of :func:`tuning_problems`) with its gradient truncated every
+    :data:`GRADIENT_WINDOW`, where ``cfg``'s loop is rough (:func:`rough_loop`) and its window
+    automatic: what ``fosmc tune`` falls back to where the whole horizon's gradient explodes at
+    its start; None elsewhere."""
+    if not rough_loop(cfg) or train.options.get("truncate_every"):
+        return None
+    window = int(round(GRADIENT_WINDOW / float(train.dt)))
+    return train._replace(options=dict(train.options, truncate_every=window))
 
 
 def plain_problem(config: str | Path | dict | Config, **options) -> Problem:

@@ -238,12 +238,11 @@ class Settings(NamedTuple):
 ARMIJO, SHRINK, GROW, TRIALS, MAX_STEP, MEMORY = 1e-4, 0.3, 2.0, 10, 1.0, 10
 
 
-def learning_rate(rate: float, problem: Problem) -> float:
-    """``[tune] learning_rate``, 0 meaning automatic: 0.05, or 0.01 where the training problem's
-    gradient is truncated (a digital loop that quantizes or differences its measurements): on
-    the realistic preset 0.05's steps left the tracking region within 10 steps, and 0.01 reached
-    a training loss of -4.98 against -4.20 (tuning/README.md)."""
-    return rate or (0.01 if problem.options.get("truncate_every") else 0.05)
+def learning_rate(rate: float, rough: bool) -> float:
+    """``[tune] learning_rate``, 0 meaning automatic: 0.05, or 0.01 on a rough loop (a digital loop
+    that quantizes or differences its measurements, :func:`fosmc_jax._problems.rough_loop`): on
+    the realistic preset 0.05's steps left the tracking region within 10 steps (tuning/README.md)."""
+    return rate or (0.01 if rough else 0.05)
 
 
 def make_optimizer(s: Settings, labels: Params) -> optax.GradientTransformation:
@@ -372,6 +371,8 @@ def run(
     terms: tuple[str, str] = ("error", "chattering"),
     extra: dict | None = None,
     deadline: float | None = None,
+    fallback=None,
+    guard: float = np.inf,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam, or
@@ -391,6 +392,9 @@ def run(
     keeps the first run's). ``deadline`` (a ``time.perf_counter()`` value): the steps are as many
     as fit before it at the compiled step's measured time (``settings.steps`` at most; the
     schedule spans them; a resumed run keeps the first run's count), and the loop stops at it.
+    ``fallback``: a loss to minimise instead where ``loss``'s gradient at ``u0`` is not finite or
+    its norm is above ``guard`` (``fosmc tune``: the whole horizon's gradient, and a truncated
+    one's where it explodes); a resumed run keeps the first run's choice.
     """
     if settings.optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer: expected one of {', '.join(OPTIMIZERS)}, got {settings.optimizer!r}")
@@ -403,6 +407,7 @@ def run(
                                 "params": []}  # fmt: skip
     start_step = 0
     mode = settings.mode
+    fell_back = False
     if resume and checkpoint is not None and checkpoint.exists():
         header, arrays = _load(checkpoint)
         if header.get("optimizer", "adam") != settings.optimizer:
@@ -417,7 +422,10 @@ def run(
         if not lbfgs:
             opt = make_optimizer(settings, labels)  # the schedule of the first run's steps
         extra = header.get("extra", extra)
+        fell_back = header.get("fallback", False)
         log(f"tune: resumed from {checkpoint} at step {start_step} (gradient mode {mode})")
+    if fell_back and fallback is not None:
+        loss = fallback
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
     if mode == "auto" and _on_adjoint_kernel(loss, u):
@@ -436,6 +444,14 @@ def run(
         log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
             f"forward {timings['forward']:.3f} s)")  # fmt: skip
     step_fn = compiled[mode]  # the timed function itself: no second compilation
+    if fallback is not None and not fell_back and start_step == 0:
+        (value, _), grad = step_fn(u)
+        norm = _norm(grad)
+        if not (np.isfinite(float(value)) and norm <= guard):  # norm is NaN where the gradient is
+            fell_back = True
+            loss, step_fn = fallback, value_and_grad(fallback, mode)
+            log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
+                "fallback's gradient instead")  # fmt: skip
     if deadline is not None and start_step == 0:
         jax.block_until_ready(step_fn(u))  # compiled (where auto did not)
         t0 = time.perf_counter()
@@ -498,7 +514,7 @@ def run(
             and (done % settings.checkpoint_every == 0 or done == settings.steps)
         ):
             header = {"step": done, "mode": mode, "steps": settings.steps, "history": history, "extra": extra,
-                      "optimizer": settings.optimizer, "eta": eta}  # fmt: skip
+                      "optimizer": settings.optimizer, "eta": eta, "fallback": fell_back}  # fmt: skip
             _save(checkpoint, header, _named((u, state)))
     # the last update's point: L-BFGS evaluated it in its line search; Adam's is evaluated with the
     # compiled value_and_grad (one gradient's cost) rather than a jit of the loss alone, which
