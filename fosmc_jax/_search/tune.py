@@ -273,6 +273,29 @@ def _on_adjoint_kernel(loss, u) -> bool:
     return re.search(r"fosmc_gen_\w+_adj", program) is not None
 
 
+def _step_function(loss, u, mode: str, log: Callable[[str], None]) -> tuple[Callable, str]:
+    """The compiled value and gradient of ``loss`` and its gradient mode: ``mode``, or for
+    ``"auto"`` reverse where the program runs the generated adjoint kernel, else the faster of
+    reverse and forward, each timed at ``u`` (the timed function is returned: no second
+    compilation)."""
+    if mode == "auto" and _on_adjoint_kernel(loss, u):
+        mode = "reverse"
+        log("tune: gradient mode reverse (the generated adjoint kernel)")
+    candidates = ("reverse", "forward") if mode == "auto" else (mode,)
+    compiled = {m: value_and_grad(loss, m) for m in candidates}
+    if mode == "auto":
+        timings = {}
+        for m, f in compiled.items():
+            jax.block_until_ready(f(u))  # compile
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(u))
+            timings[m] = sharding.first(time.perf_counter() - t0)  # process 0's: the same choice everywhere
+        mode = min(timings, key=timings.get)
+        log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
+            f"forward {timings['forward']:.3f} s)")  # fmt: skip
+    return compiled[mode], mode
+
+
 def _save(path: Path, header: dict, arrays: dict[str, Any]) -> None:
     """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``; by
     process 0 alone in a run across processes (the others hold the same state)."""
@@ -395,6 +418,9 @@ def run(
     ``fallback``: a loss to minimise instead where ``loss``'s gradient at ``u0`` is not finite or
     its norm is above ``guard`` (``fosmc tune``: the whole horizon's gradient, and a truncated
     one's where it explodes); a resumed run keeps the first run's choice.
+
+    (Long: the loop's checkpoint, resume, budget and fallback read and write one state, the
+    parameters, optimizer state, step, mode and history; stages would pass all of it around.)
     """
     if settings.optimizer not in OPTIMIZERS:
         raise ValueError(f"optimizer: expected one of {', '.join(OPTIMIZERS)}, got {settings.optimizer!r}")
@@ -428,26 +454,11 @@ def run(
         loss = fallback
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
-    if mode == "auto" and _on_adjoint_kernel(loss, u):
-        mode = "reverse"
-        log("tune: gradient mode reverse (the generated adjoint kernel)")
-    candidates = ("reverse", "forward") if mode == "auto" else (mode,)
-    compiled = {m: value_and_grad(loss, m) for m in candidates}
-    if mode == "auto":
-        timings = {}
-        for m, f in compiled.items():
-            jax.block_until_ready(f(u))  # compile
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(u))
-            timings[m] = sharding.first(time.perf_counter() - t0)  # process 0's: the same choice everywhere
-        mode = min(timings, key=timings.get)
-        log(f"tune: gradient mode {mode} (one evaluation: reverse {timings['reverse']:.3f} s, "
-            f"forward {timings['forward']:.3f} s)")  # fmt: skip
-    step_fn = compiled[mode]  # the timed function itself: no second compilation
+    step_fn, mode = _step_function(loss, u, mode, log)
     if fallback is not None and not fell_back and start_step == 0:
         (value, _), grad = step_fn(u)
-        norm = _norm(grad)
-        if not (np.isfinite(float(value)) and norm <= guard):  # norm is NaN where the gradient is
+        norm = _norm(grad)  # NaN where the gradient is
+        if sharding.first(not (np.isfinite(float(value)) and norm <= guard)):  # process 0's: the same everywhere
             fell_back = True
             loss, step_fn = fallback, value_and_grad(fallback, mode)
             log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
