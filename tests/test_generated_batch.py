@@ -77,3 +77,14 @@ def test_a_batch_of_cotangents_shares_the_forwards_checkpoints():
     batched = jax.jit(jax.vmap(pullback))(cts)[0]
     for c in range(cts.shape[0]):
         assert _rel(batched[c], jax.jit(pullback)(cts[c])[0]) < 1e-12, c
+
+
+def test_the_tuners_check_of_the_adjoint_kernel_sees_it():
+    """``fosmc tune``'s gradient mode ``auto`` takes reverse without timing forward mode where the
+    gradient's program calls the adjoint kernel (a forward-mode compilation takes minutes)."""
+    from fosmc_jax._search import tune
+
+    plants, ref, X0s, dt = _linear()
+    loss = lambda K: (_loss(_simulate(K, plants, ref, X0s, dt)), ())
+    assert tune._on_adjoint_kernel(loss, _candidates(1)[0])
+    assert not tune._on_adjoint_kernel(lambda K: (jnp.sum(K**2), ()), _candidates(1)[0])

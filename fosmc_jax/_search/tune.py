@@ -270,7 +270,7 @@ def _on_adjoint_kernel(loss, u) -> bool:
     there, while forward mode runs 15 tangents through a ``lax.scan`` whose compilation alone took
     over a minute on the realistic preset."""
     program = str(jax.make_jaxpr(jax.grad(lambda v: loss(v)[0]))(u))
-    return re.search(r"fosmc_gen_\w+_adj", program) is not None
+    return re.search(r"fosmc_gen_\w*?_(?:adj|\w*Adjoint)\b", program) is not None
 
 
 def _step_function(loss, u, mode: str, log: Callable[[str], None]) -> tuple[Callable, str]:
