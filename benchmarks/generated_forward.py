@@ -69,6 +69,10 @@ def main(argv=None):
     print(f"start: load {os.getloadavg()[0]:.2f}", flush=True)
     for cell in cells:
         (plants, ctrl, ref, X0s, dt), dynamic, static = bench.arm_cell_inputs(cell)
+        # the arm's zero friction and disturbance terms left out before the jit, as the public path
+        # does (inside it the plants are traced, and the generated step would compute the zero
+        # terms that the hand-written kernel skips at run time)
+        plants = without_idle_terms(plants)
         ctrl = fj.FOSMC(ctrl) if isinstance(ctrl, fj.FOSMCParams) else ctrl  # the ideal cells' default law
         dtype = X0s.dtype
         keys = dynamic.get("keys", jax.random.PRNGKey(0)[None])
@@ -80,7 +84,7 @@ def main(argv=None):
             return rollout.simulate_batch(plants, ctrl, ref, X0s, dt, **dynamic, **static).metrics.rms_error
 
         def gen(plants, X0s):
-            a = (without_idle_terms(plants), ctrl, ref, X0s, np.asarray(dt, dtype), keys, bound, cutoff)
+            a = (plants, ctrl, ref, X0s, np.asarray(dt, dtype), keys, bound, cutoff)
             return generated.simulate_batch(a, paired=False, **opts).metrics.rms_error
 
         runs, out = {}, {}

@@ -77,10 +77,13 @@ def _record(jaxpr, consts, in_ids, tape: list, values: dict, counter: list) -> l
         return counter[0]
 
     def read(v):
-        if isinstance(v, jax.extend.core.Literal):
-            i = new()
-            values[i] = np.asarray(v.val)
-            return i
+        if isinstance(v, jax.extend.core.Literal):  # one id per literal value, so that _merge_equal sees them equal
+            a = np.asarray(v.val)
+            key = ("literal", a.dtype.str, a.shape, a.tobytes())
+            if key not in values:
+                values[key] = new()
+                values[values[key]] = a
+            return values[key]
         return env[v]
 
     for v, c in zip(jaxpr.constvars, consts):
@@ -100,6 +103,39 @@ def _record(jaxpr, consts, in_ids, tape: list, values: dict, counter: list) -> l
         for v, o in zip(eqn.outvars, outs):
             env[v] = o
     return [read(v) for v in jaxpr.outvars]
+
+
+def _merge_equal(tape: list) -> tuple[list, dict]:
+    """``tape`` without the equations that repeat an earlier one (the same primitive and
+    parameters on the same values), and the ids of their results -> the earlier's. The RK4 stages
+    2 and 3 each compute t_k + dt/2 and the plant's terms of it (the arm's external torque): as
+    one value, the printer computes them once (its own merging sees equal expressions only, and
+    two hoisted values are two expressions). The same operations on the same values: the same
+    numbers."""
+    seen: dict = {}
+    alias: dict = {}
+    out = []
+    for e in tape:
+        ins = [alias.get(i, i) for i in e.ins]
+        e = e._replace(ins=ins)
+        key = None
+        params = e.eqn.params if e.fn is None else None
+        # only parameters that their repr spells out whole (no sub-jaxpr whose constants it does not
+        # show, no array it may abbreviate), and no effect
+        if (
+            params is not None
+            and not e.eqn.effects
+            and not any(jax.extend.core.jaxprs_in_params(params))
+            and not any(isinstance(v, (np.ndarray, jax.Array)) for v in params.values())
+        ):
+            key = (e.eqn.primitive, tuple(ins), tuple(sorted((k, repr(v)) for k, v in params.items())))
+        if key is not None and key in seen:
+            alias.update(zip(e.outs, seen[key].outs))
+            continue
+        if key is not None:
+            seen[key] = e
+        out.append(e)
+    return out, alias
 
 
 def _replay(entries, env: dict) -> None:
@@ -182,6 +218,9 @@ def split(step, x_aval, lane_avals, glob_avals, closed=None, n_plant: int = 0) -
     counter[0] = ids[-1]
     x_id, lane_ids, glob_ids, k_id = ids[0], ids[1 : 1 + n_lane], ids[1 + n_lane : -1], ids[-1]
     out_ids = _record(closed.jaxpr, closed.consts, ids, tape, values, counter)
+    values = {i: v for i, v in values.items() if not isinstance(i, tuple)}  # the literals' index dropped
+    tape, alias = _merge_equal(tape)
+    out_ids = [alias.get(i, i) for i in out_ids]
     cls = {x_id: _S, k_id: _T, **{i: _L for i in lane_ids}, **{i: _T for i in glob_ids}}
     for i in values:
         cls[i] = 0
@@ -237,19 +276,22 @@ def _moves_to_core(lane_entries: list, core_entries: list, out_ids, cls: dict) -
     row, loaded every step and, in the adjoint, one more cotangent summed every step (a broadcast
     of one parameter to a 3x3 block: 9 rows for 1)."""
     feeds = set(out_ids) | {i for e in core_entries for i in e.ins}
-    moved = set()
-    for n in range(len(lane_entries) - 1, -1, -1):
+    moved, kept, lane_uses = set(), set(), set()
+    for n in range(len(lane_entries) - 1, -1, -1):  # every use of an entry's results comes after it
         e = lane_entries[n]
         name = e.eqn.primitive.name if e.fn is None else None  # a rewritten solve: not a move
         index = codegen._INDEX_OPERANDS.get(name, lambda n: ())(len(e.ins))
         if name in codegen._MOVES and any(o in feeds for o in e.outs) and all(cls[e.ins[j]] == 0 for j in index):
             moved.add(n)
             feeds.update(e.ins)
+        if n not in moved or any(o in lane_uses for o in e.outs):  # a move that a hoisted value needs too: in both
+            kept.add(n)
+            lane_uses.update(e.ins)
     if not moved:
         return lane_entries, core_entries
     # the tape is in dependency order, and every moved entry comes before the core's first use
     # of it: the core's entries stay after the moved ones
-    return ([e for n, e in enumerate(lane_entries) if n not in moved],
+    return ([e for n, e in enumerate(lane_entries) if n in kept],
             [e for n, e in enumerate(lane_entries) if n in moved] + core_entries)  # fmt: skip
 
 
