@@ -80,13 +80,13 @@ def test_tune_lowers_the_objective_and_its_result_resimulates(tuned, capsys):
 
 @pytest.fixture(scope="module", params=PARAMS, ids=[c[0] for c in CASES])
 def front(request, tmp_path_factory):
-    """The front's search (fosmc_jax._search.front.run) on the kind's problem, written as a front.json."""
+    """The front's search (fosmc_jax._search.front.front_search) on the kind's problem, written as a front.json."""
     kind, controller, _ = request.param
     tmp = tmp_path_factory.mktemp(f"front_{kind}")
     path = toml(tmp / "c.toml", kind, controller)
     cfg = _config.load(path)
     plain, train, p0 = _config.tuning_problems(cfg)
-    res = F.run(train, plain, p0, F.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None)
+    res = F.front_search(train, plain, p0, F.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None)
     (tmp / "front.json").write_text(json.dumps({**res, "config": cfg.as_dict()}))
     return kind, path, tmp / "front.json", res, (train, p0, cfg)
 

@@ -727,10 +727,6 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
 
 
-#: The former name of :func:`front_search`, until tests/test_tuning_kinds.py moves to the new one.
-run = front_search
-
-
 def replay_settings(stages: dict[str, Any]) -> Settings:
     """The settings that redo the work recorded in a front's ``stages`` (front.json's; its
     ``replay``): the same draws, stage sizes, rounds and steps, with no clock, so that
