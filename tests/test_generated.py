@@ -483,3 +483,22 @@ def test_a_users_plant_with_a_state_of_its_own_runs_on_the_kernel():
     assert np.isfinite(v) and v > 0 and _rel(v, w) < 1e-12
     assert _rel(g[0], h[0]) < 1e-9 and _rel(g[1], h[1]) < 1e-9
     assert np.all(np.asarray(g[1]) != 0)
+
+
+def test_the_split_computes_a_repeated_time_value_and_its_terms_once():
+    """RK4's stages 2 and 3 each compute t_k + dt/2 and what depends on it: the split merges the
+    repeated equations (one hoisted time value, one sin in the printed step), same numbers."""
+
+    def step(x, lane, glob, k):
+        (dt,), (f,) = glob, lane
+        t2, t3 = k * dt + dt / 2, k * dt + dt / 2  # two stages' times, computed apart
+        return x + jnp.sin(f * t2) * x[0] + jnp.sin(f * t3) * x[1]
+
+    f64 = lambda *s: jax.ShapeDtypeStruct(s, jnp.float64)
+    s = generated.split(step, f64(2), [f64()], [f64()])
+    assert len(s.time_avals) == 1  # t_k + dt/2 once
+    core = jax.make_jaxpr(s.core)(f64(2), s.lane_avals, s.time_avals)
+    assert [e.primitive.name for e in core.eqns].count("sin") == 1
+    x, f, dt, k = jnp.array([0.3, -0.7]), jnp.asarray(2.5), jnp.asarray(1e-3), jnp.int32(7)
+    got = s.core(x, s.lane_pre([f]), s.time_pre(k, [dt]))
+    np.testing.assert_array_equal(got, step(x, [f], [dt], k))
