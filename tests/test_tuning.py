@@ -252,8 +252,6 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
 #: Committed configs whose first five Adam steps from tune's start were seen not to lower the loss.
 NO_DESCENT = {
     "arm_sign_dt": "the sign law: only gamma acts, and the loss is rough in it",
-    "realistic_arm_exact_rates": "quantized measured rates, 0.02 s windows, 1 s: -2.54 at best against "
-    "-2.57 at the start (known, the issue's note)",
     "realistic_arm_uncertain": "the same digital loop with sampled arms: -2.045 at best against -2.064 at "
     "the start (CI, session 32)",
 }
