@@ -18,7 +18,8 @@ average is recorded with every round.
 ``--flags "-fschedule-insns -fsched-pressure"`` adds a third path to every cell: the generated
 kernel built again with those extra compiler flags (``FOSMC_JAX_GENERATED_FLAGS``; its build
 timed too), in the same interleaved rounds; its ratio to the plain generated one, and whether
-its rms errors equal the plain one's bit for bit.
+its rms errors equal the plain one's bit for bit. ``--terms`` turns Coulomb friction and a
+sinusoidal disturbance on in every cell's arm (bench.py's arms have neither).
 """
 
 from __future__ import annotations
@@ -42,6 +43,11 @@ def main(argv=None):
     ap.add_argument("--round-s", type=float, default=0.5)
     ap.add_argument("--cache", help="the kernel cache folder (default: a fresh temporary one: cold builds)")
     ap.add_argument("--flags", help="extra compiler flags for a third path, the generated kernel built with them")
+    ap.add_argument(
+        "--terms",
+        action="store_true",
+        help="Coulomb friction and a sinusoidal disturbance on in every arm (the cells have neither)",
+    )
     ap.add_argument("--only", help="the cells whose 'loop integrator dtype' contains this (e.g. 'digital rk4')")
     ap.add_argument("--out", help="write the rows as JSON")
     args = ap.parse_args(argv)
@@ -72,6 +78,10 @@ def main(argv=None):
         # the arm's zero friction and disturbance terms left out before the jit, as the public path
         # does (inside it the plants are traced, and the generated step would compute the zero
         # terms that the hand-written kernel skips at run time)
+        if args.terms:  # 0.2 N m of Coulomb friction (v_c 0.01 rad/s), 0.5 N m at 2 Hz on every joint
+            on = dict(Fc=0.2, v_coulomb=0.01, tau_sin=0.5, f_sin=2.0)
+            plants = plants._replace(params=plants.params._replace(**{
+                k: np.full(np.shape(getattr(plants.params, k)), v, X0s.dtype) for k, v in on.items()}))  # fmt: skip
         plants = without_idle_terms(plants)
         ctrl = fj.FOSMC(ctrl) if isinstance(ctrl, fj.FOSMCParams) else ctrl  # the ideal cells' default law
         dtype = X0s.dtype
