@@ -31,17 +31,17 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from fosmc_jax import _problems as problems  # noqa: E402
-from fosmc_jax._search import tune as tuner  # noqa: E402
+import fosmc_jax.config as fc  # noqa: E402
+import fosmc_jax.search as fs  # noqa: E402
 
 
 def loss_of(name: str):
     """``fosmc tune``'s training loss of ``tuning/configs/<name>.toml`` and its start u0."""
-    cfg = problems.load(f"tuning/configs/{name}.toml")
-    plain, train, p0 = problems.tuning_problems(cfg)
-    obj = tuner.objective_of(cfg.tune, tuner.evaluate(train, p0)["metrics"])
-    loss = tuner.make_loss(train, obj, None)
-    return (lambda u: loss(u)[0]), tuner.to_internal(p0, plain.base), train
+    cfg = fc.load(f"tuning/configs/{name}.toml")
+    plain, train, p0 = fc.tuning_problems(cfg)
+    obj = fs.objective_of(cfg.tune, fs.evaluate(train, p0)["metrics"])
+    loss = fs.make_loss(train, obj, None)
+    return (lambda u: loss(u)[0]), fs.to_internal(p0, plain.base), train
 
 
 def main() -> int:
