@@ -44,8 +44,11 @@ def test_constraint_maps_round_trip_and_respect_bounds():
         T.to_internal(p._replace(gamma=jnp.array([1.0, 1.0, 1.0])), prob.base, floor)
 
 
-# forward mode (6 s) in the slow tier: the default tier keeps to 4 minutes on 2 cores
-@pytest.mark.parametrize("mode", ["reverse", pytest.param("forward", marks=pytest.mark.slow)])
+# both modes in the slow tier (12-22 s of the default tier's 4 minutes on 2 cores); the default tier
+# checks gradients against central differences in tests/test_tuning_kinds.py (SMC's log gains) and
+# tests/test_digital_loop.py, and the kernel's against the vmap path in tests/test_generated.py
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["reverse", "forward"])
 def test_gradient_matches_central_differences(mode):
     prob = problem()
     obj = T.Objective(error_ref=0.05, chattering_ref=5.0, worst_case="cvar", worst_weight=0.5, cvar_alpha=0.5)
