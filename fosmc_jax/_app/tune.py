@@ -129,6 +129,27 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
     return cfg, out
 
 
+def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: float | None, log: Log):
+    """Where the gradient steps start: a resumed run's first start (kept in its ``checkpoint``),
+    else the best of the global stage's candidates (``tune.global_candidates``, within 30% of the
+    time left before ``deadline``), else the config's parameters ``p0``."""
+    from .._search import tune as tuner
+
+    kept = tuner.checkpoint_extra(checkpoint) if checkpoint is not None else None
+    if kept and "start" in kept:
+        return type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
+    if not tcfg.global_candidates or floor is not None or checkpoint is not None:
+        return p0
+    from .._search.front import global_stage
+
+    share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
+    start, score = global_stage(problem, obj, p0, tcfg.global_candidates, free=tuple(tcfg.params), log=log,
+                                command="tune", deadline=share)  # fmt: skip
+    which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
+    log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log scale)")
+    return start
+
+
 def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
           log: Log) -> dict[str, Any]:  # fmt: skip
     """``run_tune``'s work, its inputs checked."""
@@ -154,21 +175,9 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
         f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
         f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
-    start_params = p0
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
-    kept = tuner.checkpoint_extra(checkpoint) if resuming else None  # the first run's start, found by its global stage
-    if kept and "start" in kept:
-        start_params = type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
-    if tcfg.global_candidates and floor is None and not resuming:
-        from .._search.front import global_stage
-
-        share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
-        start_params, score = global_stage(problem, obj, p0, tcfg.global_candidates, free=tuple(tcfg.params),
-                                           log=log, command="tune", deadline=share)  # fmt: skip
-        which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
-        log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log "
-            "scale)")  # fmt: skip
+    start_params = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None, deadline, log)
     try:
         u0 = tuner.to_internal(start_params, plain.base, floor)
     except ValueError as e:
