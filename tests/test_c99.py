@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from fosmc_jax._firmware import c99
-from fosmc_jax._firmware import export as E
+from fosmc_jax._firmware import export as exporter
 from fosmc_jax._simulator import codegen
 
-CC = E.c_compiler()
+CC = exporter.c_compiler()
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler ($CC, cc, gcc, clang)")
 
 #: A matrix of constants the printed sums fold in (its zero is left out of them).
@@ -54,7 +54,7 @@ def _compiled(tmp_path: Path, dtype) -> ctypes.CDLL:
     )  # fmt: skip
     source = tmp_path / "many.c"
     source.write_text(text)
-    E.check_compiles(source, CC, (*E.STRICT_FLAGS, "-O2"))
+    exporter.check_compiles(source, CC, (*exporter.STRICT_FLAGS, "-O2"))
     so = tmp_path / "libmany.so"
     subprocess.run([*CC.split(), "-std=c99", "-O2", "-shared", "-fPIC", str(source), "-o", str(so), "-lm"], check=True)
     return ctypes.CDLL(str(so)), text

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax._search import tune as T
+from fosmc_jax._search import tune as tuner
 
 P = fj.paper
 
@@ -20,28 +20,28 @@ def problem(n_steps=200, dt=2e-3, samples=3):
     plants = fj.LinearPlant(*(jnp.asarray(x) for x in plants))
     X0s = fj.desired_state(ref(0.0))[None] + jnp.array([[0.02] + [0.0] * 8])
     opts = dict(n_steps=n_steps, integrator="rk4", switching="ratio", checkpoint_every=50)
-    return T.Problem(plants, base, ref, X0s, jnp.asarray(dt), opts)
+    return tuner.Problem(plants, base, ref, X0s, jnp.asarray(dt), opts)
 
 
 def test_constraint_maps_round_trip_and_respect_bounds():
     prob = problem()
-    p = T.Tunable(jnp.array([200.0, 100.0, 60.0]), jnp.array([350.0, 300.0, 30.0]), jnp.array(P.POLES))
-    u = T.to_internal(p, prob.base)
-    back = T.to_physical(u, prob.base)
+    p = tuner.Tunable(jnp.array([200.0, 100.0, 60.0]), jnp.array([350.0, 300.0, 30.0]), jnp.array(P.POLES))
+    u = tuner.to_internal(p, prob.base)
+    back = tuner.to_physical(u, prob.base)
     for a, b in zip(back, p):
         np.testing.assert_allclose(a, b, rtol=1e-12)
     # any unconstrained point maps to positive delta, gamma and negative poles
-    rand = T.Tunable(*(jax.random.normal(jax.random.PRNGKey(i), np.shape(x)) * 5 for i, x in enumerate(p)))
-    q = T.to_physical(rand, prob.base)
+    rand = tuner.Tunable(*(jax.random.normal(jax.random.PRNGKey(i), np.shape(x)) * 5 for i, x in enumerate(p)))
+    q = tuner.to_physical(rand, prob.base)
     assert np.all(q.delta > 0) and np.all(q.gamma > 0) and np.all(q.poles < 0)
     # with the floor, gamma stays above the (pole-dependent) bound (24)-(26)
-    floor = T.GammaFloor(5.987, 0.62, "paper")
-    q = T.to_physical(rand, prob.base, floor)
+    floor = tuner.GammaFloor(5.987, 0.62, "paper")
+    q = tuner.to_physical(rand, prob.base, floor)
     K = fj.gain_from_poles(prob.base.a_rows, prob.base.b_rows, q.poles)
     bound = fj.gamma_bounds(5.987, 0.62, prob.base.C, prob.base.b_rows, K, "paper")
     assert np.all(q.gamma > bound)
     with pytest.raises(ValueError, match="gamma"):
-        T.to_internal(p._replace(gamma=jnp.array([1.0, 1.0, 1.0])), prob.base, floor)
+        tuner.to_internal(p._replace(gamma=jnp.array([1.0, 1.0, 1.0])), prob.base, floor)
 
 
 # both modes in the slow tier (12-22 s of the default tier's 4 minutes on 2 cores); the default tier
@@ -51,11 +51,11 @@ def test_constraint_maps_round_trip_and_respect_bounds():
 @pytest.mark.parametrize("mode", ["reverse", "forward"])
 def test_gradient_matches_central_differences(mode):
     prob = problem()
-    obj = T.Objective(error_ref=0.05, chattering_ref=5.0, worst_case="cvar", worst_weight=0.5, cvar_alpha=0.5)
-    loss = T.make_loss(prob, obj, None)
-    p0 = T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles)
-    u0 = T.to_internal(p0, prob.base)
-    (_, _), grad = T.value_and_grad(loss, mode)(u0)
+    obj = tuner.Objective(error_ref=0.05, chattering_ref=5.0, worst_case="cvar", worst_weight=0.5, cvar_alpha=0.5)
+    loss = tuner.make_loss(prob, obj, None)
+    p0 = tuner.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles)
+    u0 = tuner.to_internal(p0, prob.base)
+    (_, _), grad = tuner.value_and_grad(loss, mode)(u0)
     flat, unravel = jax.flatten_util.ravel_pytree(u0)
     g = jax.flatten_util.ravel_pytree(grad)[0]
     f = jax.jit(lambda x: loss(unravel(x))[0])
@@ -75,15 +75,15 @@ def quadratic(target):
 
 
 def start_point():
-    return T.Tunable(jnp.zeros(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    return tuner.Tunable(jnp.zeros(3), jnp.zeros(3), jnp.zeros((3, 3)))
 
 
 def test_frozen_parameters_do_not_move_and_free_ones_converge():
-    target = T.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
-    s = T.Settings(
+    target = tuner.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
+    s = tuner.Settings(
         steps=300, learning_rate=0.1, schedule="constant", mode="reverse", free=("delta", "poles"), checkpoint_every=0
     )
-    u, hist = T.run(quadratic(target), start_point(), s, log=lambda _: None)
+    u, hist = tuner.run(quadratic(target), start_point(), s, log=lambda _: None)
     np.testing.assert_array_equal(u.gamma, 0.0)
     np.testing.assert_allclose(u.delta, 1.0, atol=1e-2)
     np.testing.assert_allclose(u.poles, -1.0, atol=1e-2)
@@ -94,16 +94,16 @@ def test_a_gradient_above_the_guard_at_the_start_falls_back_and_a_resumed_run_ke
     """fosmc tune's fallback (a rough loop's truncated gradient where the whole horizon's
     explodes): a loss whose gradient at the start is above ``guard`` is replaced by ``fallback``
     for the whole run, as if the run had been given the fallback; below the guard it is kept."""
-    target = T.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
+    target = tuner.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
     base = quadratic(target)
     steep = lambda u: (lambda v: (1e6 * v[0], v[1]))(base(u))  # the same minimum, a gradient ~1e7
-    s = T.Settings(steps=4, learning_rate=0.1, schedule="constant", mode="reverse", checkpoint_every=2)
+    s = tuner.Settings(steps=4, learning_rate=0.1, schedule="constant", mode="reverse", checkpoint_every=2)
     lines = []
-    _, hist = T.run(steep, start_point(), s, fallback=base, guard=1e3, log=lines.append)
-    _, plain = T.run(base, start_point(), s, log=lambda _: None)
+    _, hist = tuner.run(steep, start_point(), s, fallback=base, guard=1e3, log=lines.append)
+    _, plain = tuner.run(base, start_point(), s, log=lambda _: None)
     assert any("fallback" in line for line in lines)
     np.testing.assert_allclose(hist["loss"], plain["loss"], rtol=1e-12)  # the fallback's run, from the start
-    _, kept = T.run(steep, start_point(), s, fallback=base, guard=1e8, log=lambda _: None)
+    _, kept = tuner.run(steep, start_point(), s, fallback=base, guard=1e8, log=lambda _: None)
     assert kept["loss"][0] == pytest.approx(1e6 * plain["loss"][0])  # below the guard: the loss itself
 
     # killed after step 3 (the checkpoint of step 2), resumed where no guard would switch: the fallback still
@@ -112,14 +112,14 @@ def test_a_gradient_above_the_guard_at_the_start_falls_back_and_a_resumed_run_ke
             raise Killed
 
     with pytest.raises(Killed):
-        T.run(steep, start_point(), s, fallback=base, guard=1e3, checkpoint=tmp_path / "ck.npz", log=killer)
-    _, resumed = T.run(steep, start_point(), s, fallback=base, guard=np.inf, checkpoint=tmp_path / "ck.npz",
+        tuner.run(steep, start_point(), s, fallback=base, guard=1e3, checkpoint=tmp_path / "ck.npz", log=killer)
+    _, resumed = tuner.run(steep, start_point(), s, fallback=base, guard=np.inf, checkpoint=tmp_path / "ck.npz",
                        resume=True, log=lambda _: None)  # fmt: skip
     np.testing.assert_allclose(resumed["loss"], plain["loss"], rtol=1e-12)
 
 
 def test_nan_guard_skips_the_step():
-    target = T.Tunable(jnp.ones(3), jnp.ones(3), jnp.ones((3, 3)))
+    target = tuner.Tunable(jnp.ones(3), jnp.ones(3), jnp.ones((3, 3)))
     base = quadratic(target)
 
     def loss(u):
@@ -128,8 +128,8 @@ def test_nan_guard_skips_the_step():
         return jnp.where(u.delta[0] == 0, jnp.nan, v), aux
 
     messages = []
-    s = T.Settings(steps=3, mode="reverse", checkpoint_every=0)
-    u, hist = T.run(loss, start_point(), s, log=messages.append)
+    s = tuner.Settings(steps=3, mode="reverse", checkpoint_every=0)
+    u, hist = tuner.run(loss, start_point(), s, log=messages.append)
     assert hist["skipped"] == [True, True, True]
     assert any("skipped" in m for m in messages)
     for a, b in zip(u, start_point()):
@@ -140,15 +140,15 @@ def test_the_best_iterate_is_returned_when_a_step_lands_on_a_flat_penalty():
     """Past delta[0] = 0.5 the loss is a flat penalty with zero gradient (what diverged
     rollouts give); large steps jump there and Adam's momentum keeps going: the run returns
     the step of lowest loss, not the last one."""
-    target = T.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    target = tuner.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
     base = quadratic(target)
 
     def loss(u):
         v, aux = base(u)
         return jnp.where(u.delta[0] > 0.5, 100.0, v), aux
 
-    s = T.Settings(steps=6, learning_rate=0.3, schedule="constant", mode="reverse", checkpoint_every=0)
-    u, hist = T.run(loss, start_point(), s, log=lambda _: None)
+    s = tuner.Settings(steps=6, learning_rate=0.3, schedule="constant", mode="reverse", checkpoint_every=0)
+    u, hist = tuner.run(loss, start_point(), s, log=lambda _: None)
     assert hist["loss"][-1] == 100.0  # the run ended on the penalty
     assert hist["best_step"] == int(np.argmin(hist["loss"])) < 6
     assert np.isclose(float(loss(u)[0]), min(hist["loss"]), rtol=1e-12) and min(hist["loss"]) < hist["loss"][0]
@@ -158,11 +158,11 @@ def test_the_best_iterate_is_returned_when_a_step_lands_on_a_flat_penalty():
 @pytest.mark.slow  # two tuning runs: ~10 s
 def test_resume_equals_uninterrupted(tmp_path):
     prob = problem(n_steps=100)
-    obj = T.Objective(error_ref=0.05, chattering_ref=5.0)
-    loss = T.make_loss(prob, obj, None)
-    u0 = T.to_internal(T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
-    s = T.Settings(steps=6, learning_rate=0.05, mode="reverse", checkpoint_every=2)
-    full, hist_full = T.run(loss, u0, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
+    obj = tuner.Objective(error_ref=0.05, chattering_ref=5.0)
+    loss = tuner.make_loss(prob, obj, None)
+    u0 = tuner.to_internal(tuner.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
+    s = tuner.Settings(steps=6, learning_rate=0.05, mode="reverse", checkpoint_every=2)
+    full, hist_full = tuner.run(loss, u0, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
 
     # dies after step 5 is logged: the last checkpoint is at step 4
     assert_resumes_to(loss, u0, s, tmp_path / "b.npz", 5, full, hist_full)
@@ -180,8 +180,8 @@ def assert_resumes_to(loss, u0, s, checkpoint, step, full, hist_full):
             raise Killed
 
     with pytest.raises(Killed):
-        T.run(loss, u0, s, checkpoint=checkpoint, log=killer)
-    resumed, hist = T.run(loss, u0, s, checkpoint=checkpoint, resume=True, log=lambda _: None)
+        tuner.run(loss, u0, s, checkpoint=checkpoint, log=killer)
+    resumed, hist = tuner.run(loss, u0, s, checkpoint=checkpoint, resume=True, log=lambda _: None)
     for a, b in zip(full, resumed):
         np.testing.assert_array_equal(a, b)
     assert hist["loss"] == hist_full["loss"]
@@ -193,12 +193,12 @@ def test_truncated_gradient_keeps_values_and_is_exact_beyond_the_horizon():
     horizon gives the whole horizon's gradient (to rounding); a shorter one another, finite one
     (on this smooth loop the two differ, which is why the ideal loop is not truncated)."""
     prob = problem(n_steps=100)
-    u = T.to_internal(T.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
-    obj = T.Objective(error_ref=0.01)
+    u = tuner.to_internal(tuner.Tunable(prob.base.delta, prob.base.gamma, prob.base.poles), prob.base)
+    obj = tuner.Objective(error_ref=0.01)
 
     def grad(window):
         p = prob._replace(options=dict(prob.options, truncate_every=window))
-        return jax.jit(jax.value_and_grad(T.make_loss(p, obj, None), has_aux=True))(u)
+        return jax.jit(jax.value_and_grad(tuner.make_loss(p, obj, None), has_aux=True))(u)
 
     (v0, _), g0 = grad(0)
     (v1, _), g1 = grad(100)
@@ -210,10 +210,10 @@ def test_truncated_gradient_keeps_values_and_is_exact_beyond_the_horizon():
 
 
 def test_norm_does_not_overflow():
-    big = T.Tunable(jnp.array([3e200, 4e200]), jnp.zeros(1), jnp.zeros(1))
-    assert np.isclose(T._norm(big), 5e200, rtol=1e-12)
-    assert T._norm(big._replace(gamma=jnp.array([jnp.inf]))) == np.inf
-    assert T._norm(T.Tunable(jnp.zeros(2), jnp.zeros(1), jnp.zeros(1))) == 0.0
+    big = tuner.Tunable(jnp.array([3e200, 4e200]), jnp.zeros(1), jnp.zeros(1))
+    assert np.isclose(tuner._norm(big), 5e200, rtol=1e-12)
+    assert tuner._norm(big._replace(gamma=jnp.array([jnp.inf]))) == np.inf
+    assert tuner._norm(tuner.Tunable(jnp.zeros(2), jnp.zeros(1), jnp.zeros(1))) == 0.0
 
 
 CONFIGS = sorted((__import__("pathlib").Path(__file__).parent.parent / "tuning" / "configs").glob("*.toml"))
@@ -236,15 +236,16 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
         cfg, sim={"t_final": min(cfg.sim.t_final, 1.0)}, tune={"train_t_final": min(cfg.tune.train_t_final, 1.0)}
     )
     _, train, p0 = _config.tuning_problems(cfg)
-    obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
+    obj = tuner.objective_of(cfg["tune"], tuner.evaluate(train, p0)["metrics"])
     start, _ = global_stage(train, obj, p0, 16, free=tuple(cfg["tune"]["params"]), log=lambda _: None)
-    u0 = T.to_internal(start, train.base)
+    u0 = tuner.to_internal(start, train.base)
     truncated = _config.fallback_problem(cfg, train)  # as fosmc tune: its fallback where the gradient explodes
-    fallback = None if truncated is None else T.make_loss(truncated, obj, None)
-    settings = T.Settings(steps=5, learning_rate=T.learning_rate(cfg["tune"]["learning_rate"], _config.rough_loop(cfg)),
-                          mode="reverse", free=tuple(cfg["tune"]["params"]), checkpoint_every=0)  # fmt: skip
-    _, hist = T.run(T.make_loss(train, obj, None), u0, settings, fallback=fallback, guard=_config.GRADIENT_GUARD,
-                    log=lambda _: None)  # fmt: skip
+    fallback = None if truncated is None else tuner.make_loss(truncated, obj, None)
+    rate = tuner.learning_rate(cfg["tune"]["learning_rate"], _config.rough_loop(cfg))
+    settings = tuner.Settings(steps=5, learning_rate=rate, mode="reverse", free=tuple(cfg["tune"]["params"]),
+                              checkpoint_every=0)  # fmt: skip
+    _, hist = tuner.run(tuner.make_loss(train, obj, None), u0, settings, fallback=fallback,
+                        guard=_config.GRADIENT_GUARD, log=lambda _: None)  # fmt: skip
     assert np.isfinite(hist["loss"][0]) and np.isfinite(hist["grad_norm"][0]) and hist["grad_norm"][0] < 1e5
     assert not any(hist["skipped"])
     if path.stem in NO_DESCENT and not min(hist["loss"][1:]) < hist["loss"][0]:
@@ -272,27 +273,27 @@ def rosenbrock(u):
 
 
 def lbfgs(steps, **kw):
-    return T.Settings(steps=steps, mode="reverse", checkpoint_every=0, optimizer="lbfgs", **kw)
+    return tuner.Settings(steps=steps, mode="reverse", checkpoint_every=0, optimizer="lbfgs", **kw)
 
 
 def test_lbfgs_reaches_the_rosenbrock_minimum_and_keeps_frozen_parameters():
     start = start_point()._replace(delta=jnp.array([-1.2, 1.0, 0.0]), gamma=jnp.array([3.0, 3.0, 3.0]))
-    u, hist = T.run(rosenbrock, start, lbfgs(80, free=("delta", "poles")), log=lambda _: None)
+    u, hist = tuner.run(rosenbrock, start, lbfgs(80, free=("delta", "poles")), log=lambda _: None)
     np.testing.assert_allclose(u.delta, [1.0, 1.0, 0.5], atol=1e-4)
     np.testing.assert_allclose(u.poles, -1.0, atol=1e-4)
     np.testing.assert_array_equal(u.gamma, 3.0)  # frozen
     assert all(b <= a for a, b in zip(hist["loss"], hist["loss"][1:]))  # no accepted step ascends
     # Adam from the same start with as many gradients as L-BFGS's line search took stays far off
-    adam = T.Settings(steps=80, learning_rate=0.05, schedule="constant", mode="reverse", free=("delta", "poles"),
+    adam = tuner.Settings(steps=80, learning_rate=0.05, schedule="constant", mode="reverse", free=("delta", "poles"),
                       checkpoint_every=0)  # fmt: skip
-    v, _ = T.run(rosenbrock, start, adam, log=lambda _: None)
+    v, _ = tuner.run(rosenbrock, start, adam, log=lambda _: None)
     assert float(rosenbrock(v)[0]) > 1e3 * float(rosenbrock(u)[0])
 
 
 def test_lbfgs_backs_off_a_flat_penalty_and_a_nan():
     """Past delta[0] = 0.5 the loss is the diverged rollouts' flat penalty, past 0.8 NaN: the line
     search rejects both trials, ends below 0.5 and every step it accepts descends."""
-    target = T.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    target = tuner.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
     base = quadratic(target)
 
     def loss(u):
@@ -301,7 +302,7 @@ def test_lbfgs_backs_off_a_flat_penalty_and_a_nan():
         return jnp.where(u.delta[0] > 0.8, jnp.nan, v), aux
 
     messages = []
-    u, hist = T.run(loss, start_point(), lbfgs(20), log=messages.append)
+    u, hist = tuner.run(loss, start_point(), lbfgs(20), log=messages.append)
     assert 0.4 < float(u.delta[0]) <= 0.5 and float(loss(u)[0]) < hist["loss"][0]
     assert all(b <= a for a, b in zip(hist["loss"], hist["loss"][1:]))
 
@@ -309,11 +310,11 @@ def test_lbfgs_backs_off_a_flat_penalty_and_a_nan():
 def test_lbfgs_resumes_to_the_uninterrupted_run_and_refuses_adams_checkpoint(tmp_path):
     start = start_point()._replace(delta=jnp.array([-1.2, 1.0, 0.0]))
     s = lbfgs(12)._replace(checkpoint_every=2)
-    full, hist_full = T.run(rosenbrock, start, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
+    full, hist_full = tuner.run(rosenbrock, start, s, checkpoint=tmp_path / "a.npz", log=lambda _: None)
 
     assert_resumes_to(rosenbrock, start, s, tmp_path / "b.npz", 7, full, hist_full)  # last checkpoint: step 6
     with pytest.raises(ValueError, match="of the lbfgs optimizer, not of adam"):
-        T.run(rosenbrock, start, s._replace(optimizer="adam"), checkpoint=tmp_path / "b.npz", resume=True)
+        tuner.run(rosenbrock, start, s._replace(optimizer="adam"), checkpoint=tmp_path / "b.npz", resume=True)
 
 
 def test_the_config_names_the_optimizer_and_refuses_others():

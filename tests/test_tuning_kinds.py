@@ -17,8 +17,8 @@ import fosmc_jax as fj
 from fosmc_jax import _problems as _config
 from fosmc_jax import search as fs
 from fosmc_jax._app.cli import main
-from fosmc_jax._search import front as F
-from fosmc_jax._search import tune as T
+from fosmc_jax._search import front as front_module
+from fosmc_jax._search import tune as tuner
 from fosmc_jax.search import nondominated
 
 #: (kind, [controller] extras, [tune] params): SMC in the ideal loop with all its parameters,
@@ -61,7 +61,7 @@ def tuned(request, tmp_path_factory):
 def test_tune_lowers_the_objective_and_its_result_resimulates(tuned, capsys):
     kind, path, result = tuned
     res = json.loads(result.read_text())
-    space = T.SPACES[kind]
+    space = tuner.SPACES[kind]
     free = res["config"]["tune"]["params"]
     assert set(res["final"]["params"]) == set(space.names) and free == (["k", "phi"] if kind == "smc" else ["k2"])
     assert res["history"]["loss"][-1] < res["history"]["loss"][0]
@@ -86,7 +86,9 @@ def front(request, tmp_path_factory):
     path = toml(tmp / "c.toml", kind, controller)
     cfg = _config.load(path)
     plain, train, p0 = _config.tuning_problems(cfg)
-    res = F.front_search(train, plain, p0, F.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None)
+    res = front_module.front_search(
+        train, plain, p0, front_module.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None
+    )
     (tmp / "front.json").write_text(json.dumps({**res, "config": cfg.as_dict()}))
     return kind, path, tmp / "front.json", res, (train, p0, cfg)
 
@@ -99,7 +101,7 @@ def test_front_is_nondominated_sorted_with_the_kinds_params(front, capsys):
     e = np.array([np.mean(p["metrics"]["rms_error"]) for p in pts])
     c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in pts])
     assert np.all(np.diff(c) > 0) and np.all(np.diff(e) < 0) and nondominated(e, c).all()
-    space = T.SPACES[kind]
+    space = tuner.SPACES[kind]
     base = _config.load(path)["controller"]
     lo, hi = space.bounds()
     for pt in pts:
@@ -116,9 +118,9 @@ def test_front_is_nondominated_sorted_with_the_kinds_params(front, capsys):
 
 def test_global_stage_keeps_the_kinds_frozen_parameters(front):
     kind, _, _, _, (train, p0, cfg) = front
-    obj = T.objective_of(cfg["tune"], T.evaluate(train, p0)["metrics"])
-    first, second = T.SPACES[kind].names
-    best, score = F.global_stage(train, obj, p0, 16, free=(first,), chunk=8, log=lambda _: None)
+    obj = tuner.objective_of(cfg["tune"], tuner.evaluate(train, p0)["metrics"])
+    first, second = tuner.SPACES[kind].names
+    best, score = front_module.global_stage(train, obj, p0, 16, free=(first,), chunk=8, log=lambda _: None)
     np.testing.assert_array_equal(getattr(best, second), getattr(p0, second))
     assert type(best) is type(p0) and score <= 1e-9  # the start (score about 0) is among the candidates
 
@@ -131,10 +133,10 @@ def test_gradient_in_log_gains_matches_central_differences(kind):
     sim = {"t_final": 0.1, "dt": 2e-3, "integrator": "euler", "initial_offset": [0.05] + [0.0] * 8}
     cfg = _config.resolve({"controller": {"kind": kind}, "plant": {"uncertainty": "sample", "samples": 2}, "sim": sim})
     _, train, p0 = _config.tuning_problems(cfg)
-    loss = T.make_loss(train, T.Objective(error_ref=0.01, chattering_ref=1.0), None)
-    u0 = T.to_internal(p0, train.base)
-    assert type(u0) is T.SPACES[kind].values
-    for a, b in zip(T.to_physical(u0, train.base), p0):
+    loss = tuner.make_loss(train, tuner.Objective(error_ref=0.01, chattering_ref=1.0), None)
+    u0 = tuner.to_internal(p0, train.base)
+    assert type(u0) is tuner.SPACES[kind].values
+    for a, b in zip(tuner.to_physical(u0, train.base), p0):
         np.testing.assert_allclose(a, b, rtol=1e-12)
     flat, unravel = jax.flatten_util.ravel_pytree(u0)
     f = jax.jit(lambda x: loss(unravel(x))[0])
