@@ -185,6 +185,9 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     lr = tuner.learning_rate(tcfg.learning_rate, problems.rough_loop(cfg))
     truncated = problems.fallback_problem(cfg, problem)
     fallback = None if truncated is None else tuner.make_loss(truncated, obj, floor)
+    if fallback is not None:
+        log(f"tune: the gradient follows the whole horizon; its fallback, where that gradient's norm at the start "
+            f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
     settings = tuner.Settings(tcfg.steps, lr, tcfg.schedule, tcfg.clip, tcfg.mode, tuple(tcfg.params),
                               tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     start = time.perf_counter()
