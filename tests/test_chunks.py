@@ -430,7 +430,9 @@ RESUMED = ["--chunk", "10", "--devices", "1"]
 def test_a_run_killed_at_random_moments_resumes_to_the_run_not_killed(tmp_path):
     """``fosmc simulate --checkpoint DIR`` killed (SIGKILL) at three random moments after its
     n-th chunk file, each time resumed with ``--resume``, ends with the --npz of a run not
-    killed, bit for bit; ``--resume`` on the finished folder runs nothing and writes the same."""
+    killed, bit for bit; ``--resume`` on the finished folder runs nothing and writes the same.
+    Where the rest of a run takes less than the pause before its kill (a quiet machine: the last
+    chunks take milliseconds), its --npz is whole and equal to the run not killed, never partial."""
     config = tmp_path / "mc.toml"
     config.write_text(_toml({**MC, "sim": {"t_final": 0.3, "dt": 1e-3}}))
     fosmc = [sys.executable, "-m", "fosmc_jax", "simulate", "--config", str(config), *RESUMED]
@@ -447,7 +449,10 @@ def test_a_run_killed_at_random_moments_resumes_to_the_run_not_killed(tmp_path):
         time.sleep(rng.uniform(0, 0.02))
         proc.kill()  # SIGKILL: no handler runs
         proc.wait()
-        assert not out.exists()
+        if out.exists():  # the rest of the run took less than the pause (a quiet machine): whole, never partial
+            with np.load(whole) as a, np.load(out) as b:
+                assert all(np.array_equal(a[k], b[k]) for k in a.files if k != "fosmc_jax")
+            break
     done = subprocess.run(cmd + ["--resume"], env=ENV, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0 and " chunks are in " in done.stderr, done.stderr
     with np.load(whole) as a, np.load(out) as b:
