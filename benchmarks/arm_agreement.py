@@ -1,4 +1,5 @@
-"""How closely the arm's kernel (fosmc_jax/_simulator/arm_kernel.cc) agrees with vmap of simulate, and how
+"""How closely the arm's kernel (generated from the JAX model: fosmc_jax/_simulator/generated.py; the
+hand-written arm_kernel.cc before its retirement) agrees with vmap of simulate, and how
 far float32 digital loops are from float64: the figures BENCHMARKS.md ("Issue 21") and docs/performance.md
 quote, in one command:
 

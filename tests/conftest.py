@@ -43,11 +43,11 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
 #: file's time is XLA compilation). Under `-n N --dist loadfile` whole files go to the workers in
 #: this order, then the rest in collection order, so that no long file starts last while the other
 #: workers idle: xdist's own order (the files with the most tests first) sent the long files with
-#: few tests, test_arm_native.py's 4 for one, last. A file missing here only runs later.
+#: few tests, test_arm_kernel.py's 4 for one, last. A file missing here only runs later.
 LONG_FILES = (
     "test_simulator.py",
     "test_tuning_kinds.py",
-    "test_arm_native.py",
+    "test_arm_kernel.py",
     "test_front.py",
     "test_arm_disturbances.py",
     "test_digital_loop.py",

@@ -212,7 +212,7 @@ def _disturbed(arms, seed=5):
 
 
 def _kernel_helpers():
-    tan = pytest.importorskip("test_arm_native")
+    tan = pytest.importorskip("test_arm_kernel")
     if tan._native._compiler() is None:
         pytest.skip("no C++ compiler: no kernel")
     return tan

@@ -158,11 +158,11 @@ def test_the_circle_check_finds_a_circle():
 #: that no user chooses between (benchmarks), and the front's levers switched off inside a child
 #: process (tuning/front_ablation.py, whose child code is a string this test cannot see), and the
 #: arm's zero terms kept in the program (benchmarks/idle_terms_cost.py), and the generated kernel's
-#: forward beside the hand-written one it is to replace (benchmarks/generated_gradient.py), and
+#: gradient beside its forward (benchmarks/generated_gradient.py), and
 #: fosmc tune's own start and step rule raced against CMA-ES (tuning/tune_vs_cma.py: its learning
 #: rate, evaluation and compiled gradient), so no public switch is owed.
-WHITE_BOX = {"benchmarks/loop_variants.py", "benchmarks/arm_levers.py", "tuning/front_ablation.py",
-             "benchmarks/idle_terms_cost.py", "benchmarks/generated_gradient.py", "benchmarks/generated_forward.py",
+WHITE_BOX = {"benchmarks/loop_variants.py", "tuning/front_ablation.py",
+             "benchmarks/idle_terms_cost.py", "benchmarks/generated_gradient.py",
              "tuning/tune_vs_cma.py"}  # fmt: skip
 
 

@@ -284,4 +284,3 @@ def test_the_kernels_layout_header_is_generated_from_the_accumulator():
     for i, name in enumerate(fields):
         assert f"{_native.ACC_NAMES[name]} = {i}" in header
     assert _native.ROWS == 15 + 3 * len(fields) + 2 and f"kRows = {_native.ROWS}" in header
-    assert f"kCarryRows = {_native.ARM_CARRY_ROWS}" in header

@@ -10,8 +10,7 @@ receives it: a continuous-time state integrated with the plant between samples
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from jax import Array
 
@@ -49,34 +48,6 @@ class SampledLoop(ControlLaw, Protocol):
 
     sample_steps: int
     u_max: Array
-
-
-class KernelLaw(NamedTuple):
-    """What the arm's hand-written kernel (``arm_kernel.cc``, :mod:`fosmc_jax._simulator.arm_native`)
-    needs of a law it runs: its ``surface`` (C, a_rows, b_rows), its lane ``rows`` (in the
-    kernel's order, 96 numbers in all), its ``period`` (0 in the ideal loop), the indices of its
-    ``switching`` function and ``law`` (0 where it has none), and ``memory``: its state -> the
-    integral it carries from sample to sample (3,) (None: it carries none)."""
-
-    surface: tuple[Array, Array, Array]
-    rows: tuple[Any, ...]
-    period: Any
-    switching: int
-    law: int
-    memory: Callable[[Any], Array] | None
-
-
-@runtime_checkable
-class ArmKernelLaw(Protocol):
-    """A controller the arm's kernel runs. ``arm_kernel_code(sampled)``: its law's code in
-    ``arm_kernel.cc`` (h.kind: 0 the FOSMC, 1 SMC, 2 super-twisting) in the ideal loop
-    (``sampled`` False: the controller itself) or sampled inside a
-    :class:`fosmc_jax.DigitalLoop` (True: the loop's law); None where the kernel does not run it
-    there. ``arm_kernel_law()``: its :class:`KernelLaw`."""
-
-    def arm_kernel_code(self, sampled: bool) -> int | None: ...
-
-    def arm_kernel_law(self) -> KernelLaw: ...
 
 
 def check_controller(ctrl: Any) -> None:

@@ -23,7 +23,6 @@ from jax import Array
 from .._design.gains import closed_loop_matrix, gain_from_poles, input_matrix_product
 from .._design.linalg import inv3
 from .._plants.reference import desired_state, feedforward
-from .base import KernelLaw
 from .kind import Kind, Param, Space
 
 #: Switching functions f(s) that replace SGN(s) in (23). ``ratio`` is (28).
@@ -191,13 +190,6 @@ class FOSMC:
     def sliding_variable(self, state: FOSMCState) -> Array:
         return state.s
 
-    def arm_kernel_code(self, sampled: bool) -> int | None:
-        # the exact class only: a subclass's law is not the kernel's
-        return 0 if type(self) is FOSMC and not sampled else None
-
-    def arm_kernel_law(self) -> KernelLaw:
-        return _kernel_law(self.params, 0.0, self.switching, self.law)
-
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["params", "period"], meta_fields=["switching", "law"])
 @dataclasses.dataclass(frozen=True)
@@ -226,20 +218,6 @@ class DiscreteFOSMC:
 
     def sliding_variable(self, state: FOSMCState) -> Array:
         return state.s
-
-    def arm_kernel_code(self, sampled: bool) -> int | None:
-        return 0 if type(self) is DiscreteFOSMC and sampled else None
-
-    def arm_kernel_law(self) -> KernelLaw:
-        return _kernel_law(self.params, self.period, self.switching, self.law)
-
-
-def _kernel_law(params: FOSMCParams, period, switching: str, law: str) -> KernelLaw:
-    """The FOSMC's rows of the arm's kernel: C, S, (CB)^-1, K, gamma, delta; its integral w."""
-    d = derive(params)
-    rows = (params.C, d.S, d.CB_inv, d.K, params.gamma, params.delta)
-    surface = (params.C, params.a_rows, params.b_rows)
-    return KernelLaw(surface, rows, period, SWITCHING.index(switching), LAWS.index(law), lambda state: state.w)
 
 
 def as_controller(controller, switching: str = "ratio", law: str = "paper"):

@@ -16,9 +16,8 @@ from jax import Array
 
 from .._design.gains import input_matrix_product
 from .._design.linalg import solve3
-from .base import KernelLaw
 from .kind import Kind, Param, Space
-from .surface import SurfaceParams, surface_kernel_law, surface_of, surface_terms
+from .surface import SurfaceParams, surface_of, surface_terms
 
 
 class SMCState(NamedTuple):
@@ -46,12 +45,6 @@ class SMC:
 
     def sliding_variable(self, state: SMCState) -> Array:
         return state.s
-
-    def arm_kernel_code(self, sampled: bool) -> int | None:
-        return 1 if type(self) is SMC else None  # the exact class, in either loop
-
-    def arm_kernel_law(self) -> KernelLaw:
-        return surface_kernel_law(self.surface, (self.k, self.phi), 0.0, None)
 
 
 class SMCGains(NamedTuple):

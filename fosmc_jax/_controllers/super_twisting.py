@@ -20,10 +20,9 @@ from jax import Array
 
 from .._design.gains import input_matrix_product
 from .._design.linalg import solve3
-from .base import KernelLaw
 from .fosmc import safe_sqrt
 from .kind import Kind, Param, Space
-from .surface import SurfaceParams, surface_kernel_law, surface_of, surface_terms
+from .surface import SurfaceParams, surface_of, surface_terms
 
 
 class STState(NamedTuple):
@@ -62,12 +61,6 @@ class SuperTwisting:
     def sliding_variable(self, state: STState) -> Array:
         return state.s
 
-    def arm_kernel_code(self, sampled: bool) -> int | None:
-        return 2 if type(self) is SuperTwisting and sampled else None  # the ideal loop's: ContinuousSuperTwisting
-
-    def arm_kernel_law(self) -> KernelLaw:
-        return surface_kernel_law(self.surface, (self.k1, self.k2), self.period, lambda state: state.v)
-
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["law"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
@@ -88,12 +81,6 @@ class ContinuousSuperTwisting:
 
     def sliding_variable(self, state: STState) -> Array:
         return state.s
-
-    def arm_kernel_code(self, sampled: bool) -> int | None:
-        return 2 if type(self) is ContinuousSuperTwisting and not sampled else None
-
-    def arm_kernel_law(self) -> KernelLaw:
-        return self.law.arm_kernel_law()
 
 
 class STGains(NamedTuple):

@@ -18,9 +18,8 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._design.gains import input_matrix_product
-from .._design.linalg import inv3, solve3
+from .._design.linalg import solve3
 from .._plants.reference import desired_state
-from .base import KernelLaw
 
 
 class SurfaceParams(NamedTuple):
@@ -45,13 +44,6 @@ def surface_terms(p: SurfaceParams, Y: Array, r: Array) -> tuple[Array, Array]:
     CB = input_matrix_product(p.C, p.b_rows)
     U_eq = solve3(CB, p.C @ dX_d - p.C @ nominal_rates(p.a_rows, Y))
     return p.C @ (Y - X_d), U_eq
-
-
-def surface_kernel_law(p: SurfaceParams, gains: tuple[Array, Array], period, memory) -> KernelLaw:
-    """The arm kernel's rows of a law on this surface (SMC, super-twisting): C, a_rows, (CB)^-1,
-    27 zeros (the FOSMC's K), then its two gains."""
-    CB_inv = inv3(input_matrix_product(p.C, p.b_rows))
-    return KernelLaw((p.C, p.a_rows, p.b_rows), (p.C, p.a_rows, CB_inv, jnp.zeros(27), *gains), period, 0, 0, memory)
 
 
 def surface_of(params) -> SurfaceParams:

@@ -255,7 +255,7 @@ def external_torque(params: ArmParams, t: Array) -> Array:
 
 def _external(p: ArmParams, t: Array) -> tuple[Array, Array, Array] | None:
     """:func:`external_torque` as three scalars, None where every part is absent (None); ``p``
-    cast (the operations of arm_kernel.cc's External, in their order)."""
+    cast."""
     if p.tau_bias is None and p.tau_step is None and p.tau_sin is None:
         return None
     t = jnp.asarray(t, p.t_step.dtype)
@@ -560,7 +560,7 @@ def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[t
     n = (c1 + p.F[0] * dtheta[0], c2 + g2 + p.F[1] * dtheta[1], c3 + g3 + p.F[2] * dtheta[2])
     if p.Fc is None:
         return M, n
-    inv_v = 1 / p.v_coulomb  # one division (arm_kernel.cc's, once per block)
+    inv_v = 1 / p.v_coulomb  # one division: of the arm's parameters alone, the generated kernel hoists it
     return M, tuple(n[j] + p.Fc[j] * jnp.tanh(dtheta[j] * inv_v) for j in range(3))
 
 

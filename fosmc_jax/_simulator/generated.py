@@ -828,21 +828,22 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
     return run(x0, *lanes, table)
 
 
-#: What the generated kernels run (``FOSMC_JAX_GENERATED``): ``derivatives`` (default), the
-#: derivatives of the batches the hand-written kernels run forward; ``all``, those and every other
-#: batch that prints (a user's law or plant), forward too; ``0``, none (the ``vmap`` path's
-#: derivatives). A model's first build takes tens of seconds (BENCHMARKS.md): worth it for long
-#: runs, not for a short one, hence not ``all`` by default.
-MODES = ("derivatives", "all", "0")
+#: What the generated kernels run (``FOSMC_JAX_GENERATED``): ``all`` (default), every batch whose
+#: model prints (the package's arm and laws, a user's law or plant), forward and derivatives;
+#: ``0``, none (the ``vmap`` path). A model's first build takes seconds (BENCHMARKS.md), cached
+#: after (:mod:`fosmc_jax._simulator.cache`).
+MODES = ("all", "0")
 
 
 def mode() -> str:
-    """The ``FOSMC_JAX_GENERATED`` mode, where generated kernels can be built here (the CPU backend
-    and a working compiler), else ``0``."""
-    value = os.environ.get("FOSMC_JAX_GENERATED", "derivatives")
+    """The ``FOSMC_JAX_GENERATED`` mode, where generated kernels can be built here (the CPU backend,
+    a C++ compiler, native kernels not turned off by ``FOSMC_JAX_NATIVE=0``), else ``0``. (A
+    compiler that fails raises OSError at the build: its batch runs the ``vmap`` path.)"""
+    value = os.environ.get("FOSMC_JAX_GENERATED", "all")
     if value not in MODES:
         raise ValueError(f"FOSMC_JAX_GENERATED: expected one of {', '.join(MODES)}, got {value!r}")
-    return value if value != "0" and jax.default_backend() == "cpu" and _native.available() else "0"
+    native = os.environ.get("FOSMC_JAX_NATIVE", "1") != "0" and _native._compiler() is not None
+    return value if value != "0" and jax.default_backend() == "cpu" and native else "0"
 
 
 def jvp_perturbed(fn, primals: tuple, tangents: tuple):

@@ -1,5 +1,6 @@
-"""The fast paths' time loops in compiled kernels (``kernel.cc``: linear plants; ``arm_kernel.cc``:
-the arm, called by :mod:`fosmc_jax._simulator.arm_native`; both on ``kernel.h``), called from XLA.
+"""The linear fast path's time loop in a compiled kernel (``kernel.cc``, on ``kernel.h``), called
+from XLA, and the build of the kernels generated from the JAX model
+(:mod:`fosmc_jax._simulator.generated`).
 
 XLA:CPU runs every step of a ``lax.scan`` as a few dozen separate kernels, each a pass over the
 batch in memory; the loop body of :func:`fosmc_jax._simulator.rollout._linear_batch` costs about 0.7 us
@@ -11,12 +12,11 @@ as an XLA FFI target (``jax.ffi``).
 It is built on first use with the host's C++ compiler (``$CXX``, else ``c++``/``g++``; the
 headers come with jaxlib) for this CPU (``-march=native``) and cached under
 ``$FOSMC_JAX_CACHE`` (default ``~/.cache/fosmc_jax``, :func:`fosmc_jax._simulator.cache.cache_dir`), as one
-library (the sources compiled in parallel), keyed by the sources, the flags, the
-compiler's version, jaxlib's and the CPU. Where no compiler works, or with
-``FOSMC_JAX_NATIVE=0``, the linear fast path runs its ``lax.scan`` and the arm ``vmap`` of
-``simulate``, as before, with a one-line warning in the first case. Results equal those paths'
-to rounding (tests/test_performance_paths.py, tests/test_arm_native.py), and so do derivatives,
-which are theirs (``custom_jvp``).
+library, keyed by the sources, the flags, the compiler's version, jaxlib's and the CPU. Where no
+compiler works, or with ``FOSMC_JAX_NATIVE=0``, the linear fast path runs its ``lax.scan`` and
+every other batch ``vmap`` of ``simulate``, with a one-line warning in the first case. Results
+equal those paths' to rounding (tests/test_performance_paths.py), and so do derivatives, which
+are theirs (``custom_jvp``).
 """
 
 from __future__ import annotations
@@ -40,12 +40,10 @@ import numpy as np
 from jax import Array
 
 from .._controllers.fosmc import LAWS, SWITCHING
-from .._plants.arm import ARM_PARAMS
 from .cache import cache_dir
 from .metrics import Accumulator
 
 TARGET = "fosmc_advance"
-ARM_TARGET = "fosmc_arm_advance"
 LANES = 16  # rollouts per SIMD block (kW in kernel.cc): the batch is padded to a multiple
 
 # The kernels' buffer layouts, defined here and written into the header layout.h that both
@@ -61,27 +59,10 @@ ACC = len(Accumulator._fields)
 LIN_ACC = 15
 LIN_DIV = LIN_ACC + 3 * ACC
 ROWS = LIN_DIV + 2
-#: The arm kernel's carry rows after its 24 rows of state (angles, rates, currents,
-#: accelerations, w, U, the estimator's memory): the accumulator, diverged, diverged_at; its
-#: delay line after them.
-ARM_MET = 24
-ARM_DIV = ARM_MET + 3 * ACC
-ARM_CARRY_ROWS = ARM_DIV + 2
-#: The arm kernel's lane rows (its struct Lane): the arm (the payload, then every ArmParams field
-#: but d1, the kinematics-only height, entry by entry in field order), the law (96: C, S or the
-#: nominal rows, (CB)^-1, K, gamma or gains, delta or widths), the loop (7: encoder steps, u_max,
-#: the estimator's period) and the law's period. A field added to ArmParams changes this count,
-#: and the kernel's build fails on its static_assert until its struct Lane has the field too.
-ARM_PARAM_ROWS = 1 + sum(int(np.size(v)) for k, v in ARM_PARAMS._asdict().items() if k != "d1")
-ARM_LANE_ROWS = ARM_PARAM_ROWS + 96 + 7 + 1
-#: The arm kernel's time table, per step after X_d at the integrator's stage times: at t' X_d (9),
-#: Omega (3), ||X_d||, ||Omega||, t', the sample flag, the reference's third derivatives (3), then
-#: the step's start t_k (the external torque's stage times t_k + dt/2, t_k + dt).
-ARM_SAMPLE_COLS = 20
 
 
 def layout_header() -> str:
-    """layout.h: the layouts above as C++ constants, for kernel.cc and arm_kernel.cc."""
+    """layout.h: the layouts above as C++ constants, for kernel.cc."""
     fields = ", ".join(f"{ACC_NAMES[name]} = {i}" for i, name in enumerate(Accumulator._fields))
     return "\n".join([
         "// Generated at build time by fosmc_jax._simulator.native.layout_header from the Python side's",
@@ -91,8 +72,6 @@ def layout_header() -> str:
         f"namespace acc {{ enum Field {{ {fields} }}; constexpr int kFields = {ACC}; }}",
         f"namespace linear {{ constexpr int kAcc = {LIN_ACC}, kDiv = {LIN_DIV}, kDivAt = {LIN_DIV + 1}, "
         f"kRows = {ROWS}; }}",
-        f"namespace arm {{ constexpr int kMet = {ARM_MET}, kDiv = {ARM_DIV}, kDivAt = {ARM_DIV + 1}, "
-        f"kCarryRows = {ARM_CARRY_ROWS}, kLaneRows = {ARM_LANE_ROWS}, kSampleCols = {ARM_SAMPLE_COLS}; }}",
         "}  // namespace fosmc",
         "",
     ])  # fmt: skip
@@ -102,7 +81,7 @@ def layout_header() -> str:
 # L1 cache (267 Euler float32 steps; 512 steps per call ran slower by hand), at least 64.
 TABLE_BYTES = 24 * 1024
 _HERE = Path(__file__).parent
-_SOURCES = [_HERE / "kernel.cc", _HERE / "arm_kernel.cc"]  # one library; both include kernel.h
+_SOURCES = [_HERE / "kernel.cc"]
 _HEADERS = [_HERE / "kernel.h", _HERE / "vecmath.h"]
 _FLAGS = ["-O3", "-march=native", "-fno-math-errno", "-ffp-contract=off", "-std=c++17", "-shared", "-fPIC"]
 
@@ -135,7 +114,7 @@ def _build() -> Path:
     cxx = _compiler()
     if cxx is None:
         raise OSError("no C++ compiler found (set CXX)")
-    # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (benchmarks/arm_levers.py's ablations); in the cache key
+    # FOSMC_JAX_KERNEL_FLAGS: extra compiler flags (ablations); in the cache key
     cmd = [cxx, *_FLAGS, *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(), f"-I{jax.ffi.include_dir()}"]
     text = [path.read_text() for path in (*_SOURCES, *_HEADERS)] + [layout_header()]
     key = "\n".join([*text, " ".join(cmd), _version([cxx, "--version"]), jaxlib.__version__, _cpu()])
@@ -164,8 +143,7 @@ def _build() -> Path:
 
 def generated_flags() -> tuple[str, ...]:
     """The extra compiler flags of the generated kernels: ``FOSMC_JAX_KERNEL_FLAGS`` (every kernel's),
-    then ``FOSMC_JAX_GENERATED_FLAGS`` (theirs alone: benchmarks/generated_forward.py's ablations,
-    the hand-written kernel unchanged beside them)."""
+    then ``FOSMC_JAX_GENERATED_FLAGS`` (theirs alone: for ablations, the linear kernel unchanged)."""
     return (
         *os.environ.get("FOSMC_JAX_KERNEL_FLAGS", "").split(),
         *os.environ.get("FOSMC_JAX_GENERATED_FLAGS", "").split(),
@@ -236,7 +214,6 @@ def available() -> bool:
     try:
         lib = _load()
         jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(lib.FosmcAdvance), platform="cpu")
-        jax.ffi.register_ffi_target(ARM_TARGET, jax.ffi.pycapsule(lib.FosmcArmAdvance), platform="cpu")
     except Exception as e:  # any failure leaves the scan loop, which needs none of this
         warnings.warn(f"fosmc_jax: the native kernel is not available ({e}); the fast path runs lax.scan", stacklevel=2)
         return False

@@ -14,7 +14,6 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._plants.arm import without_idle_terms
-from . import arm_native as _arm_native
 from . import codegen as _codegen
 from . import generated as _generated
 from . import linear_path as _linear_path
@@ -55,15 +54,15 @@ def _simulate_batch(
     With ``fast`` (static), two batches without a trace (``save_every`` = 0) run a fast path
     with the same results to rounding: :class:`LinearPlant` under the ideal-loop FOSMC (its
     time loop one compiled kernel on every core, :mod:`fosmc_jax._simulator.native`, or, where that
-    cannot be built, a structure-of-arrays ``lax.scan``), and :class:`fosmc_jax.Arm` under the
-    FOSMC, SMC or super-twisting in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`
-    (:mod:`fosmc_jax._simulator.arm_native`, where the kernel is built); anything else runs ``vmap`` of
-    :func:`simulate`. Derivatives of the linear fast path are the ``vmap`` path's (its
-    ``custom_jvp``); the arm's come from the generated adjoint kernel
-    (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to rounding), where
-    ``FOSMC_JAX_GENERATED`` allows it (``all``: every printable model runs there, forward too).
-    ``native=False`` (static) keeps the compiled kernels out: the linear fast path runs its
-    ``lax.scan``, the arm the ``vmap`` path (the benchmarks' scan-only timings;
+    cannot be built, a structure-of-arrays ``lax.scan``), and every other model that prints (the
+    arm under any of the package's laws, in the ideal loop or a noise-free
+    :class:`fosmc_jax.DigitalLoop`, a user's law or plant) the kernel generated from its step,
+    forward and adjoint (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to
+    rounding, built on first use); anything else runs ``vmap`` of :func:`simulate`, with one
+    warning naming what kept it there. Derivatives of the linear fast path are the ``vmap``
+    path's (its ``custom_jvp``). ``native=False`` (static) keeps the compiled kernels out: the
+    linear fast path runs its ``lax.scan``, the rest the ``vmap`` path (the benchmarks'
+    scan-only timings; ``FOSMC_JAX_GENERATED=0`` keeps the generated kernels out and
     ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     paired = pairing == "paired"
@@ -86,11 +85,7 @@ def _simulate_batch(
         return _linear_path.simulate_batch(args, vmap, native=native, **options)
     if not native:
         return vmap(*args)
-    generated = functools.partial(_generated_or, vmap, paired=paired, **options)
-    if _arm_native.supports(plants, ctrl, options["integrator"]):  # the hand-written forward, generated derivatives
-        return _arm_native.simulate_batch(args, generated, n_steps=options["n_steps"],
-                                          integrator=options["integrator"], paired=paired)  # fmt: skip
-    return generated(*args) if _generated.mode() == "all" else vmap(*args)
+    return _generated_or(vmap, *args, paired=paired, **options)
 
 
 def _vmap_batch(plants, ctrl, reference, X0s, dt, keys, bound, cutoff, *, paired: bool, **options) -> Result:

@@ -1,8 +1,9 @@
-"""The arm's native kernel (fosmc_jax/_simulator/arm_kernel.cc, fosmc_jax/_simulator/arm_native.py) against the JAX
-model it copies: vmap of simulate, the path every other controller takes and the kernel's
-derivatives come from. The kernel's copy of the arm's closed form (M, C q', G, the solve), the
-FOSMC law, the digital loop's sensors, delay and limit, and the metrics are held to rounding
-at random states, random arms and random gains, and over whole rollouts of both loops."""
+"""The arm on the kernel generated from its JAX model (fosmc_jax/_simulator/generated.py, the
+default path of every arm batch) against vmap of simulate, the path everything else takes:
+the printed closed form (M, C q', G, the solve), the laws, the digital loop's sensors, delay and
+limit, and the metrics held to rounding at random states, random arms and random gains, and over
+whole rollouts of both loops. (These held the hand-written arm kernel, arm_kernel.cc, to the
+same tolerances until the generated one replaced it.)"""
 
 import jax
 import jax.numpy as jnp
@@ -13,9 +14,7 @@ import fosmc_jax as fj
 from fosmc_jax import _problems as _config
 from fosmc_jax import paper
 from fosmc_jax._plants.arm import ARM_PARAMS, arm_sweep
-from fosmc_jax._simulator import arm_native as _arm_native
 from fosmc_jax._simulator import native as _native
-from fosmc_jax._simulator.step import as_controller
 
 # the kernels are CPU code: on a GPU backend the default path runs the vmap path (checked there by
 # test_simulator, test_api), and these white-box calls of the FFI targets have no handler
@@ -59,10 +58,14 @@ def assert_close(fast, slow, rtol=1e-10):
     np.testing.assert_array_equal(np.asarray(fast.diverged_at), np.asarray(slow.diverged_at))
 
 
+def on_kernel(*args, **options) -> bool:
+    """Whether ``fj.simulate_batch(*args, **options)``'s program calls a generated kernel."""
+    return "fosmc_gen_" in str(jax.make_jaxpr(lambda: fj.simulate_batch(*args, **options))())
+
+
 def both(plants, ctrl, ref, X0s, dt, **options):
-    """(kernel, vmap of simulate) for the same batch."""
-    ctrl_ = as_controller(ctrl, options.get("switching", "ratio"), options.get("law", "paper"))
-    assert _arm_native.supports(plants, ctrl_, options.get("integrator", "rk4"))
+    """(the generated kernel, vmap of simulate) for the same batch."""
+    assert on_kernel(plants, ctrl, ref, X0s, dt, **options)
     fast = fj.simulate_batch(plants, ctrl, ref, X0s, dt, **options)
     return fast, fj.simulate_batch(plants, ctrl, ref, X0s, dt, fast=False, **options)
 
@@ -271,36 +274,17 @@ def test_derivatives_are_those_of_the_vmap_path(forward):
         np.testing.assert_allclose(jax.jacfwd(loss)(delta, True), g, rtol=1e-9)
 
 
-def test_kernel_refuses_buffers_off_its_layout_with_an_error():
-    """A misuse of the kernel is an error, never a crash of the process."""
-    assert _native.available()
-    call = jax.ffi.ffi_call(_native.ARM_TARGET, jax.ShapeDtypeStruct((56, 8), jnp.float64))
-    attrs = dict(rk4=np.int32(0), digital=np.int32(0), kind=np.int32(0), switching=np.int32(1), law=np.int32(0),
-                 difference=np.int32(0), delay=np.int32(0))  # fmt: skip
-    cols = 9 + _native.ARM_SAMPLE_COLS  # an Euler step's table row
-    good = (jnp.zeros((_native.ARM_LANE_ROWS, 8)), jnp.zeros(4), jnp.zeros((4, cols)), jnp.zeros((56, 8)))
-    assert jax.block_until_ready(call(*good, **attrs)).shape == (56, 8)
-    bad = [(good[0][:, :4], *good[1:]), (good[0], jnp.zeros(3), *good[2:]),
-           (*good[:2], jnp.zeros((4, cols - 1)), good[3]), (good[0][:-1], *good[1:]),
-           (good[0].astype(jnp.float32), *good[1:])]  # fmt: skip
-    for args in bad:
-        with pytest.raises(Exception, match="fosmc arm kernel"):
-            jax.block_until_ready(call(*args, **attrs))
-    for wrong in (dict(delay=np.int32(9)), dict(kind=np.int32(3))):
-        with pytest.raises(Exception, match="fosmc arm kernel"):
-            jax.block_until_ready(call(*good, **dict(attrs, **wrong)))
-
-
 def test_what_the_kernel_runs():
-    plants = arm_sweep(jnp.array([0.0]))
-    assert _arm_native.supports(plants, fj.FOSMC(controller()), "rk4")
+    """Every law of the package on the arm, in both loops and any delay, runs on the generated
+    kernel; a noisy loop (random draws, not printed) runs the vmap path, with one warning."""
+    plants, ref, X0s = arm_sweep(jnp.array([0.0])), cycloid(), offsets(1)
     loop = preset()[0][1]
-    assert _arm_native.supports(plants, loop, "euler")
+    late = fj.DigitalLoop(loop.law, loop.sensors, loop.u_max, loop.period, 10, 9)
+    for ctrl in (fj.FOSMC(controller()), loop, late):
+        assert on_kernel(plants, ctrl, ref, X0s, 1e-3, n_steps=20, integrator="euler")
     noisy = fj.DigitalLoop(loop.law, fj.Sensors(loop.sensors.counts, jnp.ones(9)), loop.u_max, loop.period, 10, 1)
-    late = fj.DigitalLoop(loop.law, loop.sensors, loop.u_max, loop.period, 10, 9)  # a delay past the kernel's 8
-    for other in (fj.SuperTwisting(None, None, None, None), noisy, late):
-        assert not _arm_native.supports(plants, other, "rk4")
-    assert not _arm_native.supports(fj.LinearPlant(None, None), fj.FOSMC(controller()), "rk4")
+    with pytest.warns(UserWarning, match="vmap"):
+        assert not on_kernel(plants, noisy, ref, X0s, 1e-3, n_steps=20, integrator="euler")
 
 
 @pytest.mark.slow
