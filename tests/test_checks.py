@@ -17,7 +17,8 @@ from test_interfaces import StatePD  # a user's law, defined once
 
 import fosmc_jax as fj
 from fosmc_jax import paper
-from fosmc_jax._simulator.checks import RULES, check_inputs
+from fosmc_jax._controllers import KINDS
+from fosmc_jax._simulator.checks import RULES, check_inputs, rules
 from fosmc_jax._simulator.rollout import option_names
 
 OPTIONS = {"n_steps": 5, "integrator": "euler"}
@@ -223,9 +224,17 @@ def test_nested_objects_are_checked_with_their_path():
     assert out.sensors.counts.dtype == X0.dtype and out.u_max.shape == (3,) and out.law is listed.law
 
 
+def test_the_controller_kinds_declare_the_rules_of_their_types():
+    """The controllers' rules are their kinds' (``Kind.rules``), not a table of the simulator's."""
+    checked = rules()
+    for kind in KINDS.values():
+        assert kind.rules and all(checked[t] is fields for t, fields in kind.rules.items())
+        assert not set(kind.rules) & set(RULES)
+
+
 def test_a_users_controller_passes_unchecked_and_untouched():
     plant, ctrl, ref, X0, dt = inputs()
-    assert StatePD not in RULES
+    assert StatePD not in rules()
     odd = StatePD([[1.0] * 9] * 3, jnp.full((3, 9), jnp.nan), [1.0])  # lists, NaN, shapes: the user's business
     assert check(plant, odd, ref, X0, dt)[1] is odd
     K = fj.gain_from_poles(plant.a_rows, plant.b_rows, jnp.asarray(paper.POLES))

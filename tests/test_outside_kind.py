@@ -3,12 +3,15 @@ named by a config (``[controller] kind = "module:KIND"``) or declared in the ``f
 entry-point group of an installed distribution, known to every command as the package's own
 kinds are."""
 
+import dataclasses
 import json
 import textwrap
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import fosmc_jax as fj
 from fosmc_jax import _problems as problems
 from fosmc_jax._app import commands
 from fosmc_jax._app.certify import certify
@@ -28,6 +31,7 @@ import jax.numpy as jnp
 
 import fosmc_jax as fj
 from fosmc_jax import search
+from fosmc_jax._controllers import rules
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["C", "k", "eps"], meta_fields=[])
@@ -58,6 +62,7 @@ KIND = search.Kind(
                                  search.Param("eps", "NAME_eps", 1, (-1.0, 1.0)))),
     {"NAME_k": (20.0, 20.0, 20.0), "NAME_eps": (1.0, 1.0, 1.0)},
     lambda params, controller, T: TanhSurface(params.C, controller.gains["NAME_k"], controller.gains["NAME_eps"]),
+    rules={TanhSurface: {"C": rules.MATRIX_3x9, "k": rules.GAINS, "eps": rules.GAINS}},
 )
 """
 
@@ -91,6 +96,28 @@ def test_a_config_naming_a_modules_kind_loads_it_and_simulates(outside):
     assert np.isfinite(res["summary"]["mean"]["rms_error"]).all()
     with pytest.raises(problems.ConfigError, match=r"^controller\.kind: certify checks the FOSMC's hitting"):
         certify(cfg)
+
+
+def test_a_kinds_input_rules_are_checked_at_the_simulators_edge(outside):
+    """The kind's own rules (``Kind.rules``) refuse a wrong shape or value in one line naming the
+    field, as the package's kinds' do."""
+    p = fj.build(_config(outside("outside_d")))
+    law = p.controller()
+    for bad, message in [
+        (dataclasses.replace(law, k=jnp.ones(2)), r"^controller\.k: expected shape \(3,\), got \(2,\)$"),
+        (
+            dataclasses.replace(law, eps=-law.eps),
+            r"^controller\.eps: expected 3 positive numbers, got -1\.0 at index 0$",
+        ),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            fj.simulate_batch(p.plants, bad, p.reference, p.X0s, p.dt, **p.options)
+
+
+def test_keep_gamma_bound_is_refused_for_a_kind_without_the_gamma_bounds(outside):
+    spec = outside("outside_e")
+    with pytest.raises(problems.ConfigError, match=r"^tune\.keep_gamma_bound: .* got kind = 'outside_e'$"):
+        commands.run_tune({**_config(spec), "tune": {"keep_gamma_bound": True}}, steps=1)
 
 
 @pytest.mark.parametrize(

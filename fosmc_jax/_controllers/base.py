@@ -50,6 +50,18 @@ class SampledLoop(ControlLaw, Protocol):
     u_max: Array
 
 
+@runtime_checkable
+class PlacedPoles(Protocol):
+    """Controller parameters that place the poles of a nominal closed loop: ``a_rows`` (3, 9)
+    and ``b_rows`` (3, 3), rows 3, 6, 9 of the nominal A and B, and ``poles`` (3, 3) (1/s), as
+    :class:`fosmc_jax.FOSMCParams`. The simulator warns where its step exceeds that loop's
+    stable step (:func:`fosmc_jax.stable_step`), for parameters its input rules checked."""
+
+    a_rows: Array
+    b_rows: Array
+    poles: Array
+
+
 def check_controller(ctrl: Any) -> None:
     """A one-line TypeError unless ``ctrl`` has the :class:`ControlLaw` methods."""
     if not isinstance(ctrl, ControlLaw):

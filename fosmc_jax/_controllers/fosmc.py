@@ -23,6 +23,7 @@ from jax import Array
 from .._design.gains import closed_loop_matrix, gain_from_poles, input_matrix_product
 from .._design.linalg import inv3
 from .._plants.reference import desired_state, feedforward
+from . import rules
 from .kind import Kind, Param, Space
 
 #: Switching functions f(s) that replace SGN(s) in (23). ``ratio`` is (28).
@@ -247,6 +248,31 @@ def _law(params: FOSMCParams, controller: Any, T: Array):
     return FOSMC(params, controller.switching, controller.law)
 
 
+def is_ideal_fosmc(controller: Any) -> bool:
+    """Whether ``controller`` is the FOSMC in the ideal loop, a :class:`FOSMC` (not a subclass,
+    which may change its law): the controller whose law the linear plant's fast path writes out."""
+    return type(controller) is FOSMC
+
+
+#: The input rules of the FOSMC's types (from their docstrings and the config's validators,
+#: ``fosmc_jax._problems.schema.SCHEMA``).
+RULES = {
+    FOSMCParams: {
+        "C": rules.MATRIX_3x9,
+        "poles": rules.Field((3, 3), rules.left_half_plane, "a 3x3 matrix of poles with negative real parts (1/s)"),
+        "gamma": rules.Field((3,), rules.non_negative, "3 non-negative numbers"),
+        "delta": rules.Field((3,), rules.positive, "3 positive numbers"),
+        **rules.ROWS,
+    },
+    FOSMC: {"params": rules.NESTED_FIELD, "switching": rules.one_of(SWITCHING), "law": rules.one_of(LAWS)},
+    DiscreteFOSMC: {
+        "params": rules.NESTED_FIELD,
+        "period": rules.PERIOD,
+        "switching": rules.one_of(SWITCHING),
+        "law": rules.one_of(LAWS),
+    },
+}
+
 #: The front's boxes: delta x 10^[-3, 1.5], gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]. Its
 #: parameters and gains are the core [controller] keys (delta, gamma, poles, switching, law).
 KIND = Kind(
@@ -256,4 +282,6 @@ KIND = Kind(
     _law,
     tunes_params=True,
     hitting_condition=True,
+    gamma_bounds=True,
+    rules=RULES,
 )  # fmt: skip

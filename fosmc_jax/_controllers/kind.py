@@ -18,6 +18,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .rules import Field
+
 
 class Param(NamedTuple):
     """One tunable parameter: an array with one row per joint, scaled by one factor per joint."""
@@ -62,7 +64,11 @@ class Kind(NamedTuple):
     ideal loop's controller around the law (None: the law itself). ``tunes_params``: its tunable
     parameters are fields of the FOSMC parameters the law is made from (the FOSMC's own), not of
     its law (every other kind's). ``hitting_condition``: the paper's hitting condition (20) is
-    this kind's, so that ``fosmc certify`` checks it (the FOSMC's).
+    this kind's, so that ``fosmc certify`` checks it (the FOSMC's). ``gamma_bounds``: the paper's
+    gamma bounds (24)-(26) are this kind's, so that ``[tune] keep_gamma_bound`` may hold its
+    ``gamma`` above them (the FOSMC's). ``rules``: the input rules of its types (its law's, its
+    parameters'), field by field (:class:`fosmc_jax._controllers.rules.Field`), which
+    :func:`fosmc_jax.simulate` checks at its edge; a type without rules passes as it is.
     """
 
     space: Space
@@ -71,6 +77,8 @@ class Kind(NamedTuple):
     ideal: Callable[[Any], Any] | None = None
     tunes_params: bool = False
     hitting_condition: bool = False
+    gamma_bounds: bool = False
+    rules: Mapping[type, Mapping[str, Field]] = {}
 
     @property
     def name(self) -> str:

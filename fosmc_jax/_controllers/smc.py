@@ -16,6 +16,7 @@ from jax import Array
 
 from .._design.gains import input_matrix_product
 from .._design.linalg import solve3
+from . import rules, surface
 from .kind import Kind, Param, Space
 from .surface import SurfaceParams, surface_of, surface_terms
 
@@ -59,4 +60,12 @@ KIND = Kind(
     Space("smc", SMCGains, (Param("k", "smc_k", 1, (-2.0, 2.0)), Param("phi", "smc_phi", 1, (-3.0, 2.0)))),
     {"smc_k": (1000.0, 1000.0, 1000.0), "smc_phi": (10.0, 10.0, 10.0)},
     lambda params, controller, T: SMC(surface_of(params), controller.gains["smc_k"], controller.gains["smc_phi"]),
+    rules={
+        **surface.RULES,
+        SMC: {
+            "surface": rules.NESTED_FIELD,
+            "k": rules.GAINS,
+            "phi": rules.Field((3,), rules.positive, "3 positive boundary-layer widths"),
+        },
+    },
 )

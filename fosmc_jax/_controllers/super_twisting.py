@@ -20,6 +20,7 @@ from jax import Array
 
 from .._design.gains import input_matrix_product
 from .._design.linalg import solve3
+from . import rules, surface
 from .fosmc import safe_sqrt
 from .kind import Kind, Param, Space
 from .surface import SurfaceParams, surface_of, surface_terms
@@ -95,4 +96,14 @@ KIND = Kind(
     {"st_k1": (50.0, 50.0, 50.0), "st_k2": (1000.0, 1000.0, 1000.0)},
     lambda params, ctrl, T: SuperTwisting(surface_of(params), ctrl.gains["st_k1"], ctrl.gains["st_k2"], T),
     ideal=ContinuousSuperTwisting,
+    rules={
+        **surface.RULES,
+        SuperTwisting: {
+            "surface": rules.NESTED_FIELD,
+            "k1": rules.GAINS,
+            "k2": rules.GAINS,
+            "period": rules.Field((), rules.non_negative, "a non-negative number (s; 0: the ideal loop)"),
+        },
+        ContinuousSuperTwisting: {"law": rules.NESTED_FIELD},
+    },
 )

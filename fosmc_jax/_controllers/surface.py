@@ -20,6 +20,7 @@ from jax import Array
 from .._design.gains import input_matrix_product
 from .._design.linalg import solve3
 from .._plants.reference import desired_state
+from . import rules
 
 
 class SurfaceParams(NamedTuple):
@@ -29,6 +30,10 @@ class SurfaceParams(NamedTuple):
     C: Array
     a_rows: Array
     b_rows: Array
+
+
+#: The input rules of :class:`SurfaceParams`, part of each of the two kinds' rules.
+RULES = {SurfaceParams: {"C": rules.MATRIX_3x9, **rules.ROWS}}
 
 
 def nominal_rates(a_rows: Array, X: Array) -> Array:

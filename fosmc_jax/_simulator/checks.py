@@ -1,13 +1,13 @@
 """The simulator's inputs checked at the API's edge (:func:`check_inputs`).
 
 :func:`fosmc_jax.simulate` and :func:`fosmc_jax.simulate_batch` run :func:`check_inputs` on
-every Python call, before their jitted programs. Every rule is one entry of :data:`RULES`
-(the package's plant, controller and reference types, field by field), of
-:data:`ARGUMENTS` (X0, dt, the keys) or of :data:`OPTIONS` (the keyword options; a name the
-functions do not take is refused): shapes are checked always, tracers included (under
-``jit``, ``grad`` and ``vmap`` shapes are known), values (finite, signs, ranges) wherever they
-are concrete. A type that is not in :data:`RULES` (a user's controller, plant or reference)
-passes as it is.
+every Python call, before their jitted programs. Every rule is one entry of :func:`rules`
+(the package's plant, loop and reference types, field by field, in :data:`RULES`, and each
+registered controller kind's types, in its ``Kind.rules``), of :data:`ARGUMENTS` (X0, dt, the
+keys) or of :data:`OPTIONS` (the keyword options; a name the functions do not take is refused):
+shapes are checked always, tracers included (under ``jit``, ``grad`` and ``vmap`` shapes are
+known), values (finite, signs, ranges) wherever they are concrete. A type without rules (a
+user's controller, plant or reference) passes as it is.
 """
 
 from __future__ import annotations
@@ -16,17 +16,30 @@ import dataclasses
 import functools
 import numbers
 import warnings
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._controllers.fosmc import FOSMC, LAWS, SWITCHING, DiscreteFOSMC, FOSMCParams
-from .._controllers.smc import SMC
-from .._controllers.super_twisting import ContinuousSuperTwisting, SuperTwisting
-from .._controllers.surface import SurfaceParams
+from .._controllers import KINDS
+from .._controllers.base import PlacedPoles
+from .._controllers.fosmc import LAWS, SWITCHING
+from .._controllers.rules import (
+    NESTED,
+    NESTED_FIELD,
+    PERIOD,
+    ROWS,
+    STATIC,
+    Field,
+    finite,
+    integer,
+    non_negative,
+    one_of,
+    positive,
+    positive_or_inf,
+)
 from .._design.gains import stable_step
 from .._loop.digital import DERIVATIVES, DigitalLoop, Sensors
 from .._plants.arm import Arm, ArmParams
@@ -34,139 +47,80 @@ from .._plants.linear import LinearPlant
 from .._plants.reference import Cycloid, Sinusoid
 from .step import INTEGRATORS
 
-#: A field's ``shape`` when it holds an object checked by its own type's rules (if any).
-NESTED = "nested"
-#: A field's ``shape`` when it is static (a Python value fixing shapes or code paths).
-STATIC = "static"
 #: The last entry of a key's ``shape``: 2 for raw keys (uint32 pairs), none for typed keys.
 KEY = "key"
 
+_ANGLES = Field((3,), finite, "3 finite numbers (rad)")
+_LENGTH = Field((), non_negative, "a non-negative length (m)")
+_MASS = Field((), non_negative, "a non-negative mass (kg)")
+_INERTIAS = Field((3,), non_negative, "3 non-negative inertias (kg m^2)")
 
-class Field(NamedTuple):
-    """How one field is checked.
-
-    ``shape``: the unbatched shape, a name (``"O"``) standing for any length; or
-    :data:`NESTED`, :data:`STATIC`. ``rule``: for an array, an elementwise test of its
-    concrete values (NumPy in, booleans out); for a static field, a test of its value; None:
-    no test. ``what``: what is expected, in the errors. ``optional``: None is accepted."""
-
-    shape: tuple | str
-    rule: Callable[[Any], Any] | None
-    what: str
-    optional: bool = False
-
-
-# Elementwise tests; NaN fails every one of them.
-_finite = np.isfinite
-_positive = lambda a: np.isfinite(a) & (a > 0)
-_non_negative = lambda a: np.isfinite(a) & (a >= 0)
-_left_half_plane = lambda a: np.isfinite(a) & (np.real(a) < 0)
-_positive_or_inf = lambda a: a > 0
-
-
-def _one_of(choices: tuple[str, ...]) -> Field:
-    return Field(STATIC, lambda v: v in choices, f"one of {', '.join(choices)}")
-
-
-def _integer(least: int) -> Field:
-    return Field(STATIC, lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= least,
-                 f"an integer >= {least}")  # fmt: skip
-
-
-_NESTED = Field(NESTED, None, "")
-_MATRIX_3x9 = Field((3, 9), _finite, "a 3x9 matrix of finite numbers")
-_ROWS = {"a_rows": Field((3, 9), _finite, "a 3x9 matrix of finite numbers (rows 3, 6, 9 of A)"),
-         "b_rows": Field((3, 3), _finite, "a 3x3 matrix of finite numbers (rows 3, 6, 9 of B)")}  # fmt: skip
-_ANGLES = Field((3,), _finite, "3 finite numbers (rad)")
-_GAINS = Field((3,), _positive, "3 positive numbers")
-_PERIOD = Field((), _positive, "a positive number (s)")
-_LENGTH = Field((), _non_negative, "a non-negative length (m)")
-_MASS = Field((), _non_negative, "a non-negative mass (kg)")
-_INERTIAS = Field((3,), _non_negative, "3 non-negative inertias (kg m^2)")
-
-#: The package's types, field by field (from their docstrings and the config's validators,
+#: The package's types other than the controller kinds' (which declare theirs: ``Kind.rules``),
+#: field by field (from their docstrings and the config's validators,
 #: ``fosmc_jax._problems.schema.SCHEMA``). In a batch of plants every array has a leading axis P too.
 RULES: dict[type, dict[str, Field]] = {
-    FOSMCParams: {
-        "C": _MATRIX_3x9,
-        "poles": Field((3, 3), _left_half_plane, "a 3x3 matrix of poles with negative real parts (1/s)"),
-        "gamma": Field((3,), _non_negative, "3 non-negative numbers"),
-        "delta": Field((3,), _positive, "3 positive numbers"),
-        **_ROWS,
-    },
-    FOSMC: {"params": _NESTED, "switching": _one_of(SWITCHING), "law": _one_of(LAWS)},
-    DiscreteFOSMC: {"params": _NESTED, "period": _PERIOD, "switching": _one_of(SWITCHING), "law": _one_of(LAWS)},
-    SurfaceParams: {"C": _MATRIX_3x9, **_ROWS},
-    SMC: {"surface": _NESTED, "k": _GAINS, "phi": Field((3,), _positive, "3 positive boundary-layer widths")},
-    SuperTwisting: {
-        "surface": _NESTED,
-        "k1": _GAINS,
-        "k2": _GAINS,
-        "period": Field((), _non_negative, "a non-negative number (s; 0: the ideal loop)"),
-    },
-    ContinuousSuperTwisting: {"law": _NESTED},
     Sensors: {
-        "counts": Field((3,), _non_negative, "3 non-negative encoder counts per revolution (0: exact)"),
-        "noise_std": Field((9,), _non_negative, "9 non-negative standard deviations, or None", optional=True),
-        "derivatives": _one_of(DERIVATIVES),
+        "counts": Field((3,), non_negative, "3 non-negative encoder counts per revolution (0: exact)"),
+        "noise_std": Field((9,), non_negative, "9 non-negative standard deviations, or None", optional=True),
+        "derivatives": one_of(DERIVATIVES),
     },
     DigitalLoop: {
-        "law": _NESTED,
-        "sensors": _NESTED,
-        "u_max": Field((3,), _positive_or_inf, "3 positive numbers (V; inf: no limit)"),
-        "period": _PERIOD,
-        "sample_steps": _integer(1),
-        "delay": _integer(0),
+        "law": NESTED_FIELD,
+        "sensors": NESTED_FIELD,
+        "u_max": Field((3,), positive_or_inf, "3 positive numbers (V; inf: no limit)"),
+        "period": PERIOD,
+        "sample_steps": integer(1),
+        "delay": integer(0),
     },
-    LinearPlant: dict(_ROWS),
+    LinearPlant: dict(ROWS),
     ArmParams: {
-        "d1": Field((), _finite, "a finite number (m)"),
-        "d2": Field((), _finite, "a finite number (m)"),
-        "d3": Field((), _finite, "a finite number (m)"),
+        "d1": Field((), finite, "a finite number (m)"),
+        "d2": Field((), finite, "a finite number (m)"),
+        "d3": Field((), finite, "a finite number (m)"),
         "l2": _LENGTH,
         "l3": _LENGTH,
         "c2": _LENGTH,
         "c3": _LENGTH,
         "m2": _MASS,
         "m3": _MASS,
-        "I1": Field((), _non_negative, "a non-negative inertia (kg m^2)"),
+        "I1": Field((), non_negative, "a non-negative inertia (kg m^2)"),
         "I2": _INERTIAS,
         "I3": _INERTIAS,
         "Jm": _INERTIAS,
-        "F": Field((3,), _non_negative, "3 non-negative friction coefficients (N m s/rad)"),
-        "g": Field((), _finite, "a finite number (m/s^2)"),
-        "R": Field((3,), _non_negative, "3 non-negative resistances (ohm)"),
-        "L": Field((3,), _positive, "3 positive inductances (H)"),
-        "Kt": Field((3,), _positive, "3 positive torque constants (N m/A)"),
-        "Kb": Field((3,), _non_negative, "3 non-negative back-EMF constants (V s/rad)"),
-        "Fc": Field((3,), _non_negative, "3 non-negative Coulomb friction levels (N m), or None", optional=True),
-        "v_coulomb": Field((), _positive, "a positive velocity scale (rad/s)"),
-        "tau_bias": Field((3,), _finite, "3 finite torques (N m), or None", optional=True),
-        "tau_step": Field((3,), _finite, "3 finite torques (N m), or None", optional=True),
-        "t_step": Field((), _finite, "a finite time (s)"),
-        "tau_sin": Field((3,), _finite, "3 finite torques (N m), or None", optional=True),
-        "f_sin": Field((3,), _non_negative, "3 non-negative frequencies (Hz)"),
+        "F": Field((3,), non_negative, "3 non-negative friction coefficients (N m s/rad)"),
+        "g": Field((), finite, "a finite number (m/s^2)"),
+        "R": Field((3,), non_negative, "3 non-negative resistances (ohm)"),
+        "L": Field((3,), positive, "3 positive inductances (H)"),
+        "Kt": Field((3,), positive, "3 positive torque constants (N m/A)"),
+        "Kb": Field((3,), non_negative, "3 non-negative back-EMF constants (V s/rad)"),
+        "Fc": Field((3,), non_negative, "3 non-negative Coulomb friction levels (N m), or None", optional=True),
+        "v_coulomb": Field((), positive, "a positive velocity scale (rad/s)"),
+        "tau_bias": Field((3,), finite, "3 finite torques (N m), or None", optional=True),
+        "tau_step": Field((3,), finite, "3 finite torques (N m), or None", optional=True),
+        "t_step": Field((), finite, "a finite time (s)"),
+        "tau_sin": Field((3,), finite, "3 finite torques (N m), or None", optional=True),
+        "f_sin": Field((3,), non_negative, "3 non-negative frequencies (Hz)"),
     },
     # the range of payloads belongs to the configured arm ([arm] payload_range, checked by the
     # config): an Arm does not carry it, so only a negative payload is refused here
-    Arm: {"params": _NESTED, "payload": Field((), _non_negative, "a non-negative payload (kg)")},
-    Cycloid: {"start": _ANGLES, "end": _ANGLES, "duration": _PERIOD},
+    Arm: {"params": NESTED_FIELD, "payload": Field((), non_negative, "a non-negative payload (kg)")},
+    Cycloid: {"start": _ANGLES, "end": _ANGLES, "duration": PERIOD},
     Sinusoid: {
         "offset": _ANGLES,
         "amplitude": _ANGLES,
-        "frequency": Field((3,), _finite, "3 finite numbers (rad/s)"),
+        "frequency": Field((3,), finite, "3 finite numbers (rad/s)"),
         "phase": _ANGLES,
     },
 }
 
-_DT = Field((), _positive, "a positive finite number (s)")
+_DT = Field((), positive, "a positive finite number (s)")
 _ONE_KEY = Field((KEY,), None, "a key (jax.random.PRNGKey(seed): shape (2,); typed: ())")
 #: The arguments of :func:`fosmc_jax.simulate` (False) and :func:`fosmc_jax.simulate_batch`
 #: (True): the initial state(s), the step and the noise key(s) (options ``key``, ``keys``).
 ARGUMENTS: dict[bool, dict[str, Field]] = {
-    False: {"X0": Field((9,), _finite, "9 finite numbers"), "dt": _DT, "key": _ONE_KEY},
+    False: {"X0": Field((9,), finite, "9 finite numbers"), "dt": _DT, "key": _ONE_KEY},
     True: {
-        "X0s": Field(("O", 9), _finite, "initial states of 9 finite numbers each"),
+        "X0s": Field(("O", 9), finite, "initial states of 9 finite numbers each"),
         "dt": _DT,
         "keys": Field(("R", KEY), None, "R keys (jax.random.split(key, R): shape (R, 2); typed: (R,))"),
         "key": _ONE_KEY,
@@ -189,10 +143,10 @@ OPTIONS: dict[str, Field] = {
     "save_every": _count(0, "a non-negative integer (steps; 0: no trace)"),
     "checkpoint_every": _count(0, "a non-negative integer (steps; 0: none)"),
     "truncate_every": _count(0, "a non-negative integer (steps; 0: the full horizon)"),
-    "switching": _one_of(SWITCHING),
-    "law": _one_of(LAWS),
-    "divergence_bound": Field((), _positive_or_inf, "a positive number (inf: no bound)"),
-    "chattering_cutoff": Field((), _positive, "a positive frequency (Hz)"),
+    "switching": one_of(SWITCHING),
+    "law": one_of(LAWS),
+    "divergence_bound": Field((), positive_or_inf, "a positive number (inf: no bound)"),
+    "chattering_cutoff": Field((), positive, "a positive frequency (Hz)"),
     "fast": _FLAG,
     "native": _FLAG,
 }
@@ -234,16 +188,23 @@ def _replaced(obj: Any, changes: dict) -> Any:
     return dataclasses.replace(obj, **changes) if dataclasses.is_dataclass(obj) else obj._replace(**changes)
 
 
+def rules() -> dict[type, Mapping[str, Field]]:
+    """Every checked type's rules: each registered controller kind's (``Kind.rules``) and
+    :data:`RULES`."""
+    return {**{t: fields for kind in KINDS.values() for t, fields in kind.rules.items()}, **RULES}
+
+
 class _Walk:
-    """One call's walk over the inputs: the dtype lists become, the leading axis of a batch
-    of plants (set by its first array), and the concrete FOSMC parameters met (for the step
-    warning)."""
+    """One call's walk over the inputs: the rules it applies, the dtype lists become, the
+    leading axis of a batch of plants (set by its first array), and the parameters placing
+    poles met (for the step warning)."""
 
     def __init__(self, X0: Any):
         self.X0 = X0
+        self.rules = rules()
         self.lead: tuple | None = ()
         self.lead_path = ""
-        self.fosmc: list[tuple[str, FOSMCParams]] = []
+        self.placed: list[tuple[str, PlacedPoles]] = []
 
     @functools.cached_property
     def dtype(self) -> Any:
@@ -252,9 +213,9 @@ class _Walk:
         return dtype if dtype is not None and jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
 
     def object(self, obj: Any, path: str) -> Any:
-        """``obj`` with its fields checked and lists in them made arrays, if its type is in
-        :data:`RULES` (recursively); as it is otherwise."""
-        fields = RULES.get(type(obj))
+        """``obj`` with its fields checked and lists in them made arrays, if its type has
+        :func:`rules` (recursively); as it is otherwise."""
+        fields = self.rules.get(type(obj))
         if fields is None:
             return obj
         changes = {}
@@ -272,8 +233,8 @@ class _Walk:
             if new is not value:
                 changes[name] = new
         obj = _replaced(obj, changes) if changes else obj
-        if type(obj) is FOSMCParams:
-            self.fosmc.append((path, obj))
+        if isinstance(obj, PlacedPoles):
+            self.placed.append((path, obj))
         return obj
 
     def array(self, value: Any, path: str, field: Field) -> Any:
@@ -339,14 +300,15 @@ def _stable_step(a_rows: bytes, b_rows: bytes, poles: bytes, poles_dtype: str, i
 
 
 def _step_limit(walk: _Walk, dt: Any, integrator: str) -> str | None:
-    """The warning's text when a concrete FOSMC in the controller has a stable step below
-    a concrete ``dt`` for a known ``integrator``; None otherwise."""
-    if not walk.fosmc or isinstance(dt, jax.core.Tracer):
+    """The warning's text when concrete parameters placing poles in the controller
+    (:class:`PlacedPoles`, as the FOSMC's) have a stable step below a concrete ``dt`` for a
+    known ``integrator``; None otherwise."""
+    if not walk.placed or isinstance(dt, jax.core.Tracer):
         return None
     if integrator not in INTEGRATORS:
         return None
     dt = float(np.asarray(dt))
-    for path, params in walk.fosmc:
+    for path, params in walk.placed:
         rows = (params.a_rows, params.b_rows, params.poles)
         if any(isinstance(x, jax.core.Tracer) for x in rows):
             continue
@@ -371,13 +333,14 @@ def check_inputs(
     naming it, a value of :data:`OPTIONS` out of range (``n_steps`` not a positive integer) a
     ``ValueError``; X0 of an integer dtype a ``TypeError`` naming its dtype.
 
-    The rules are :data:`RULES` and :data:`ARGUMENTS`. Lists and tuples of numbers in the
+    The rules are :func:`rules` and :data:`ARGUMENTS`. Lists and tuples of numbers in the
     fields of those types, and X0 and dt given as lists, become arrays of X0's floating dtype
     (JAX's default float if X0 is not an array); other types are left alone. Raises a one-line
     ``ValueError`` naming the field by its path (``controller.params.delta``): on a wrong shape
     always (under ``jit``, ``grad`` and ``vmap`` too), on a non-finite or out-of-range value
     where the values are concrete. Warns (``UserWarning``) when dt exceeds
-    :func:`fosmc_jax.stable_step` of a concrete :class:`FOSMCParams` in the controller for
+    :func:`fosmc_jax.stable_step` of concrete parameters placing poles in the controller
+    (:class:`fosmc_jax._controllers.base.PlacedPoles`, as :class:`fosmc_jax.FOSMCParams`) for
     ``options["integrator"]`` (default ``rk4``).
     """
     names = ARGUMENTS[batch]

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .._controllers.fosmc import FOSMC, FOSMCParams, derive, reference_terms, safe_sqrt, switch, switching_gain
+from .._controllers.fosmc import FOSMCParams, derive, is_ideal_fosmc, reference_terms, safe_sqrt, switch, switching_gain
 from .._plants.linear import LinearPlant
 from .._plants.reference import desired_state
 from . import metrics as _metrics
@@ -227,8 +227,8 @@ def _kernel_advance(c: _Batch, n_steps, A, B, controller, derived, reference, dt
 
 def supports(plants, ctrl, paired: bool) -> bool:
     """Whether this path runs the batch: plants of the linear model (3) under the ideal-loop
-    FOSMC, every plant with every initial state."""
-    return isinstance(plants, LinearPlant) and type(ctrl) is FOSMC and not paired
+    FOSMC (:func:`fosmc_jax._controllers.fosmc.is_ideal_fosmc`), every plant with every initial state."""
+    return isinstance(plants, LinearPlant) and is_ideal_fosmc(ctrl) and not paired
 
 
 def simulate_batch(args: tuple, derivative, *, native: bool, n_steps: int, integrator: str,
