@@ -287,9 +287,15 @@ def test_what_the_kernel_runs():
         assert not on_kernel(plants, noisy, ref, X0s, 1e-3, n_steps=20, integrator="euler")
 
 
-@pytest.mark.slow
-def test_traces_take_the_vmap_path():
-    """What the kernel does not run (here a trace) still runs, through vmap."""
-    plants = arm_sweep(jnp.array([0.0]))
-    r = fj.simulate_batch(plants, controller(), cycloid(), offsets(1), 1e-3, n_steps=20, save_every=10)
-    assert r.trace is not None and r.trace.X.shape == (1, 3, 9)
+@pytest.mark.parametrize("save_every, n_steps", [(10, 203), (1, 20)])
+def test_traces_come_from_the_kernel_as_vmap_of_simulate_samples_them(save_every, n_steps):
+    """A trace (every ``save_every``-th step and the last, the horizon not a multiple of it) runs
+    the kernel in blocks, its carries sampled between them: the vmap path's trace to rounding."""
+    plants, ref, X0s = arm_sweep(jnp.array([0.0, 10.0])), cycloid(), offsets(2)
+    opts = dict(n_steps=n_steps, integrator="euler", save_every=save_every)
+    fast, slow = both(plants, controller(), ref, X0s, 1e-3, **opts)
+    assert_close(fast, slow)
+    assert fast.trace.X.shape == (4, -(-n_steps // save_every) + 1, 9)
+    for name in fast.trace._fields:
+        np.testing.assert_allclose(getattr(fast.trace, name), getattr(slow.trace, name), rtol=1e-10, atol=1e-12,
+                                   err_msg=name)  # fmt: skip

@@ -31,7 +31,7 @@ from .._plants.linear import LinearPlant, uncertain_plants
 from .._plants.reference import Cycloid, desired_state
 from .._problems import ConfigError
 from .._simulator.metrics import METRIC_NAMES, UNITS
-from .._simulator.rollout import simulate, simulate_batch
+from .._simulator.rollout import simulate_batch
 from .shared import Log, _fresh_out, _quiet, _with_x64, writable
 
 SWITCHINGS = ("sign", "set 1", "set 2", "set 3")
@@ -70,8 +70,8 @@ def parallel(*thunks: Callable[[], Any]) -> list[Any]:
 
 def _batched(plants, ctrls, reference, X0, dt, **options):
     """Rollout i of ``plants`` under controller set i // P (``ctrls`` with a leading axis of
-    sets, ``plants`` a batch of P), metrics only, through :func:`simulate_batch`'s fast paths
-    (the native kernels); results (NumPy) with a leading axis sets x P, set-major."""
+    sets, ``plants`` a batch of P), through :func:`simulate_batch`'s fast paths (the native
+    kernels, traces too); results (NumPy) with a leading axis sets x P, set-major."""
     one = lambda c: simulate_batch(plants, c, reference, X0[None], dt, **options)
     r = jax.vmap(one)(ctrls)
     return jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + x.shape[2:]), r)
@@ -123,17 +123,11 @@ def run_cases(
         n = sum(sizes)
         start = time.perf_counter()
         dt = jnp.asarray(settings.dt, dtype)
-        if not settings.save_every:
-            ctrls = FOSMC(_stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets]), switching)
-            result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator)
-        else:
-            batch = jax.tree.map(lambda x: np.concatenate([x] * len(sets)), plants)
-            ctrls = FOSMC(_stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets for _ in range(n)]), switching)
-            # every step of the primary plant's SGN runs is kept, to show the chattering period
-            save_every = 1 if switching == "sign" and g == 0 else settings.save_every
-            one = functools.partial(simulate, n_steps=n_steps, integrator=settings.integrator, save_every=save_every)
-            result = jax.block_until_ready(jax.vmap(one, in_axes=(0, 0, None, None, None))(
-                batch, ctrls, reference, X0, dt))  # fmt: skip
+        ctrls = FOSMC(_stack([_controller(paper.DELTA_SETS[k], dtype) for k in sets]), switching)
+        # every step of the primary plant's SGN runs is kept, to show the chattering period
+        save_every = 1 if settings.save_every and switching == "sign" and g == 0 else settings.save_every
+        result = _batched(plants, ctrls, reference, X0, dt, n_steps=n_steps, integrator=settings.integrator,
+                          save_every=save_every)  # fmt: skip
         cases, offset = [], 0
         for k in sets:
             for (label, _), size in zip(labelled, sizes):
@@ -173,20 +167,10 @@ def _run(cfg: problems.Config, params: list[FOSMCParams], switching: str, realis
     digital loop: one vmapped call, results with a leading axis (len(params) * P)."""
     problem = problems.build(problems.replace(cfg, controller={"switching": switching}))
     controller_of = problem.make if realistic else functools.partial(FOSMC, switching=switching)
-    if not save_every:  # metrics only: the arm's kernel
-        keys = None if problem.keys is None else problem.keys[:1]
-        return _batched(problem.plants, jax.vmap(controller_of)(_stack(params)), problem.reference, problem.X0s[0],
-                        problem.dt, keys=keys, n_steps=problem.options["n_steps"],
-                        integrator=problem.options["integrator"])  # fmt: skip
-    P = jax.tree.leaves(problem.plants)[0].shape[0]
-    ctrls = _stack([controller_of(p) for p in params for _ in range(P)])
-    plants = jax.tree.map(lambda x: np.concatenate([np.asarray(x)] * len(params)), problem.plants)
-    key = None if problem.keys is None else problem.keys[0]
-    one = functools.partial(simulate, n_steps=problem.options["n_steps"], integrator=problem.options["integrator"],
-                            save_every=save_every, key=key)  # fmt: skip
-    result = jax.vmap(one, in_axes=(0, 0, None, None, None))(plants, ctrls, problem.reference, problem.X0s[0],
-                                                              problem.dt)  # fmt: skip
-    return jax.block_until_ready(result)
+    keys = None if problem.keys is None else problem.keys[:1]
+    return _batched(problem.plants, jax.vmap(controller_of)(_stack(params)), problem.reference, problem.X0s[0],
+                    problem.dt, keys=keys, n_steps=problem.options["n_steps"],
+                    integrator=problem.options["integrator"], save_every=save_every)  # fmt: skip
 
 
 def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Case]:

@@ -886,13 +886,17 @@ def _state_layout(carry) -> tuple[Any, list, np.ndarray]:
     return treedef, [jax.ShapeDtypeStruct(jnp.shape(x), x.dtype) for x in leaves], np.asarray(dynamic, bool)
 
 
-def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, truncate_every: int = 0):
+def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, truncate_every: int = 0,
+                   save_every: int = 0):
     """:func:`fosmc_jax.simulate_batch` of ``args`` = (plants, ctrl, reference, X0s, dt, keys,
     divergence_bound, chattering_cutoff) on the generated kernel, plants crossed with initial
-    states or (``paired``) the i-th with the i-th, one noise key; raises
-    :class:`codegen.Unsupported` or OSError where the model cannot be printed or built."""
+    states or (``paired``) the i-th with the i-th, one noise key; with ``save_every``, its trace
+    too (the kernel run in blocks of ``save_every`` steps, a multiple of the controller's
+    sample period, each block's carries sampled in JAX as :func:`fosmc_jax.simulate` samples
+    them); raises :class:`codegen.Unsupported` or OSError where the model cannot be printed or
+    built."""
     from . import metrics as _metrics
-    from .step import Result, _Carry, closed_loop_step, sample_steps, start_batch
+    from .step import Result, _Carry, as_trace, closed_loop_step, sample_steps, snapshot, start_batch, traced
 
     plants, ctrl, reference, X0s, dt, keys, bound, cutoff = args
     dtype = X0s.dtype
@@ -945,7 +949,16 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     per_lane = [x if i < n_plant else jnp.broadcast_to(x, (N, *jnp.shape(x))) for i, x in enumerate(lane_leaves)]
     lanes = tuple(part.T for part in _vmap(lambda *leaves: model.lanes(list(leaves)), tuple(per_lane)))
     table = _vmap(lambda k: model.table_row(k, glob_leaves), (jnp.arange(n_steps, dtype=jnp.int32),))
-    x = advance(model, x0, lanes, table, truncate_every)
+    trace = None
+    if save_every:
+        # (k, x): blocks of steps from step k, their rows of the table sliced at run time (k0 = 0
+        # in the kernel: every block starts at a controller sample, save_every being a multiple of m)
+        block = lambda c, steps: (c[0] + steps, advance(model, c[1], lanes, jax.lax.dynamic_slice_in_dim(table, c[0], steps)))
+        samples_of = lambda c: jax.vmap(lambda plant, x: snapshot(plant, ctrl, dt, unflatten(c[0], x)))(lane_plants, c[1].T)
+        (_, x), samples = traced(samples_of, block, (jnp.zeros((), jnp.int32), x0), n_steps, save_every)
+        trace = jax.vmap(lambda *rollout: as_trace(reference, dt, *rollout), 1)(*samples)  # time-major -> rollouts
+    else:
+        x = advance(model, x0, lanes, table, truncate_every)
     final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x))(x.T)
     metrics = jax.vmap(lambda c: _metrics.masked(_metrics.finish(c.acc, n_steps * dt), c.diverged))(final)
-    return Result(metrics, final.diverged, final.diverged_at, None)
+    return Result(metrics, final.diverged, final.diverged_at, trace)

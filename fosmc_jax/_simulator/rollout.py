@@ -19,7 +19,7 @@ from . import generated as _generated
 from . import linear_path as _linear_path
 from . import metrics as _metrics
 from .checks import check_inputs
-from .step import _STATIC, INTEGRATORS, Result, Trace, _simulate, as_controller, sample_steps
+from .step import _STATIC, INTEGRATORS, Result, Trace, _simulate, as_controller, check_save_every, sample_steps
 
 __all__ = ["INTEGRATORS", "PAIRINGS", "Result", "Trace", "simulate", "simulate_batch"]
 
@@ -51,15 +51,16 @@ def _simulate_batch(
     a Monte-Carlo sample's. ``options`` are :func:`simulate`'s keyword arguments (``key`` too,
     when ``keys`` is None).
 
-    With ``fast`` (static), two batches without a trace (``save_every`` = 0) run a fast path
-    with the same results to rounding: :class:`LinearPlant` under the ideal-loop FOSMC (its
-    time loop one compiled kernel on every core, :mod:`fosmc_jax._simulator.native`, or, where that
-    cannot be built, a structure-of-arrays ``lax.scan``), and every other model that prints (the
-    arm under any of the package's laws, in the ideal loop or a noise-free
-    :class:`fosmc_jax.DigitalLoop`, a user's law or plant) the kernel generated from its step,
-    forward and adjoint (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to
-    rounding, built on first use); anything else runs ``vmap`` of :func:`simulate`, with one
-    warning naming what kept it there. Derivatives of the linear fast path are the ``vmap``
+    With ``fast`` (static), batches with one noise key run a fast path with the same results to
+    rounding: :class:`LinearPlant` under the ideal-loop FOSMC without a trace (its time loop one
+    compiled kernel on every core, :mod:`fosmc_jax._simulator.native`, or, where that cannot be
+    built, a structure-of-arrays ``lax.scan``), and every other model that prints (the arm under
+    any of the package's laws, in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`,
+    a user's law or plant; with a trace, the linear plant too) the kernel generated from its
+    step, forward and adjoint (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap``
+    path's to rounding, built on first use; a trace's samples taken between blocks of
+    ``save_every`` steps); anything else runs ``vmap`` of :func:`simulate`, with one warning
+    naming what kept it there. Derivatives of the linear fast path are the ``vmap``
     path's (its ``custom_jvp``). ``native=False`` (static) keeps the compiled kernels out: the
     linear fast path runs its ``lax.scan``, the rest the ``vmap`` path (the benchmarks'
     scan-only timings; ``FOSMC_JAX_GENERATED=0`` keeps the generated kernels out and
@@ -79,9 +80,9 @@ def _simulate_batch(
     options.setdefault("integrator", "rk4")
     args = (plants, ctrl, reference, X0s, dt, keys, *(jnp.asarray(x, X0s.dtype) for x in traced))
     vmap = functools.partial(_vmap_batch, paired=paired, **options)
-    if not (fast and keys.shape[0] == 1 and not options.get("save_every")):
-        return vmap(*args)  # a trace or noise realizations: the vmap path's alone
-    if _linear_path.supports(plants, ctrl, paired):
+    if not (fast and keys.shape[0] == 1):
+        return vmap(*args)  # noise realizations: the vmap path's alone
+    if not options.get("save_every") and _linear_path.supports(plants, ctrl, paired):
         return _linear_path.simulate_batch(args, vmap, native=native, **options)
     if not native:
         return vmap(*args)
@@ -102,15 +103,17 @@ def _vmap_batch(plants, ctrl, reference, X0s, dt, keys, bound, cutoff, *, paired
     return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[lead:]), result)
 
 
-def _generated_or(vmap, *args, paired: bool, n_steps: int, integrator: str, truncate_every: int = 0, **_) -> Result:
+def _generated_or(vmap, *args, paired: bool, n_steps: int, integrator: str, truncate_every: int = 0,
+                  save_every: int = 0, **_) -> Result:  # fmt: skip
     """The generated kernel (forward and adjoint), else, where the model cannot be printed or
     its C++ not built, ``vmap(*args)`` with a warning naming why."""
     if _generated.mode() == "0":
         return vmap(*args)
     m = sample_steps(args[1])
+    check_save_every(save_every, m)
     try:
         return _generated.simulate_batch(args, n_steps=n_steps, integrator=integrator, paired=paired,
-                                         truncate_every=-(-truncate_every // m) * m)  # fmt: skip
+                                         truncate_every=-(-truncate_every // m) * m, save_every=save_every)  # fmt: skip
     except (_codegen.Unsupported, OSError) as e:
         _generated.warn_unsupported(e)
         return vmap(*args)

@@ -31,6 +31,7 @@ their last finite state and flagged, so one bad rollout never spoils a batch.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -322,8 +323,7 @@ def _simulate(
     check_plant(plant)
     check_controller(ctrl)
     m = sample_steps(ctrl)
-    if save_every % m:
-        raise ValueError(f"save_every = {save_every} must be a multiple of the controller's sample_steps = {m}")
+    check_save_every(save_every, m)
     dtype = X0.dtype
     dt = jnp.asarray(dt, dtype)
     step = closed_loop_step(plant, ctrl, reference, dt, integrator, divergence_bound, chattering_cutoff)
@@ -344,7 +344,8 @@ def _simulate(
 
     trace = None
     if save_every:
-        carry, trace = _traced(plant, ctrl, reference, dt, advance, carry, n_steps, save_every)
+        carry, samples = traced(functools.partial(snapshot, plant, ctrl, dt), advance, carry, n_steps, save_every)
+        trace = as_trace(reference, dt, *samples)
     else:
         whole = lambda steps: -(-steps // m) * m
         detach = lambda c: c._replace(**{f: jax.lax.stop_gradient(getattr(c, f)) for f in _DYNAMIC})
@@ -354,25 +355,37 @@ def _simulate(
     return Result(metrics, carry.diverged, carry.diverged_at, trace)
 
 
-def _traced(plant, ctrl, reference, dt: Array, advance, carry: _Carry, n_steps: int, save_every: int):
-    """``advance`` over ``n_steps`` in blocks of ``save_every``, sampling the :class:`Trace` at
-    t = 0, after each block and at the end: (the last carry, the trace)."""
-    dtype = dt.dtype
+def snapshot(plant, ctrl, dt: Array, c: _Carry) -> tuple[Array, Array, Array, Array]:
+    """One sample of the :class:`Trace` from a carry: (k, X, U, s)."""
+    t = c.k.astype(dt.dtype) * dt
+    return c.k, observe_at(plant, c.plant_state, t), c.U, _sliding_variable(ctrl, c.ctrl_state, dt.dtype)
 
-    def snapshot(c: _Carry):
-        t = c.k.astype(dtype) * dt
-        return c.k, observe_at(plant, c.plant_state, t), c.U, _sliding_variable(ctrl, c.ctrl_state, dtype)
+
+def traced(snapshot_of: Callable, advance: Callable, carry, n_steps: int, save_every: int):
+    """``advance(carry, steps)`` over ``n_steps`` in blocks of ``save_every``, ``snapshot_of(carry)``
+    taken at t = 0, after each block and at the end: (the last carry, the samples stacked on a
+    leading time axis). One rollout's carry here; the generated kernel's batch of them in
+    :func:`fosmc_jax._simulator.generated.simulate_batch`."""
 
     def block(c, _):
         c = advance(c, save_every)
-        return c, snapshot(c)
+        return c, snapshot_of(c)
 
     blocks, rest = divmod(n_steps, save_every)
-    first = snapshot(carry)
+    first = snapshot_of(carry)
     carry, samples = jax.lax.scan(block, carry, None, length=blocks)
-    carry = advance(carry, rest)
+    if rest:
+        carry = advance(carry, rest)
     stack = lambda head, body, tail: jnp.concatenate([head[None], body] + ([tail[None]] if rest else []))
-    ks, Xs, Us, ss = jax.tree.map(stack, first, samples, snapshot(carry))
-    ts = ks.astype(dtype) * dt
-    X_ds = jax.vmap(lambda t: desired_state(reference(t)))(ts)
-    return carry, Trace(ts, Xs, X_ds, Us, ss)
+    return carry, jax.tree.map(stack, first, samples, snapshot_of(carry))
+
+
+def as_trace(reference, dt: Array, ks: Array, Xs: Array, Us: Array, ss: Array) -> Trace:
+    """The :class:`Trace` of one rollout's samples (their step numbers ``ks``)."""
+    ts = ks.astype(dt.dtype) * dt
+    return Trace(ts, Xs, jax.vmap(lambda t: desired_state(reference(t)))(ts), Us, ss)
+
+
+def check_save_every(save_every: int, m: int) -> None:
+    if save_every % m:
+        raise ValueError(f"save_every = {save_every} must be a multiple of the controller's sample_steps = {m}")
