@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from .. import _problems as problems
+from .._controllers import KINDS
 from .._io import jsonable, stamped, write_text
 from .._problems import ConfigError
 from .._simulator import sharding
@@ -52,9 +53,9 @@ def run_tune(
     delta, gamma, poles; SMC's k, phi; super-twisting's k1, k2; default: all of them) on the
     training simulation (``tune.train_dt``, ``tune.train_t_final``), with the objective's
     scales taken at the config's parameters, the optional global stage
-    (``tune.global_candidates``) and, for the FOSMC only, gamma floor (24)-(26)
-    (``tune.keep_gamma_bound``); initial and final parameters evaluated on the plain
-    ``[sim]`` simulation.
+    (``tune.global_candidates``) and, for a kind the gamma bounds are for (``Kind.gamma_bounds``:
+    the FOSMC), gamma floor (24)-(26) (``tune.keep_gamma_bound``); initial and final parameters
+    evaluated on the plain ``[sim]`` simulation.
 
     ``steps`` overrides ``tune.steps``. ``budget``: seconds of wall time from ``started`` (a
     ``time.perf_counter()`` value; the CLI passes its process's start; None: this call's), which
@@ -121,8 +122,9 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
     if not set(tcfg.params) <= set(names):
         raise ConfigError(f"tune.params: expected names drawn from {', '.join(names)} (the parameters of "
                           f"controller.kind = '{kind}'), got {list(tcfg.params)}")  # fmt: skip
-    if tcfg.keep_gamma_bound and kind != "fosmc":
-        raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = 'fosmc' only (the gamma bounds "
+    if tcfg.keep_gamma_bound and not KINDS[kind].gamma_bounds:
+        held = " or ".join(f"'{k.name}'" for k in KINDS.values() if k.gamma_bounds)
+        raise ConfigError(f"tune.keep_gamma_bound: applies to controller.kind = {held} only (the gamma bounds "
                           f"(24)-(26)), got kind = '{kind}'")  # fmt: skip
     if out is not None:
         out = _fresh_out(out, force or resume, "use --resume or --force") if lead else Path(out)
