@@ -48,7 +48,8 @@ OPTIMIZERS = ("adam", "lbfgs")
 
 
 def defaults() -> dict[str, Any]:
-    """The built-in configuration: the paper's model, design, gains and simulation."""
+    """The built-in configuration: the paper's model, design, gains and simulation (a fresh dict
+    of tables, each its own)."""
     return {
         "trajectory": {
             "start": paper.THETA_START.tolist(),
@@ -56,19 +57,7 @@ def defaults() -> dict[str, Any]:
             "duration": paper.TAU,
         },
         "model": {"from": "paper", "A_rows": paper.A_ROWS.tolist(), "B_rows": paper.B_ROWS.tolist()},
-        "controller": {
-            "C": paper.C.tolist(),
-            "poles": paper.POLES.tolist(),
-            "gamma": paper.GAMMA.tolist(),
-            "switching": "ratio",
-            "delta": paper.DELTA_SETS[0].tolist(),
-            "law": "paper",
-            "sample_period": 0.0,
-            "delay_samples": 0,
-            "kind": "fosmc",
-            # every registered kind's own gains (fosmc_jax._controllers.kind), e.g. SMC's smc_k
-            **{key: list(value) for kind in KINDS.values() for key, value in kind.gains.items()},
-        },
+        "controller": _controller_defaults(),
         "sensors": {
             "encoder_counts": [0, 0, 0],
             "derivatives": "measured",
@@ -77,21 +66,7 @@ def defaults() -> dict[str, Any]:
             "realizations": 1,
         },
         "actuator": {},  # u_max absent: no limit
-        "plant": {
-            "kind": "linear",
-            "payloads": list(paper.PAYLOADS),
-            "uncertainty": "none",
-            "dA_rows": np.zeros((3, 9)).tolist(),
-            "dB_rows": np.zeros((3, 3)).tolist(),
-            "samples": 16,
-            "seed": 0,
-            "box": {
-                "A_lower": paper.A_LOWER.tolist(),
-                "A_upper": paper.A_UPPER.tolist(),
-                "B_lower": paper.B_LOWER.tolist(),
-                "B_upper": paper.B_UPPER.tolist(),
-            },
-        },
+        "plant": _plant_defaults(),
         "sim": {
             "t_final": paper.T_FINAL,
             "dt": 1e-4,
@@ -103,43 +78,90 @@ def defaults() -> dict[str, Any]:
             "pairing": "cross",
         },
         "sample": {"count": 0, "seed": 0, "payloads": [], "offsets": [0.0] * 9},
-        # the arm of plant.kind = "arm": every ArmParams field (the calibrated values) and its payload range
-        "arm": {
-            **{k: np.asarray(v).tolist() for k, v in ARM_PARAMS._asdict().items()},
-            "payload_range": list(PAYLOAD_RANGE),
-            # relative half-widths of sampled arms (0: the field does not vary), their number and draw
-            "uncertainty": {**{k: 0.0 for k in ArmParams._fields}, "samples": 0, "seed": 0, "sampling": "uniform"},
-        },  # fmt: skip
-        "tune": {
-            "params": ["delta", "gamma", "poles"],
-            "weight_error": 1.0,
-            "weight_chattering": 1.0,
-            "worst_case": "none",
-            "worst_weight": 0.0,
-            "cvar_alpha": 0.9,
-            "penalty": 100.0,
-            "steps": 100,
-            "optimizer": "adam",
-            "learning_rate": 0.0,
-            "schedule": "cosine",
-            "clip": 1.0,
-            "mode": "auto",
-            "checkpoint_every": 10,
-            "remat_steps": 100,
-            "gradient_window": 0.0,
-            "train_dt": 0.0,
-            "train_t_final": 0.0,
-            "keep_gamma_bound": False,
-            "gamma_bound_convention": "paper",
-            "global_candidates": 1024,
-            "objective": "weighted",
-            "scale": "log",
-            "error_metric": "rms_error",
-            "chattering_metric": "chattering_hf",
-            "error_bound": 0.0,
-            "chattering_bound": 0.0,
-            "bound_weight": 100.0,
+        "arm": _arm_defaults(),
+        "tune": _tune_defaults(),
+    }
+
+
+def _controller_defaults() -> dict[str, Any]:
+    """``[controller]``: the paper's FOSMC design (Table 1's first delta), and every registered
+    kind's own gains (:attr:`fosmc_jax._controllers.kind.Kind.gains`, e.g. SMC's smc_k)."""
+    return {
+        "C": paper.C.tolist(),
+        "poles": paper.POLES.tolist(),
+        "gamma": paper.GAMMA.tolist(),
+        "switching": "ratio",
+        "delta": paper.DELTA_SETS[0].tolist(),
+        "law": "paper",
+        "sample_period": 0.0,
+        "delay_samples": 0,
+        "kind": "fosmc",
+        **{key: list(value) for kind in KINDS.values() for key, value in kind.gains.items()},
+    }
+
+
+def _plant_defaults() -> dict[str, Any]:
+    """``[plant]``: the paper's linear model at its payloads, its uncertainty box (31)."""
+    return {
+        "kind": "linear",
+        "payloads": list(paper.PAYLOADS),
+        "uncertainty": "none",
+        "dA_rows": np.zeros((3, 9)).tolist(),
+        "dB_rows": np.zeros((3, 3)).tolist(),
+        "samples": 16,
+        "seed": 0,
+        "box": {
+            "A_lower": paper.A_LOWER.tolist(),
+            "A_upper": paper.A_UPPER.tolist(),
+            "B_lower": paper.B_LOWER.tolist(),
+            "B_upper": paper.B_UPPER.tolist(),
         },
+    }
+
+
+def _arm_defaults() -> dict[str, Any]:
+    """``[arm]``, the arm of plant.kind = "arm": every ArmParams field (the calibrated values),
+    its payload range, and ``[arm.uncertainty]``: the relative half-widths of sampled arms (0:
+    the field does not vary), their number and draw."""
+    return {
+        **{k: np.asarray(v).tolist() for k, v in ARM_PARAMS._asdict().items()},
+        "payload_range": list(PAYLOAD_RANGE),
+        "uncertainty": {**{k: 0.0 for k in ArmParams._fields}, "samples": 0, "seed": 0, "sampling": "uniform"},
+    }
+
+
+def _tune_defaults() -> dict[str, Any]:
+    """``[tune]``: the tuner's options (``params``: the FOSMC's; a config of another kind tunes
+    that kind's own)."""
+    return {
+        "params": ["delta", "gamma", "poles"],
+        "weight_error": 1.0,
+        "weight_chattering": 1.0,
+        "worst_case": "none",
+        "worst_weight": 0.0,
+        "cvar_alpha": 0.9,
+        "penalty": 100.0,
+        "steps": 100,
+        "optimizer": "adam",
+        "learning_rate": 0.0,
+        "schedule": "cosine",
+        "clip": 1.0,
+        "mode": "auto",
+        "checkpoint_every": 10,
+        "remat_steps": 100,
+        "gradient_window": 0.0,
+        "train_dt": 0.0,
+        "train_t_final": 0.0,
+        "keep_gamma_bound": False,
+        "gamma_bound_convention": "paper",
+        "global_candidates": 1024,
+        "objective": "weighted",
+        "scale": "log",
+        "error_metric": "rms_error",
+        "chattering_metric": "chattering_hf",
+        "error_bound": 0.0,
+        "chattering_bound": 0.0,
+        "bound_weight": 100.0,
     }
 
 
