@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import fosmc_jax as fj
-from fosmc_jax import _problems as C
+from fosmc_jax import _problems as problems
 from fosmc_jax._app import cli
 from fosmc_jax._design import paper
 from fosmc_jax._plants.arm import ArmParams, rows_over
@@ -35,14 +35,14 @@ ARM = {
 def arm_cfg():
     """The resolved config, its design model derived once (a compilation of the arm's rows,
     ~7 s on 2 cores, ~15 s under load; shared by the module)."""
-    return C.resolve(ARM)
+    return problems.resolve(ARM)
 
 
 def rows_at(cfg: dict, params: ArmParams, rng) -> np.ndarray:
     """The arm's instantaneous rows [a | b] (11, 81, 3, 12) at 11 random payloads in
     arm.payload_range x 81 random instants of the configured reference (the shapes of the design
     grid, so nothing is compiled again)."""
-    reference = C.reference_of(cfg, jnp.float64)
+    reference = problems.reference_of(cfg, jnp.float64)
     times = jnp.asarray(rng.uniform(0.0, cfg["trajectory"]["duration"], design_of_config.ARM_MODEL_TIMES))
     states = jax.vmap(lambda t: desired_state(reference(t)))(times)
     payloads = jnp.asarray(rng.uniform(*cfg["arm"]["payload_range"], design_of_config.ARM_MODEL_PAYLOADS))
@@ -61,7 +61,7 @@ def test_from_arm_needs_an_arm_and_replaces_the_papers_rows_refusing_them_in_one
          r"^plant\.box\.A_lower: not used with model\.from = 'arm'"),
     ]:  # fmt: skip
         with pytest.raises(fj.ConfigError, match=message) as e:
-            C.resolve(user)
+            problems.resolve(user)
         assert "\n" not in str(e.value)
 
 
@@ -69,12 +69,12 @@ def test_from_paper_leaves_the_design_unchanged_and_derives_nothing():
     """The default config's controller, box and K are the paper's, exactly; an arm config with
     the default from = "paper" still designs on the paper's rows, and no arm rows are derived."""
     misses = design_of_config._arm_model.cache_info().misses
-    cfg = C.resolve({})
+    cfg = problems.resolve({})
     assert cfg["model"]["from"] == "paper"
-    ctrl = C.controller_of(cfg, jnp.float64)
+    ctrl = problems.controller_of(cfg, jnp.float64)
     np.testing.assert_array_equal(ctrl.a_rows, paper.A_ROWS)
     np.testing.assert_array_equal(ctrl.b_rows, paper.B_ROWS)
-    for got, want in zip(C.box_of(cfg), (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)):
+    for got, want in zip(problems.box_of(cfg), (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)):
         np.testing.assert_array_equal(got, want)
     K = fj.gain_from_poles(ctrl.a_rows, ctrl.b_rows, ctrl.poles)
     np.testing.assert_array_equal(K, fj.gain_from_poles(*(jnp.asarray(x) for x in (paper.A_ROWS, paper.B_ROWS,
@@ -88,13 +88,13 @@ def test_from_paper_leaves_the_design_unchanged_and_derives_nothing():
 def test_the_controller_is_designed_on_the_arms_rows(arm_cfg):
     """build's controller (simulate, tune, front), certify's and box_of all use the arm's model:
     the same rows, so the same K (16), exactly."""
-    design = C.design_model(arm_cfg)
+    design = problems.design_model(arm_cfg)
     assert design.source == "arm" and "8 corners" in design.sampled and "[0, 6] kg" in design.sampled
     base = fj.build(arm_cfg).base
     np.testing.assert_array_equal(base.a_rows, design.A_rows)
     np.testing.assert_array_equal(base.b_rows, design.B_rows)
-    np.testing.assert_array_equal(C.controller_of(arm_cfg, jnp.float64).a_rows, design.A_rows)
-    for got, want in zip(C.box_of(arm_cfg), design.box):
+    np.testing.assert_array_equal(problems.controller_of(arm_cfg, jnp.float64).a_rows, design.A_rows)
+    for got, want in zip(problems.box_of(arm_cfg), design.box):
         np.testing.assert_array_equal(got, want)
     K = fj.gain_from_poles(base.a_rows, base.b_rows, base.poles)
     np.testing.assert_array_equal(K, fj.gain_from_poles(*(jnp.asarray(x) for x in (design.A_rows, design.B_rows)),
@@ -110,11 +110,11 @@ def test_the_rows_are_the_midpoint_of_a_box_that_holds_the_arms_rows(arm_cfg):
     samples leave the grid's hull (measured: 10 of the 384,912 entries here), not the widened
     box. And the box is not loose: its width is at most 1.25 x their spread per entry
     (measured: 1.015)."""
-    design = C.design_model(arm_cfg)
+    design = problems.design_model(arm_cfg)
     lower = np.concatenate([design.box[0], design.box[2]], axis=1)
     upper = np.concatenate([design.box[1], design.box[3]], axis=1)
     np.testing.assert_array_equal(np.concatenate([design.A_rows, design.B_rows], axis=1), (lower + upper) / 2)
-    nominal, sampled = C.arm_params_of(arm_cfg, jnp.float64), C.arm_samples(arm_cfg)
+    nominal, sampled = problems.arm_params_of(arm_cfg, jnp.float64), problems.arm_samples(arm_cfg)
     arms = [nominal] + [ArmParams(**{k: jnp.asarray(v[i]) for k, v in sampled.items()}) for i in range(3)]
     arms += [nominal._replace(F=nominal.F * (1 + 0.3 * jnp.asarray(s))) for s in itertools.product((-1, 1), repeat=3)]
     rng = np.random.default_rng(1)
@@ -131,17 +131,17 @@ def test_the_rows_follow_the_configured_reference_and_are_derived_once(arm_cfg):
     another arm seed, other payloads) reuse the derived model, the same arrays; the paper's
     reference gives another one."""
     misses = design_of_config._arm_model.cache_info().misses
-    design = C.design_model(arm_cfg)
-    again = C.resolve(copy.deepcopy(arm_cfg))
-    assert C.design_model(again) is design
-    plain, train, _ = C.tuning_problems(arm_cfg)
+    design = problems.design_model(arm_cfg)
+    again = problems.resolve(copy.deepcopy(arm_cfg))
+    assert problems.design_model(again) is design
+    plain, train, _ = problems.tuning_problems(arm_cfg)
     np.testing.assert_array_equal(plain.base.a_rows, design.A_rows)
     np.testing.assert_array_equal(train.base.a_rows, design.A_rows)
     held = fj.config.held_out_config(arm_cfg)
     assert held["plant"]["payloads"] != arm_cfg["plant"]["payloads"]
-    assert C.design_model(held) is design
+    assert problems.design_model(held) is design
     assert design_of_config._arm_model.cache_info().misses == misses
-    papers = C.design_model(C.resolve({**ARM, "trajectory": {}}))
+    papers = problems.design_model(problems.resolve({**ARM, "trajectory": {}}))
     assert np.abs(papers.A_rows - design.A_rows).max() > 1e-3
 
 
@@ -156,7 +156,7 @@ def test_bounds_reports_both_models_and_the_K_the_simulated_controller_uses(arm_
     papers = fj.build({**ARM, "model": {"from": "paper"}}).base
     np.testing.assert_array_equal(d["models"]["paper"]["K"], fj.gain_from_poles(papers.a_rows, papers.b_rows,
                                                                                 papers.poles))  # fmt: skip
-    np.testing.assert_array_equal(d["nominal_A_rows"], C.design_model(arm_cfg).A_rows)
+    np.testing.assert_array_equal(d["nominal_A_rows"], problems.design_model(arm_cfg).A_rows)
     assert d["models"]["paper"]["alpha"] == pytest.approx(5.9871, abs=1e-4)
     assert 0 < d["alpha"] < d["models"]["paper"]["alpha"]  # the arm's own box is tighter around its nominal
     monkeypatch.setattr(cli.commands, "run_bounds", lambda *args, **kwargs: d)

@@ -33,7 +33,7 @@ HERE = pathlib.Path(__file__).parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 
-import reference_front as R  # noqa: E402
+import reference_front  # noqa: E402
 
 
 def log(msg: str) -> None:
@@ -86,7 +86,7 @@ def one_run(config: str, budget: float, seed: int, out: pathlib.Path, cold: bool
     st = front["stages"]
     return {"budget": budget, "seed": seed, "wall_s": wall, "load_before": load, "load_after": os.getloadavg(),
             "cold": cold, "evaluations": st["evaluations"], "plain_evaluations": st.get("plain_evaluations", 0),
-            "points": len(pts), "stages": st, "front": R.axes(pts), "command": " ".join(["fosmc", *cmd[cmd.index("front"):]])}  # fmt: skip
+            "points": len(pts), "stages": st, "front": reference_front.axes(pts), "command": " ".join(["fosmc", *cmd[cmd.index("front"):]])}  # fmt: skip
 
 
 def markdown(name: str, runs: list[dict], command: str) -> str:
@@ -130,7 +130,7 @@ def main(argv=None) -> None:
             log(f"{name}: budget {b:g} s, seed {s} ...")
             r = one_run(args.config, b, s, base / f"b{b:g}_s{s}", cold=not args.warm)
             r["reach"] = reach(*r["front"])
-            r["score"] = R.score(r.pop("front"), reference)
+            r["score"] = reference_front.score(r.pop("front"), reference)
             r["eps1"], r["eps2"] = r["score"]["epsilon_0.1_10"], r["score"]["epsilon_0.5_10"]
             log(f"  wall {r['wall_s']:.1f} s, {r['evaluations']} + {r['plain_evaluations']} evaluations, "
                 f"epsilon {r['eps1']:.3f} (0.1-10 V), {r['eps2']:.3f} (0.5-10 V)")  # fmt: skip
