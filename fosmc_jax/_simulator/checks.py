@@ -285,9 +285,9 @@ class _Walk:
             self.lead, self.lead_path = shape[:1], path
 
 
-# stable_step runs JAX in float64 (eigenvalues): 7 ms, where the rest of the check takes tens
-# of microseconds. The check runs on every call, nearly always with the same parameters (but
-# for a search's candidates, which are traced): a small cache of floats, keyed by the bytes.
+# stable_step runs JAX in float64 (eigenvalues), hundreds of times the cost of the rest of the
+# check. The check runs on every call, nearly always with the same parameters (but for a
+# search's candidates, which are traced): a small cache of floats, keyed by the bytes.
 @functools.lru_cache(maxsize=256)
 def _stable_step(a_rows: bytes, b_rows: bytes, poles: bytes, poles_dtype: str, integrator: str) -> float:
     """:func:`fosmc_jax.stable_step` of the rows and poles given as bytes (float64; the poles
