@@ -229,7 +229,9 @@ TANH = fs.Kind(
     ),
     {"tanh_k": (300.0, 300.0, 300.0), "tanh_eps": (1.0, 1.0, 1.0)},
     lambda params, controller, T: TanhSMC(
-        fj.SurfaceParams(params.C, params.a_rows, params.b_rows), controller["tanh_k"], controller["tanh_eps"]
+        fj.SurfaceParams(params.C, params.a_rows, params.b_rows),
+        controller.gains["tanh_k"],
+        controller.gains["tanh_eps"],
     ),
 )
 
