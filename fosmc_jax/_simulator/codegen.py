@@ -640,6 +640,7 @@ def print_function(
     outputs: list[tuple[str, bool]],
     signature: list[tuple[str, str]],
     derivative: bool = False,
+    split: tuple[str, set, set] | None = None,
 ) -> str:
     """A C++ function ``name`` (external linkage: each is compiled on its own, in parallel) of
     straight-line code computing closed ``jaxpr``'s outputs.
@@ -648,7 +649,10 @@ def print_function(
     scalar shared by the lanes), flattened; ``outputs``: per outvar, (C array name, accumulate:
     ``+=`` instead of ``=``). Invars and outvars of the same array name fill it in order.
     ``signature``: the function's parameters in order, (array name, ``"V"``, ``"T"`` or
-    ``"out"``). ``derivative``: a vector-Jacobian product, whose products with a constant 0 are 0."""
+    ``"out"``). ``derivative``: a vector-Jacobian product, whose products with a constant 0 are 0.
+    ``split`` = (the cotangent's array, the primal outputs' arrays, the cotangents' output arrays):
+    a vector-Jacobian product with its primal outputs, printed as a forward that stores residuals
+    and a backward from them (:func:`_split_function`)."""
     closed, consts = _jaxpr_and_consts(jaxpr)
     p = Printer(dtype, zeros=derivative)
     args, offsets = [], {}
@@ -674,6 +678,108 @@ def print_function(
             elif a.kind != "c" or a.value != 0:
                 body.append(f"{array}[{start + i}] += {value};")
     body = _live(body)
-    ctype = {"V": "const V* __restrict", "T": "const T* __restrict", "out": "V* __restrict"}
-    params = ", ".join(f"{ctype[kind]} {array}" for array, kind in signature)
-    return "\n".join([f"void {name}({params}) {{", *("  " + line for line in body), "}", ""])
+    if split is not None:
+        return _split_function(name, body, signature, *split)
+    return _function(name, body, signature)
+
+
+_CTYPE = {"V": "const V* __restrict", "T": "const T* __restrict", "out": "V* __restrict"}
+
+
+def _function(name: str, body: list[str], signature: list[tuple[str, str]]) -> str:
+    params = ", ".join(f"{_CTYPE[kind]} {array}" for array, kind in signature)
+    return "\n".join([f"void {name}({params}) {{", *("  " + line for line in _schedule(body)), "}", ""])
+
+
+def _uses(line: str) -> list[str]:
+    """The names a body line reads."""
+    if line.startswith("V s"):
+        return []
+    return _NAME.findall(line.split(" = ", 1)[1] if line.startswith("const ") else line if " += " in line
+                         else line.split(" = ", 1)[-1])  # fmt: skip
+
+
+def _schedule(body: list[str]) -> list[str]:
+    """``body`` with each output store (``y[i] = v``) moved up to just after the values it reads,
+    and each value of the inputs alone (a load, a broadcast) moved down to just before its first
+    use: straight-line code holds a value in a register (or spills it) from its definition to
+    its last use, and the compiler does not move stores and loads that far. The same statements,
+    the same numbers (an array element's stores keep their order)."""
+    out_line = lambda line: not line.startswith(("const ", "V s", "SinCos"))
+    inputs_only = lambda line: line.startswith("const ") and not _uses(line)
+    core = [line for line in body if not out_line(line) and not inputs_only(line)]
+    at = {}
+    for i, line in enumerate(core):
+        for n in _defined(line) if not line.startswith("SinCos") else _NAME.findall(line)[-2:]:
+            at[n] = i
+    after: dict[int, list[str]] = {}
+    last: dict[str, int] = {}
+    for line in body:
+        if out_line(line):
+            element = line.split(" ", 1)[0]
+            pos = max([at.get(n, -1) for n in _uses(line)] + [last.get(element, -1)])
+            last[element] = pos
+            after.setdefault(pos, []).append(line)
+    placed = after.get(-1, []) + [x for i, line in enumerate(core) for x in (line, *after.get(i, []))]
+    first: dict[str, int] = {}
+    for i, line in enumerate(placed):
+        for n in _uses(line):
+            first.setdefault(n, i)
+    before: dict[int, list[str]] = {}
+    for line in body:
+        if inputs_only(line) and _defined(line)[0] in first:
+            before.setdefault(first[_defined(line)[0]], []).append(line)
+    return [x for i, line in enumerate(placed) for x in (*before.get(i, []), line)]
+
+
+def _defined(line: str) -> list[str]:
+    """The names a body line declares."""
+    if line.startswith("const "):
+        return [line.split(" = ", 1)[0].split()[-1]]
+    if line.startswith("V s"):  # a SinCos pair's declaration
+        return _NAME.findall(line)
+    return []
+
+
+def _split_function(name: str, body: list[str], signature, seed: str, forward: set, backward: set) -> str:
+    """A vector-Jacobian product's body (with the primal outputs too) printed as two functions:
+    ``name`` + ``_fwd`` (the primal outputs, and the residuals: the values that the statements
+    depending on the cotangent ``seed`` read, stored in ``res``) and ``name`` + ``_bwd`` (those
+    statements, from the residuals). A statement of the inputs alone (a load, a broadcast) is
+    repeated in the second instead of stored. ``forward`` / ``backward``: the signature's arrays
+    each one takes; the second takes ``res`` before ``seed``. Returns the two functions' text
+    and the residuals' count in a comment line ``// residuals: n``."""
+    back: set[str] = set()
+    fwd, bwd = [], []
+    for line in body:
+        rhs = line.split(" = ", 1)[-1] if " += " not in line else line
+        target = line.split("[", 1)[0] if not line.startswith(("const ", "V ", "SinCos")) else None
+        if target in forward:
+            fwd.append(line)
+        elif target in backward or f"{seed}[" in rhs or any(n in back for n in _NAME.findall(rhs)):
+            if line.startswith("SinCos"):  # of a value of the cotangent: its pair is declared here too
+                pair = set(_NAME.findall(line)[-2:])
+                fwd = [f for f in fwd if not (f.startswith("V s") and set(_NAME.findall(f)) == pair)]
+                bwd.append(f"V {', '.join(_NAME.findall(line)[-2:])};")
+                back.update(pair)
+            back.update(_defined(line))
+            bwd.append(line)
+        else:
+            fwd.append(line)
+    defs = {n: line for line in fwd for n in _defined(line)}
+    inputs_only = {n for n, line in defs.items() if line.startswith("const ") and not _uses(line)}
+    used = dict.fromkeys(n for line in bwd for n in _uses(line) if n in defs)
+    residuals = [n for n in used if n not in inputs_only]
+    repeated = [line for line in fwd if any(n in used and n in inputs_only for n in _defined(line))]
+    cast = lambda n, kind: f"({kind})" if n.startswith("m") else ""  # a mask is stored as the float vector's bits
+    stores = [f"res[{i}] = {cast(n, 'V')}{n};" for i, n in enumerate(residuals)]
+    kind = lambda n: "M" if n.startswith("m") else "V"
+    loads = [f"const {kind(n)} {n} = {cast(n, 'M')}res[{i}];" for i, n in enumerate(residuals)]
+    fwd_sig = [(a, k) for a, k in signature if a in forward or k != "out"]
+    fwd_sig = [(a, k) for a, k in fwd_sig if a != seed] + [("res", "out")]
+    bwd_sig = [(a, k) for a, k in signature if a not in forward]
+    at = next(i for i, (a, _) in enumerate(bwd_sig) if a == seed)
+    bwd_sig = [*bwd_sig[:at], ("res", "V"), *bwd_sig[at:]]
+    return "\n".join([_function(name + "_fwd", _live(fwd + stores), fwd_sig),
+                      _function(name + "_bwd", _live(repeated + loads + bwd), bwd_sig),
+                      f"// residuals: {len(residuals)}", ""])  # fmt: skip

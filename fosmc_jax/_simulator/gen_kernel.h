@@ -4,7 +4,9 @@
 // then defines `struct Model` with the step printed from the JAX model
 // (fosmc_jax._simulator.codegen) and ends with FOSMC_GENERATED_FORWARD(Model): the forward's
 // library. The adjoint's library (built apart, on a derivative's first use) has the step's
-// vector-Jacobian product in its Model too (kAdjoint) and ends with FOSMC_GENERATED_ADJOINT(Model).
+// vector-Jacobian product in its Model too (kAdjoint), printed in two halves: the step that also
+// stores its residuals (the kRes values the reverse reads) and the reverse from them; it ends
+// with FOSMC_GENERATED_ADJOINT(Model).
 //
 // Layouts (rows of N lanes, lane-minor; T the model's float):
 //   lanes  (kLaneHeld + kLaneSampled, N)  per rollout, what the steps take from the rollout's
@@ -13,9 +15,8 @@
 //   carry  (kState, N)  the rollout's state, flat
 //   ckpt   the carry at steps 0, K, 2K, ... (the forward stores them for the adjoint, which
 //          recomputes each block's states from them), block-major: for each block of W lanes
-//          (ceil(L / K), kState, W), with K = 1 (L, kSaved, W): only the rows kSavedRows that
-//          the vector-Jacobian products read. A block's checkpoints are one contiguous stream
-//          (rows of N lanes scattered each step's few bytes over the whole buffer).
+//          (ceil(L / K), kState, W). A block's checkpoints are one contiguous stream (rows of N
+//          lanes scattered each step's few bytes over the whole buffer).
 // Step k (from t_k to t_{k+1}, k counted from the call's k0) ends with a controller sample when
 // (k0 + k + 1) % kM == 0: Model::Sampled, else Model::Held (kM = 1: the ideal loop).
 #pragma once
@@ -88,12 +89,21 @@ inline void Step(int64_t k, const V* x, const V* lv, const T* row, V* y) {
     Mo::Held(x, lv, row, y);
 }
 
+// The step that also stores its residuals (what its reverse reads) in res, and its reverse from them
 template <class Mo>
-inline void StepVjp(int64_t k, const V* x, const V* lv, const T* row, const V* ct, V* gx, V* glv) {
+inline void StepRes(int64_t k, const V* x, const V* lv, const T* row, V* y, V* res) {
   if (Mo::kM == 1 || k % Mo::kM == 0)
-    Mo::SampledVjp(x, lv + Mo::kLaneHeld, row + Mo::kTimeHeld, ct, gx, glv + Mo::kLaneHeld);
+    Mo::SampledFwd(x, lv + Mo::kLaneHeld, row + Mo::kTimeHeld, y, res);
   else
-    Mo::HeldVjp(x, lv, row, ct, gx, glv);
+    Mo::HeldFwd(x, lv, row, y, res);
+}
+
+template <class Mo>
+inline void StepBwd(int64_t k, const V* x, const V* lv, const T* row, const V* res, const V* ct, V* gx, V* glv) {
+  if (Mo::kM == 1 || k % Mo::kM == 0)
+    Mo::SampledBwd(x, lv + Mo::kLaneHeld, row + Mo::kTimeHeld, res, ct, gx, glv + Mo::kLaneHeld);
+  else
+    Mo::HeldBwd(x, lv, row, res, ct, gx, glv);
 }
 
 struct Shape {
@@ -109,17 +119,10 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
   for (int r = 0; r < n; r++) a[r] = fosmc::Simd<T>::Load(in + r * s.N + c);
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
   V *x = a, *y = b;
-  if constexpr (Mo::kAdjoint) {
-    if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
-  }
+  if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * n;  // this block's
   for (int64_t k = 0; k < s.L; k++) {
-    if constexpr (Mo::kAdjoint) {  // the forward's own library stores nothing
-      if (ckpt && s.K == 1)
-        for (int i = 0; i < Mo::kSaved; i++)
-          fosmc::Simd<T>::Store(ckpt + (k * Mo::kSaved + i) * W, x[Mo::kSavedRows[i]]);
-      else if (ckpt && k % s.K == 0)
-        for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * W, x[r]);
-    }
+    if (ckpt && k % s.K == 0)
+      for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ckpt + ((k / s.K) * n + r) * W, x[r]);
     Step<Mo>(s.k0 + k + 1, x, lv, table + k * nt, y);
     std::swap(x, y);
   }
@@ -128,32 +131,31 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
 
 // The reverse sweep of one block: from the cotangent of the last carry, the cotangents of the
 // first carry and of the lanes (summed over the steps). Each block of K steps is recomputed from
-// its checkpoint, then swept backwards. `truncate` (> 0): at every step k with k % truncate == 0
-// the cotangent of the dynamic rows (Mo::kDynamic) stops: truncated backpropagation through time.
+// its checkpoint, each step storing its residuals (a block's stay in the core's cache), then
+// swept backwards from them. `truncate` (> 0): at every step k with k % truncate == 0 the
+// cotangent of the dynamic rows (Mo::kDynamic) stops: truncated backpropagation through time.
 template <class Mo>
 void Adjoint(const Shape& s, int64_t truncate, const T* lanes, const T* table, const T* ckpt, const T* ct_out,
              T* ct_in, T* ct_lanes, int64_t c) {
   constexpr int n = Mo::kState, nl = Mo::kLaneHeld + Mo::kLaneSampled, nt = Mo::kTimeHeld + Mo::kTimeSampled;
-  V lv[nl > 0 ? nl : 1], glv[nl > 0 ? nl : 1], g[n], gx[n];
+  V lv[nl > 0 ? nl : 1], glv[nl > 0 ? nl : 1], ga[n], gb[n];
+  V *g = ga, *gx = gb;  // the cotangent of a step's end and of its start: swapped after each step
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c), glv[r] = V{};
   for (int r = 0; r < n; r++) g[r] = fosmc::Simd<T>::Load(ct_out + r * s.N + c);
-  std::vector<V> states(static_cast<size_t>(std::min(s.K, s.L)) * n);
-  ckpt += c * ((s.L + s.K - 1) / s.K) * (s.K == 1 ? Mo::kSaved : n);  // this block's
+  const int64_t K = std::min(s.K, s.L);
+  std::vector<V> states(static_cast<size_t>(K + 1) * n), res(static_cast<size_t>(K) * Mo::kRes);
+  ckpt += c * ((s.L + s.K - 1) / s.K) * n;  // this block's
   for (int64_t j = (s.L + s.K - 1) / s.K - 1; j >= 0; j--) {
     const int64_t k1 = j * s.K, k2 = std::min(s.L, k1 + s.K);
-    V* st = states.data();
-    if (s.K == 1)  // the rows the VJP reads (the others stay zero, unread)
-      for (int i = 0; i < Mo::kSaved; i++)
-        st[Mo::kSavedRows[i]] = fosmc::Simd<T>::Load(ckpt + (j * Mo::kSaved + i) * W);
-    else
-      for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * W);
-    for (int64_t k = k1; k + 1 < k2; k++)
-      Step<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, st + (k - k1 + 1) * n);
+    V *st = states.data(), *rs = res.data();
+    for (int r = 0; r < n; r++) st[r] = fosmc::Simd<T>::Load(ckpt + (j * n + r) * W);
+    for (int64_t k = k1; k < k2; k++)
+      StepRes<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, st + (k - k1 + 1) * n, rs + (k - k1) * Mo::kRes);
     for (int64_t k = k2 - 1; k >= k1; k--) {
-      StepVjp<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, g, gx, glv);
+      StepBwd<Mo>(s.k0 + k + 1, st + (k - k1) * n, lv, table + k * nt, rs + (k - k1) * Mo::kRes, g, gx, glv);
       if (truncate > 0 && (s.k0 + k) % truncate == 0)
         for (int r = 0; r < n; r++) gx[r] = Mo::kDynamic[r] ? V{} : gx[r];
-      std::copy(gx, gx + n, g);
+      std::swap(g, gx);
     }
   }
   for (int r = 0; r < n; r++) fosmc::Simd<T>::Store(ct_in + r * s.N + c, g[r]);
@@ -203,7 +205,7 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
   Shape s;
   if (auto e = Check<Mo>(lanes, table, ct_out, &s, K); e.failure()) return e;
   s.k0 = k0;
-  if (ckpt.element_count() != ((s.L + K - 1) / K) * (K == 1 ? Mo::kSaved : Mo::kState) * s.N)
+  if (ckpt.element_count() != ((s.L + K - 1) / K) * Mo::kState * s.N)
     return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoints do not match the horizon");
   const T *lp = lanes.typed_data<T>(), *tp = table.typed_data<T>(), *cp = ckpt.typed_data<T>(),
           *gp = ct_out.typed_data<T>();

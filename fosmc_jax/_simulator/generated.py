@@ -57,6 +57,10 @@ from . import native as _native
 
 #: The most memory the forward's checkpoints for the adjoint take (bytes).
 CHECKPOINT_BYTES = 256 * 2**20
+#: About the memory a block of steps' residuals and states take in the adjoint, per thread
+#: (bytes): within a core's cache, so that the reverse reads back what the block's recompute
+#: stored without going to memory.
+RESIDUAL_BYTES = 384 * 2**10
 _S, _L, _T = 1, 2, 4  # what a value depends on: the state, the rollout's parameters, time
 _INLINE = {"jit", "pjit", "closed_call", "core_call", "remat2", "checkpoint"}
 
@@ -318,7 +322,7 @@ class Kernels(NamedTuple):
     """A model's adjoint library: its FFI targets and the checkpoints' rows."""
 
     targets: tuple[str, str]  # the forward that stores the checkpoints, the adjoint
-    saved: int  # the carry's rows a checkpoint of every step stores: those the VJPs read
+    residuals: int  # the most values a step's reverse reads from its forward (the adjoint stores a block's)
 
 
 class Model(NamedTuple):
@@ -356,10 +360,10 @@ class Model(NamedTuple):
         in the controller alone (the tuner's) skips the plant's share of the reverse sweep. Its
         library holds the printed steps too (their objects compiled once, :func:`native.build_generated`)."""
         if with_plant not in self.built:
-            vjps, saved = _print_vjps(self, with_plant)
-            sources = (_print_main(self, saved), *self.steps(), *vjps)
+            vjps, n_res = _print_vjps(self, with_plant)
+            sources = (_print_main(self, n_res), *self.steps(), *vjps)
             self.built[with_plant] = Kernels(
-                _load(sources, ("FosmcGenForwardCk", "FosmcGenAdjoint"), _native.generated_flags()), len(saved)
+                _load(sources, ("FosmcGenForwardCk", "FosmcGenAdjoint"), _native.generated_flags()), n_res
             )
         return self.built[with_plant]
 
@@ -397,7 +401,8 @@ class Model(NamedTuple):
 
 _SIGNATURES = {
     "": "const V* x, const V* lv, const T* tv, V* y",
-    "_vjp": "const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv",
+    "_fwd": "const V* x, const V* lv, const T* tv, V* y, V* res",
+    "_bwd": "const V* x, const V* lv, const T* tv, const V* res, const V* ct, V* gx, V* glv",
 }
 
 
@@ -426,13 +431,15 @@ def _print_steps(model: Model) -> list[str]:
     return out
 
 
-def _print_vjps(model: Model, with_plant: bool) -> tuple[list[str], list[int]]:
-    """The sources of the steps' vector-Jacobian products (held, sampled) and the carry's rows
-    they read (the rows a checkpoint of every step stores; their other inputs, e.g. the metric
-    sums, enter linearly). ``with_plant``: cotangents for the lane values of the plant's alone too."""
+def _print_vjps(model: Model, with_plant: bool) -> tuple[list[str], int]:
+    """The sources of the steps' vector-Jacobian products (held, sampled), each printed as two
+    functions: ``*_fwd``, the step that also stores its residuals (the values its reverse reads),
+    and ``*_bwd``, the reverse from them (:func:`codegen.print_function`'s ``split``); and the
+    most residuals a step stores. ``with_plant``: cotangents for the lane values of the plant's
+    alone too."""
     x_aval = jax.ShapeDtypeStruct((model.n_state,), model.dtype)
-    sig = [("x", "V"), ("lv", "V"), ("tv", "T"), ("ct", "V"), ("gx", "out"), ("glv", "out")]
-    texts = []
+    sig = [("x", "V"), ("lv", "V"), ("tv", "T"), ("ct", "V"), ("y", "out"), ("gx", "out"), ("glv", "out")]
+    texts, n_res = [], 1
     for name, s in (("held", model.held), ("sampled", model.sampled)):
         if s is None:
             continue
@@ -442,28 +449,29 @@ def _print_vjps(model: Model, with_plant: bool) -> tuple[list[str], list[int]]:
 
         def vjp(x, lv_, tv_, ct, s=s, diff=diff):
             f = lambda x, d: s.core(x, _merge(lv_, d, diff), tv_)
-            return jax.vjp(f, x, [v for v, ok in zip(lv_, diff) if ok])[1](ct)
+            y, back = jax.vjp(f, x, [v for v, ok in zip(lv_, diff) if ok])
+            return y, *back(ct)
 
         bwd = jax.make_jaxpr(vjp)(x_aval, lv, tv, x_aval)
         # the lane rows of a non-float or skipped hoisted value get no cotangent (they stay zero)
-        outs = [("gx", False)] + [("glv", True)] * sum(diff)
-        text = codegen.print_function(name + "_vjp", bwd, model.dtype, inputs + [("ct", "V")], outs, sig,
-                                      derivative=True)  # fmt: skip
+        outs = [("y", False), ("gx", False)] + [("glv", True)] * sum(diff)
+        text = codegen.print_function(name, bwd, model.dtype, inputs + [("ct", "V")], outs, sig, derivative=True,
+                                      split=("ct", {"y"}, {"gx", "glv"}))  # fmt: skip
         if not all(diff):  # a skipped row still takes its place in glv: renumber
             text = _renumber_glv(text, lv, diff)
+        n_res = max(n_res, int(re.search(r"// residuals: (\d+)", text).group(1)))
         texts.append(text)
-    saved = sorted({int(r) for text in texts for r in re.findall(r"(?<![\w])x\[(\d+)\]", text)}) or [0]
-    return [_one_file(model.dtype, t) for t in texts], saved
+    return [_one_file(model.dtype, t) for t in texts], n_res
 
 
-def _print_main(model: Model, saved: list[int] | None) -> str:
+def _print_main(model: Model, n_res: int | None) -> str:
     """The skeleton's source of a library: the layout and the FFI handlers of the forward
-    (``saved`` None) or of the checkpointing forward and the adjoint (``saved``: the carry's
-    rows a checkpoint of every step stores)."""
+    (``n_res`` None) or of the checkpointing forward and the adjoint (``n_res``: the most
+    residuals a step's ``*_fwd`` stores)."""
     held, sampled, n_state = model.held, model.sampled, model.n_state
     nl = [0 if s is None else _size(s.lane_avals) for s in (held, sampled)]
     nt = [0 if s is None else _size(s.time_avals) for s in (held, sampled)]
-    kinds = {"": _SIGNATURES[""]} if saved is None else _SIGNATURES
+    kinds = {"": _SIGNATURES[""]} if n_res is None else _SIGNATURES
     # the ideal loop's held step, never called, is empty here: a file of its own would cost a
     # compiler run (the headers alone take seconds)
     declarations = [f"void {name}{k}({v}){' {}' if s is None else ';'}" for name, s in (("held", held),
@@ -471,24 +479,30 @@ def _print_main(model: Model, saved: list[int] | None) -> str:
     struct = [
         f"  static constexpr int kState = {n_state}, kLaneHeld = {nl[0]}, kLaneSampled = {nl[1]}, "
         f"kTimeHeld = {nt[0]}, kTimeSampled = {nt[1]}, kM = {model.m};",
-        f"  static constexpr bool kAdjoint = {'false' if saved is None else 'true'};",
+        f"  static constexpr bool kAdjoint = {'false' if n_res is None else 'true'};",
         "  static void Held(const V* x, const V* lv, const T* tv, V* y) { held(x, lv, tv, y); }",
         "  static void Sampled(const V* x, const V* lv, const T* tv, V* y) { sampled(x, lv, tv, y); }",
     ]
-    if saved is not None:
+    if n_res is not None:
         flags = ", ".join("true" if d else "false" for d in model.dynamic)
         struct += [
             f"  static constexpr bool kDynamic[{n_state}] = {{{flags}}};",
-            f"  static constexpr int kSaved = {len(saved)}, "
-            f"kSavedRows[{len(saved)}] = {{{', '.join(map(str, saved))}}};",
-            "  static void HeldVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
-            "    held_vjp(x, lv, tv, ct, gx, glv);",
+            f"  static constexpr int kRes = {n_res};",
+            "  static void HeldFwd(const V* x, const V* lv, const T* tv, V* y, V* res) {",
+            "    held_fwd(x, lv, tv, y, res);",
             "  }",
-            "  static void SampledVjp(const V* x, const V* lv, const T* tv, const V* ct, V* gx, V* glv) {",
-            "    sampled_vjp(x, lv, tv, ct, gx, glv);",
+            "  static void SampledFwd(const V* x, const V* lv, const T* tv, V* y, V* res) {",
+            "    sampled_fwd(x, lv, tv, y, res);",
+            "  }",
+            "  static void HeldBwd(const V* x, const V* lv, const T* tv, const V* res, const V* ct, V* gx, V* glv) {",
+            "    held_bwd(x, lv, tv, res, ct, gx, glv);",
+            "  }",
+            "  static void SampledBwd(const V* x, const V* lv, const T* tv, const V* res, const V* ct, V* gx,",
+            "                         V* glv) {",
+            "    sampled_bwd(x, lv, tv, res, ct, gx, glv);",
             "  }",
         ]  # fmt: skip
-    handlers = "FOSMC_GENERATED_FORWARD(Model)" if saved is None else "FOSMC_GENERATED_ADJOINT(Model)"
+    handlers = "FOSMC_GENERATED_FORWARD(Model)" if n_res is None else "FOSMC_GENERATED_ADJOINT(Model)"
     return "\n".join([*_head(model.dtype), *declarations, "}  // namespace gen", "namespace {", "using namespace gen;",
                       "struct Model {", *struct, "};", "}  // namespace", handlers, ""])  # fmt: skip
 
@@ -749,12 +763,13 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
     L, N, n_state = table.shape[0], x0.shape[1], x0.shape[0]
     truncate = truncate if 0 < truncate < L else 0
 
-    def layout(saved: int) -> int:
-        # K: the carry stored every K steps: every step where that fits in CHECKPOINT_BYTES (only
-        # the rows the VJPs read; the adjoint then recomputes nothing), else the whole carry as
-        # rarely as fits (each block of K recomputed: one forward more)
+    def layout(residuals: int) -> int:
+        # K: the carry stored every K steps; the adjoint recomputes each block of K steps storing
+        # its residuals, then sweeps it backwards: a block's residuals and states in about
+        # RESIDUAL_BYTES (a core's cache), and the checkpoints within CHECKPOINT_BYTES
         per_row = (N + (-N) % W) * np.dtype(dtype).itemsize
-        return 1 if L * saved * per_row <= CHECKPOINT_BYTES else max(2, -(-L * n_state * per_row // CHECKPOINT_BYTES))
+        K = max(1, RESIDUAL_BYTES // ((residuals + n_state) * 64), -(-L * n_state * per_row // CHECKPOINT_BYTES))
+        return min(K, L)
 
     def forward(x0, varying, fixed, table):
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
@@ -779,7 +794,7 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
         x0, the varying lanes, the fixed lanes): the others' tangents are zero, so they get no
         cotangent (a linear_call's every linear input must be one)."""
         kernels = model.kernels(with_plant=2 in moving)
-        K = layout(kernels.saved)
+        K = layout(kernels.residuals)
 
         def tangent(res, lin):
             primals = res[:3]
@@ -816,9 +831,9 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
             warnings.warn(f"fosmc_jax: the generated adjoint cannot be built ({e}); the derivatives "
                           "differentiate a lax.scan of the split step", stacklevel=2)  # fmt: skip
             return jax.jvp(scan, primals, full())
-        rows = kernels.saved if K == 1 else n_state
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
-        shapes = (jax.ShapeDtypeStruct(xp.shape, dtype), jax.ShapeDtypeStruct((-(-L // K), rows, xp.shape[1]), dtype))
+        shapes = (jax.ShapeDtypeStruct(xp.shape, dtype),
+                  jax.ShapeDtypeStruct((-(-L // K), n_state, xp.shape[1]), dtype))  # fmt: skip
         call = _folded_call(kernels.targets[0], shapes, N, W, ckpt_out=True, k0=np.int64(0), K=np.int64(K))
         out, ckpt = call(lp, table, xp)
         lin = tuple(tangents[i] for i in moving)
@@ -886,8 +901,9 @@ def _state_layout(carry) -> tuple[Any, list, np.ndarray]:
     return treedef, [jax.ShapeDtypeStruct(jnp.shape(x), x.dtype) for x in leaves], np.asarray(dynamic, bool)
 
 
-def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, truncate_every: int = 0,
-                   save_every: int = 0):
+def simulate_batch(
+    args: tuple, *, n_steps: int, integrator: str, paired: bool, truncate_every: int = 0, save_every: int = 0
+):
     """:func:`fosmc_jax.simulate_batch` of ``args`` = (plants, ctrl, reference, X0s, dt, keys,
     divergence_bound, chattering_cutoff) on the generated kernel, plants crossed with initial
     states or (``paired``) the i-th with the i-th, one noise key; with ``save_every``, its trace
@@ -953,8 +969,13 @@ def simulate_batch(args: tuple, *, n_steps: int, integrator: str, paired: bool, 
     if save_every:
         # (k, x): blocks of steps from step k, their rows of the table sliced at run time (k0 = 0
         # in the kernel: every block starts at a controller sample, save_every being a multiple of m)
-        block = lambda c, steps: (c[0] + steps, advance(model, c[1], lanes, jax.lax.dynamic_slice_in_dim(table, c[0], steps)))
-        samples_of = lambda c: jax.vmap(lambda plant, x: snapshot(plant, ctrl, dt, unflatten(c[0], x)))(lane_plants, c[1].T)
+        block = lambda c, steps: (
+            c[0] + steps,
+            advance(model, c[1], lanes, jax.lax.dynamic_slice_in_dim(table, c[0], steps)),
+        )
+        samples_of = lambda c: jax.vmap(lambda plant, x: snapshot(plant, ctrl, dt, unflatten(c[0], x)))(
+            lane_plants, c[1].T
+        )
         (_, x), samples = traced(samples_of, block, (jnp.zeros((), jnp.int32), x0), n_steps, save_every)
         trace = jax.vmap(lambda *rollout: as_trace(reference, dt, *rollout), 1)(*samples)  # time-major -> rollouts
     else:
