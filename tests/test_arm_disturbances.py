@@ -385,6 +385,8 @@ def test_zero_terms_are_left_out_before_compiling_with_the_same_results():
     kept = arm_model.without_idle_terms(arms._replace(params=arms.params._replace(tau_sin=jnp.ones((2, 3)))))
     assert all(getattr(kept.params, k) is None for k in ("Fc", "tau_bias", "tau_step"))
     assert kept.params.tau_sin is not None and kept.params.v_coulomb is not None
+    inside = arm_model.without_idle_terms({"user's plant": (arms.params, arms.payload)})  # any pytree holding them
+    assert inside["user's plant"][0].Fc is None and inside["user's plant"][0].R is arms.params.R
     seen = []
     jax.jit(
         lambda Fc: seen.append(

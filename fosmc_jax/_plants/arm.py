@@ -280,20 +280,24 @@ OPTIONAL_TERMS = ("Fc", "tau_bias", "tau_step", "tau_sin")
 
 def without_idle_terms(plant):
     """``plant`` with each optional term (:data:`OPTIONAL_TERMS`) whose amplitude is concretely
-    zero (in every arm of a batch) set to None: the same dynamics, without evaluating the zero
-    term (3 tanh or sin per evaluation of the accelerations, which the ``vmap`` path would pay
-    at every stage of every step; what that costs: BENCHMARKS.md, "Figures behind the code"). The simulator does
-    this before it compiles (:func:`fosmc_jax.simulate`, :func:`fosmc_jax.simulate_batch`);
-    traced amplitudes (a derivative in them) stay. Anything but an :class:`Arm` is returned as
-    it is."""
-    if not isinstance(plant, Arm):
-        return plant
-    idle = {}
-    for name in OPTIONAL_TERMS:
-        x = getattr(plant.params, name)
-        if x is not None and not isinstance(x, jax.core.Tracer) and not np.any(np.asarray(x)):
-            idle[name] = None
-    return plant._replace(params=plant.params._replace(**idle)) if idle else plant
+    zero (in every arm of a batch) set to None, in every :class:`ArmParams` the plant holds (an
+    :class:`Arm`'s, or a user's plant built on them): the same dynamics, without evaluating the
+    zero term (3 tanh or sin per evaluation of the accelerations, which every path would pay at
+    every stage of every step; what that costs: BENCHMARKS.md, "Figures behind the code"). The
+    simulator does this before it compiles (:func:`fosmc_jax.simulate`,
+    :func:`fosmc_jax.simulate_batch`); traced amplitudes (a derivative in them) stay."""
+
+    def prune(params):
+        if not isinstance(params, ArmParams):
+            return params
+        idle = {}
+        for name in OPTIONAL_TERMS:
+            x = getattr(params, name)
+            if x is not None and not isinstance(x, jax.core.Tracer) and not np.any(np.asarray(x)):
+                idle[name] = None
+        return params._replace(**idle) if idle else params
+
+    return jax.tree.map(prune, plant, is_leaf=lambda x: isinstance(x, ArmParams))
 
 
 _finite = np.isfinite
