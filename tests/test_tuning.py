@@ -323,3 +323,55 @@ def test_the_config_names_the_optimizer_and_refuses_others():
     assert _config.resolve({"tune": {"optimizer": "lbfgs"}})["tune"]["optimizer"] == "lbfgs"
     with pytest.raises(fj.ConfigError, match="tune.optimizer"):
         _config.resolve({"tune": {"optimizer": "bfgs"}})
+
+
+def stack(*points):
+    return jax.tree.map(lambda *x: jnp.stack(x), *points)
+
+
+def test_starts_each_follow_their_own_adam_and_equal_single_runs():
+    """run_starts: K starts in one vmapped call, each as run's Adam with its own rate; the point
+    returned is the lowest loss of all; the starts' rates span rate / spread .. rate * spread."""
+    target = tuner.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
+    loss = quadratic(target)
+    far = start_point()._replace(delta=jnp.full(3, -3.0))
+    s = tuner.Settings(steps=5, learning_rate=0.1, schedule="cosine", mode="reverse", free=("delta", "poles"),
+                       checkpoint_every=0)  # fmt: skip
+    rates = tuner.rates_of(0.1, 2, 2.0)
+    np.testing.assert_allclose(rates, [0.05, 0.2])
+    np.testing.assert_allclose(tuner.rates_of(0.1, 3, 1.0), 0.1)
+    u, hist = tuner.run_starts(loss, stack(start_point(), far), s, rates=rates, log=lambda _: None)
+    _, one = tuner.run(loss, start_point(), s._replace(learning_rate=0.05), log=lambda _: None)
+    _, two = tuner.run(loss, far, s._replace(learning_rate=0.2), log=lambda _: None)
+    np.testing.assert_allclose(hist["loss"], np.minimum(one["loss"], two["loss"]), rtol=1e-10)
+    np.testing.assert_array_equal(u.gamma, 0.0)  # frozen
+    best = min(one["loss"] + two["loss"] + [hist["last"]])
+    assert float(loss(u)[0]) == pytest.approx(best, rel=1e-10)
+
+
+def test_a_start_on_the_flat_penalty_goes_back_to_its_best_at_half_its_rate():
+    """Past delta[0] = 0.5 the loss is the diverged rollouts' flat penalty (zero gradient): a
+    start that steps there is sent back to its best point with a fresh Adam state, the other
+    start goes on untouched."""
+    target = tuner.Tunable(jnp.ones(3), jnp.zeros(3), jnp.zeros((3, 3)))
+    base = quadratic(target)
+
+    def loss(u):
+        v, aux = base(u)
+        return jnp.where(u.delta[0] > 0.5, 100.0, v), aux
+
+    s = tuner.Settings(steps=8, learning_rate=0.3, schedule="constant", mode="reverse", checkpoint_every=0)
+    slow = start_point()._replace(delta=jnp.array([-2.0, 0.0, 0.0]))
+    u, hist = tuner.run_starts(loss, stack(start_point(), slow), s, rates=np.array([0.3, 0.01]), log=lambda _: None)
+    assert sum(hist["restarts"]) >= 1
+    assert all(x < 100.0 for x in hist["loss"])
+    assert float(u.delta[0]) <= 0.5 and float(loss(u)[0]) < hist["loss"][0]
+
+
+def test_the_config_names_the_starts():
+    from fosmc_jax import _problems as _config
+
+    assert _config.resolve({})["tune"]["starts"] == 1
+    assert _config.resolve({"tune": {"starts": 8}})["tune"]["starts"] == 8
+    with pytest.raises(fj.ConfigError, match="tune.starts"):
+        _config.resolve({"tune": {"starts": 0}})

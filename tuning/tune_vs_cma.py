@@ -237,6 +237,8 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
     names = ["tune"] + [f"cma {sg:g}" for sg in SIGMAS]
     baton = Baton(names)
     errors: list[BaseException] = []
+    if s["starts"] is not None and label.endswith("from start"):
+        per_step = s["per_step_starts"]
     n_steps = max(2, math.ceil(STEP_MARGIN * budget / per_step))
     settings = fs.TuneSettings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0,
                                s["optimizer"])  # fmt: skip
@@ -260,7 +262,12 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
             baton.pause("tune")
 
         try:
-            u, hist = fs.tune(s["loss"], replicated(unravel(jnp.asarray(u_flat))), settings, log=hook)
+            if s["starts"] is not None and label.endswith("from start"):  # K starts at once (run_starts)
+                U0 = jax.vmap(unravel)(jnp.asarray(s["starts"]))
+                rates = T.rates_of(s["lr"], len(s["starts"]), s["spread"])
+                u, hist = T.run_starts(s["loss"], U0, settings, rates=rates, log=hook)
+            else:
+                u, hist = fs.tune(s["loss"], replicated(unravel(jnp.asarray(u_flat))), settings, log=hook)
             tune_out["finished"] = True
             tune_out["end_time"] = baton.now("tune")
             tune_out["returned"] = np.asarray(ravel_pytree(u)[0])
@@ -399,8 +406,13 @@ def study_config(name: str, cfg: dict, args) -> dict:
     start, score, t_global = p0, None, 0.0
     if tcfg["global_candidates"]:
         t = time.perf_counter()
-        start, score = global_stage(train, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
-                                    log=lambda _: None, command="tune")  # fmt: skip
+        if args.starts > 1:  # fosmc tune's [tune] starts: the best K of the same candidates
+            top = T.global_starts(train, obj, p0, tcfg["global_candidates"], args.starts, free=tuple(tcfg["params"]),
+                                log=lambda _: None)  # fmt: skip
+            start, score = jax.tree.map(lambda x: x[0], top[0]), float(top[1][0])
+        else:
+            start, score = global_stage(train, obj, p0, tcfg["global_candidates"], free=tuple(tcfg["params"]),
+                                        log=lambda _: None, command="tune")  # fmt: skip
         t_global = time.perf_counter() - t
     log(f"{name}: global stage of {tcfg['global_candidates']} candidates: score {score} in {t_global:.1f} s "
         f"(load {load()})")  # fmt: skip
@@ -410,7 +422,11 @@ def study_config(name: str, cfg: dict, args) -> dict:
     s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], _config.rough_loop(cfg)),
          "optimizer": args.optimizer or tcfg.get("optimizer", "adam"),
          "loss": fs.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
-         "plain_eval": Batched(plain, obj, unravel)}  # fmt: skip
+         "plain_eval": Batched(plain, obj, unravel), "starts": None, "spread": args.spread}  # fmt: skip
+    if args.starts > 1 and tcfg["global_candidates"]:
+        s["starts"] = np.stack([np.asarray(ravel_pytree(fs.to_internal(jax.tree.map(lambda x, i=i: x[i], top[0]),
+                                                                        plain.base, None))[0])
+                                for i in range(len(top[1]))])  # fmt: skip
     # compile before the races: tune's gradient (to time a step; run's own jit loads it from the
     # persistent cache), the batched training loss (CMA-ES's), the plain one (the read-offs)
     u0 = replicated(unravel(jnp.asarray(flat_start)))
@@ -437,6 +453,18 @@ def study_config(name: str, cfg: dict, args) -> dict:
         jax.block_until_ready(vg(u0))
         ts.append(time.perf_counter() - t)
     per_step = min(ts)
+    if s["starts"] is not None:  # one batched step of the K starts (run_starts's program)
+        vk = jax.jit(jax.vmap(jax.value_and_grad(s["loss"], has_aux=True)))
+        UK = jax.vmap(unravel)(jnp.asarray(s["starts"]))
+        jax.block_until_ready(vk(UK))
+        ts = []
+        for _ in range(2):
+            t = time.perf_counter()
+            jax.block_until_ready(vk(UK))
+            ts.append(time.perf_counter() - t)
+        s["per_step_starts"] = min(ts)
+        log(f"{name}: {len(s['starts'])} starts (train losses {np.round(top[1], 3).tolist()}): "
+            f"{s['per_step_starts']:.3f} s per batched step")  # fmt: skip
     X = np.repeat(np.asarray(flat_start)[None], POPSIZE, 0)
     s["train_eval"](X)
     t = time.perf_counter()
@@ -456,7 +484,10 @@ def study_config(name: str, cfg: dict, args) -> dict:
         "tune_settings": {"optimizer": s["optimizer"], "learning_rate": s["lr"], "schedule": tcfg["schedule"],
                           "clip": tcfg["clip"],
                           "mode": "reverse", "config_mode": tcfg["mode"], "config_steps": tcfg["steps"],
-                          "params": list(tcfg["params"]), "gradient_path": "adjoint kernel" if on_kernel else "vmap"},
+                          "params": list(tcfg["params"]), "gradient_path": "adjoint kernel" if on_kernel else "vmap",
+                          "starts": 1 if s["starts"] is None else len(s["starts"]),
+                          "spread": args.spread if s["starts"] is not None else None,
+                          "per_step_starts": s.get("per_step_starts")},
         "global_stage": {"candidates": tcfg["global_candidates"], "score": score, "time_s": t_global},
         "compile": {"trace_s": trace_s, "gradient_s": grad_compile, "train_batch_s": s["train_eval"].compile_s[POPSIZE],
                     "plain_batch_s": s["plain_eval"].compile_s[POPSIZE]},
@@ -717,6 +748,19 @@ def report(data: dict) -> str:
             f"{r['machine']['cores']} cores, {r['machine']['devices']} JAX CPU devices, jax {r['machine']['jax']}; "
             f"`uptime` at the start: `{r['uptime_start']}`; at the end: `{r['uptime_end']}`"
         )
+    starts = {c["tune_settings"].get("starts", 1) for c in data["configs"].values()}
+    if starts != {1}:
+        spread = {c["tune_settings"].get("spread") for c in data["configs"].values()} - {None}
+        A(
+            f"\n**tune here: {' or '.join(map(str, sorted(starts)))} starts at once from its start** (`--starts`, "
+            "`fosmc tune`'s `[tune] starts`: `fosmc_jax._search.tune.run_starts`): the best K of the global stage's "
+            "candidates, each with its own Adam state and learning rate (the config's rate times "
+            f"{' or '.join(f'{x:g}' for x in sorted(spread))}**(-1..1), spaced geometrically), all K in one vmapped "
+            "value-and-gradient call per step (the generated kernels fold them into their lanes); a start whose "
+            "rollouts all diverge goes back to its best point at half its rate. A step of the tables is one such call "
+            "(s/step: of the K together); tune's point is the best of all K. CMA-ES starts from the best of the K, "
+            "as before. The race from p0 (where run) is the one-start tune."
+        )
     opts = {c["tune_settings"].get("optimizer", "adam") for c in data["configs"].values()}
     if opts == {"lbfgs"}:
         A(
@@ -790,6 +834,10 @@ def main() -> int:
     ap.add_argument("--optimizer", choices=T.OPTIMIZERS, help="tune's optimizer (default: the config's)")
     ap.add_argument("--window", type=float, help="tune's [tune] gradient_window, s (default: the config's; a window "
                     "longer than the training horizon gives the whole horizon's gradient)")  # fmt: skip
+    ap.add_argument("--starts", type=int, default=1, help="tune's starts from the global stage, run at once "
+                    "(fosmc tune's [tune] starts; default 1: the one-start tune)")  # fmt: skip
+    ap.add_argument("--spread", type=float, default=2.0, help="with --starts: the starts' learning rates span the "
+                    "config's rate / SPREAD .. x SPREAD (default 2)")  # fmt: skip
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")

@@ -134,22 +134,22 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
 def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: float | None, log: Log):
     """Where the gradient steps start: a resumed run's first start (kept in its ``checkpoint``),
     else the best of the global stage's candidates (``tune.global_candidates``, within 30% of the
-    time left before ``deadline``), else the config's parameters ``p0``."""
+    time left before ``deadline``), else the config's parameters ``p0``; and with ``tune.starts``
+    above 1 the best ``starts`` of those candidates (a leading axis; None otherwise)."""
     from .._search import tune as tuner
 
     kept = tuner.checkpoint_extra(checkpoint) if checkpoint is not None else None
     if kept and "start" in kept:
-        return type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0)))
+        return type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0))), None
     if not tcfg.global_candidates or floor is not None or checkpoint is not None:
-        return p0
-    from .._search.front import global_stage
-
+        return p0, None
     share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
-    start, score = global_stage(problem, obj, p0, tcfg.global_candidates, free=tuple(tcfg.params), log=log,
-                                command="tune", deadline=share)  # fmt: skip
+    starts, scores = tuner.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts,
+                                         free=tuple(tcfg.params), log=log, deadline=share)  # fmt: skip
     which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
-    log(f"tune: global stage: {which} scores {score:.4f} (the config's parameters score about 0 with the log scale)")
-    return start
+    log(f"tune: global stage: {which} scores {scores[0]:.4f} (the config's parameters score about 0 with the log "
+        "scale)" + (f"; the best {len(scores)} start the gradient steps" if tcfg.starts > 1 else ""))  # fmt: skip
+    return jax.tree.map(lambda x: x[0], starts), starts if len(scores) > 1 else None
 
 
 def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
@@ -179,7 +179,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
-    start_params = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None, deadline, log)
+    start_params, starts = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None, deadline, log)
     try:
         u0 = tuner.to_internal(start_params, plain.base, floor)
     except ValueError as e:
@@ -198,9 +198,16 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
     if deadline is not None and time.perf_counter() > deadline:
         log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
-    u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint, resume=resume,
-                           terms=terms, extra=keep, deadline=deadline, fallback=fallback,
-                           guard=problems.GRADIENT_GUARD, log=log)  # fmt: skip
+    if starts is None:
+        u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint,
+                               resume=resume, terms=terms, extra=keep, deadline=deadline, fallback=fallback,
+                               guard=problems.GRADIENT_GUARD, log=log)  # fmt: skip
+    else:  # the starts at once; no checkpoint (a resumed run starts afresh)
+        U0 = jax.vmap(lambda p: tuner.to_internal(p, plain.base, None))(starts)
+        u, history = tuner.run_starts(tuner.make_loss(problem, obj, floor), U0, settings,
+                                      rates=tuner.rates_of(lr, len(jax.tree.leaves(starts)[0])),
+                                      deadline=deadline, fallback=fallback, guard=problems.GRADIENT_GUARD,
+                                      terms=terms, log=log)  # fmt: skip
     final_params = tuner.to_physical(u, plain.base, floor)
     final = tuner.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)

@@ -155,6 +155,7 @@ def _tune_defaults() -> dict[str, Any]:
         "keep_gamma_bound": False,
         "gamma_bound_convention": "paper",
         "global_candidates": 1024,
+        "starts": 1,
         "objective": "weighted",
         "scale": "log",
         "error_metric": "rms_error",
@@ -405,6 +406,9 @@ SCHEMA: dict[str, Any] = {
         "keep_gamma_bound": _boolean,
         "gamma_bound_convention": _choice(CONVENTIONS),
         "global_candidates": _integer("a non-negative integer (0: no global stage)", lambda n: n >= 0),
+        "starts": _integer(
+            "a positive integer (the global stage's best candidates tuned at once; 1: its best)", lambda n: n >= 1
+        ),
         "objective": _choice(FORMS),
         "scale": _choice(SCALES),
         "error_metric": _choice(ERROR_METRICS),

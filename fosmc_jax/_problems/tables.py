@@ -260,6 +260,7 @@ class Tune(Table):
     keep_gamma_bound: bool
     gamma_bound_convention: str
     global_candidates: int
+    starts: int
     objective: str
     scale: str
     error_metric: str

@@ -538,3 +538,141 @@ def run(
         log(f"tune: the parameters of step {best + 1} (loss {losses[best]:.5f}) are returned: the lowest loss of the "
             f"run (after the last step: {float(last):.5f})")  # fmt: skip
     return u, dict(history, best_step=best)
+
+
+#: ``[tune] starts``' learning rates span the config's rate / SPREAD .. x SPREAD (:func:`rates_of`)
+SPREAD = 2.0
+
+
+def rates_of(rate: float, n: int, spread: float = SPREAD) -> np.ndarray:
+    """Per-start learning rates for :func:`run_starts`: ``n`` rates spaced geometrically from
+    ``rate / spread`` to ``rate * spread`` (all ``rate`` for ``spread`` 1 or one start), so that
+    the batch tries step sizes the config's rate alone would not."""
+    if n == 1 or spread == 1:
+        return np.full(n, rate)
+    return rate * spread ** np.linspace(-1.0, 1.0, n)
+
+
+def run_starts(
+    loss,
+    U0: Params,
+    settings: Settings,
+    *,
+    rates: np.ndarray | None = None,
+    deadline: float | None = None,
+    fallback=None,
+    guard: float = np.inf,
+    terms: tuple[str, str] = ("error", "chattering"),
+    log: Callable[[str], None] = print,
+) -> tuple[Params, dict[str, list]]:
+    """Adam from several starts at once: ``U0`` holds K starts on a leading axis (internal
+    coordinates), each step is one call of ``jax.vmap`` of ``loss``'s value and gradient over
+    them (the generated kernels fold the K candidates into their lanes: BENCHMARKS.md, "Issue 33:
+    gradients of a batch of candidates in one call"), and each start follows its own Adam state
+    with its own learning rate (``rates``, K of them; default: ``settings.learning_rate`` each)
+    on ``settings``' schedule. A start whose loss or gradient is not finite, or whose gradient is
+    zero (every rollout diverged: the flat penalty), goes back to its own best point with a fresh
+    Adam state and half its rate. ``deadline``: as :func:`run`'s (the steps that fit at the
+    batched step's measured time). ``fallback``, ``guard``: as :func:`run`'s, judged at the first
+    start (the global stage's best). Returns the internal parameters of the lowest finite loss
+    evaluated, over every start and step, and a history shaped as :func:`run`'s, each step's
+    entries those of its best start (``restarts``: per step, the starts sent back)."""
+    if settings.optimizer != "adam":
+        raise ValueError("run_starts: Adam only (settings.optimizer = 'adam')")
+    K = int(jax.tree.leaves(U0)[0].shape[0])
+    free = U0._fields if settings.free is None else settings.free
+    labels = type(U0)(*("free" if n in free else "frozen" for n in U0._fields))
+    scale = np.ones(K) if rates is None else np.asarray(rates, float) / settings.learning_rate
+    step_fn = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))
+    U = replicated(U0)
+    if fallback is not None:
+        (value, _), grads = step_fn(U)
+        norm = _norm(jax.tree.map(lambda x: x[0], grads))
+        if sharding.first(not (np.isfinite(float(value[0])) and norm <= guard)):
+            step_fn = jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True)))
+            log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
+                "fallback's gradient instead")  # fmt: skip
+    if deadline is not None:
+        jax.block_until_ready(step_fn(U))  # compiled
+        t0 = time.perf_counter()
+        jax.block_until_ready(step_fn(U))
+        per_step = sharding.first(time.perf_counter() - t0)
+        fit = sharding.first(max(1, int((deadline - time.perf_counter()) / per_step) - 1))
+        settings = settings._replace(steps=min(settings.steps, fit))
+        log(f"tune: budget: {settings.steps} gradient steps of {K} starts ({per_step:.3f} s each) before the deadline")
+    opt = make_optimizer(settings, labels)
+    state = jax.vmap(opt.init)(U)
+
+    @jax.jit
+    def update(U, state, grads, scale):
+        def one(u, s, g, k):
+            updates, s = opt.update(g, s, u)
+            return optax.apply_updates(u, jax.tree.map(lambda x: k * x, updates)), s
+
+        return jax.vmap(one)(U, state, grads, scale)
+
+    @jax.jit
+    def choose(mask, a, b):
+        """a's rows where ``mask`` (K,), b's elsewhere, leaf by leaf."""
+        return jax.tree.map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+    restart = jax.jit(lambda best_U: jax.vmap(opt.init)(best_U))  # a fresh Adam state, its schedule from the top
+
+    history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
+                                "params": [], "restarts": []}  # fmt: skip
+    best_f = np.full(K, np.inf)
+    best_U = U
+    t_start = time.perf_counter()
+    for step in range(settings.steps + 1):  # the last pass evaluates the last update's points
+        (value, (err, chat)), grads = step_fn(U)
+        f = np.asarray(value, float)
+        norms = np.asarray([_norm(jax.tree.map(lambda x, i=i: x[i], grads)) for i in range(K)])
+        ok = np.isfinite(f) & np.isfinite(norms)
+        better = ok & (f < best_f)
+        if better.any():
+            best_U, best_f = choose(jnp.asarray(better), U, best_U), np.where(better, f, best_f)
+        i = int(np.argmin(np.where(ok, f, np.inf))) if ok.any() else 0
+        if step == settings.steps:
+            history["last"] = float(f[i]) if ok.any() else float("nan")
+            break
+        history["params"].append([np.asarray(x[i]).tolist() for x in U])
+        for k, v in (("loss", f[i]), ("error", err[i]), ("chattering", chat[i]), ("grad_norm", norms[i])):
+            history[k].append(float(v))
+        history["skipped"].append(not ok.any())
+        stuck = ~ok | (norms == 0)
+        history["restarts"].append(int(stuck.sum()))
+        log(f"tune: step {step + 1:4d}/{settings.steps}  loss {float(f[i]):.5f}  {terms[0]} {float(err[i]):.5f}  "
+            f"{terms[1]} {float(chat[i]):.5f}  |grad| {norms[i]:.3e}  (best of {K} starts: {i}; "
+            f"{int(stuck.sum())} sent back)  {time.perf_counter() - t_start:7.1f} s")  # fmt: skip
+        if deadline is not None and step > 0 and sharding.first(time.perf_counter() > deadline):
+            log(f"tune: the budget's deadline passed: {step + 1} of {settings.steps} steps done")
+            break
+        zero = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)
+        U, state = update(U, state, zero, jnp.asarray(scale))
+        if stuck.any():
+            scale = np.where(stuck, scale / 2, scale)
+            back = jnp.asarray(stuck)
+            U, state = choose(back, best_U, U), choose(back, restart(best_U), state)
+    k = int(np.argmin(best_f))
+    u = jax.tree.map(lambda x: x[k], best_U)
+    history["best_step"] = int(np.argmin(np.where(np.isfinite(history["loss"]), history["loss"], np.inf)))
+    log(f"tune: start {k}'s best point (loss {best_f[k]:.5f}) is returned: the lowest loss of the {K} starts")
+    return u, history
+
+
+def global_starts(problem: Problem, obj: Objective, p0: Params, n: int, k: int, *, free: tuple[str, ...] | None = None,
+                  seed: int = 0, log: Callable[[str], None] = print,
+                  deadline: float | None = None) -> tuple[Params, np.ndarray]:  # fmt: skip
+    """The best ``k`` of the global stage's ``n`` candidates (:func:`fosmc_jax._search.front.global_stage`'s,
+    the same seed: the first is its best) and their scores, best first: :func:`run_starts`'s starts.
+    Physical parameters with a leading axis of k (fewer where fewer were evaluated before ``deadline``)."""
+    from . import front
+
+    cands = front.sample_candidates(p0, n, seed)
+    free = p0._fields if free is None else free
+    cands = type(p0)(*(c if q in free else jnp.broadcast_to(x, c.shape) for q, c, x in zip(p0._fields, cands, p0)))
+    m = front.evaluate_many(problem, cands, 16, log=log, what="global stage", command="tune", deadline=deadline)
+    means = type("Means", (), {q: jnp.asarray(v) for q, v in m.items()})
+    J = np.asarray(rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
+    order = np.argsort(np.where(np.isfinite(J), J, np.inf), kind="stable")[:k]
+    return jax.tree.map(lambda x: x[order], cands), J[order]
