@@ -137,6 +137,17 @@ def replicated(tree):
     return jax.device_put(tree, NamedSharding(Mesh(np.asarray(jax.local_devices()), ("batch",)), Spec()))
 
 
+def fresh_models() -> None:
+    """Forget the generated kernels' printed models (``fosmc_jax._simulator.generated._MODELS``)
+    before a program is traced under another mesh: a model traced under one ``shard_map`` mesh
+    (the global stage's ``candidates``, CMA-ES's ``c``) and replayed under another (the gradient's
+    ``batch``) fails on the digital loops at 97ae33a ("context mesh ... should match the aval
+    mesh", generated.py ``_replay``). The libraries stay built; only the tracing is redone."""
+    from fosmc_jax._simulator import generated
+
+    getattr(generated, "_MODELS", {}).clear()
+
+
 def loop_of(cfg: dict) -> str:
     T_s = cfg["controller"]["sample_period"]
     return "ideal" if not T_s else f"digital ({1 / T_s / 1000:g} kHz)"
@@ -262,6 +273,7 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
             baton.pause("tune")
 
         try:
+            fresh_models()  # run's (or run_starts's) own jit traces afresh, after CMA-ES's compilation
             if s["starts"] is not None and label.endswith("from start"):  # K starts at once (run_starts)
                 U0 = jax.vmap(unravel)(jnp.asarray(s["starts"]))
                 rates = T.rates_of(s["lr"], len(s["starts"]), s["spread"])
@@ -405,6 +417,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     obj = fs.objective_of(tcfg, m)
     start, score, t_global = p0, None, 0.0
     if tcfg["global_candidates"]:
+        fresh_models()
         t = time.perf_counter()
         if args.starts > 1:  # fosmc tune's [tune] starts: the best K of the same candidates
             top = T.global_starts(train, obj, p0, tcfg["global_candidates"], args.starts, free=tuple(tcfg["params"]),
@@ -430,6 +443,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     # compile before the races: tune's gradient (to time a step; run's own jit loads it from the
     # persistent cache), the batched training loss (CMA-ES's), the plain one (the read-offs)
     u0 = replicated(unravel(jnp.asarray(flat_start)))
+    fresh_models()
     t = time.perf_counter()
     on_kernel = T._on_adjoint_kernel(s["loss"], u0)  # traces the gradient once: the kernels are generated (and built)
     trace_s = time.perf_counter() - t
@@ -454,6 +468,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
         ts.append(time.perf_counter() - t)
     per_step = min(ts)
     if s["starts"] is not None:  # one batched step of the K starts (run_starts's program)
+        fresh_models()
         vk = jax.jit(jax.vmap(jax.value_and_grad(s["loss"], has_aux=True)))
         UK = jax.vmap(unravel)(jnp.asarray(s["starts"]))
         jax.block_until_ready(vk(UK))
@@ -466,10 +481,12 @@ def study_config(name: str, cfg: dict, args) -> dict:
         log(f"{name}: {len(s['starts'])} starts (train losses {np.round(top[1], 3).tolist()}): "
             f"{s['per_step_starts']:.3f} s per batched step")  # fmt: skip
     X = np.repeat(np.asarray(flat_start)[None], POPSIZE, 0)
+    fresh_models()
     s["train_eval"](X)
     t = time.perf_counter()
     s["train_eval"](X)
     per_gen = time.perf_counter() - t
+    fresh_models()
     s["plain_eval"](X)
     log(f"{name}: compiled: first trace of the gradient {trace_s:.1f} s, gradient {grad_compile:.1f} s ({'adjoint kernel' if on_kernel else 'vmap path'}; "
         f"{per_step:.3f} s per gradient), batched training loss {s['train_eval'].compile_s[POPSIZE]:.1f} s "
