@@ -375,3 +375,20 @@ def test_the_config_names_the_starts():
     assert _config.resolve({"tune": {"starts": 8}})["tune"]["starts"] == 8
     with pytest.raises(fj.ConfigError, match="tune.starts"):
         _config.resolve({"tune": {"starts": 0}})
+
+
+@pytest.mark.slow  # a global stage and a batched gradient's compilation (~15 s on 2 cores)
+def test_fosmc_tune_with_starts_tunes_the_global_stages_best_at_once(tmp_path):
+    """``[tune] starts = 2``: the global stage's best two candidates start the gradient steps,
+    each step one batched call; the result is at least as good as the global stage's best."""
+    from fosmc_jax._app.tune import run_tune
+
+    cfg = {"plant": {"uncertainty": "sample", "samples": 2},
+           "sim": {"t_final": 0.25, "dt": 2e-3, "integrator": "euler"},
+           "tune": {"global_candidates": 16, "starts": 2, "steps": 3, "mode": "reverse", "remat_steps": 0}}  # fmt: skip
+    lines = []
+    res = run_tune(cfg, log=lines.append)
+    assert any("the best 2 start the gradient steps" in line for line in lines)
+    assert any("best of 2 starts" in line for line in lines)
+    assert res["start"]["global_candidates"] == 16 and len(res["history"]["loss"]) == 3
+    assert min(res["history"]["loss"] + [res["history"]["last"]]) <= res["history"]["loss"][0]
