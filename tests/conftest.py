@@ -16,8 +16,6 @@ import atexit
 import os
 import shutil
 import tempfile
-import threading
-import time
 
 import jax
 
@@ -70,50 +68,11 @@ LONG_FILES = (
 )
 
 
-#: A file the controller of a run with workers creates once its build of the native kernel ends
-_KERNEL_BUILT = "FOSMC_TEST_KERNEL_BUILT"
-
-
 def pytest_configure(config):
     if getattr(config, "workerinput", None) is not None or not getattr(config.option, "numprocesses", None):
         return  # a worker, or a run without workers
-    # The controller of a run with workers: schedule in LONG_FILES' order (not by test count) ...
+    # The controller of a run with workers: schedule in LONG_FILES' order (not by test count)
     config.option.loadscopereorder = False
-    # ... and build the native kernel (fosmc_jax/_simulator/native.py, ~50 CPU seconds with an
-    # empty cache) once, while the workers start: each worker would otherwise build it at its first
-    # kernel call, all at once. The workers (started after this hook, so they inherit the
-    # variable) wait for it before they collect (pytest_collection below).
-    from fosmc_jax._simulator import native
-
-    built = os.path.join(_CACHE, "kernel-built")
-    os.environ[_KERNEL_BUILT] = built
-
-    def build():
-        try:
-            native.available()
-        finally:
-            open(built, "w").close()
-
-    config._fosmc_kernel_build = threading.Thread(target=build, daemon=True)
-    config._fosmc_kernel_build.start()
-
-
-def pytest_unconfigure(config):
-    build = getattr(config, "_fosmc_kernel_build", None)
-    if build is not None:
-        build.join()  # not cut off half-written by the exit (a run that ended first: --collect-only)
-
-
-def pytest_collection(session):
-    """In a worker: wait for the controller's build of the native kernel (see pytest_configure).
-    Waiting at the first kernel call instead, with the collection and the tests that need no
-    kernel run meanwhile, was slower (213 s against 205 s): the build and the workers share the
-    cores, and the run is bound by its CPU time."""
-    built = os.environ.get(_KERNEL_BUILT)
-    if built and getattr(session.config, "workerinput", None) is not None:
-        deadline = time.monotonic() + 900
-        while not os.path.exists(built) and time.monotonic() < deadline:
-            time.sleep(0.1)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -161,8 +161,8 @@ def test_the_circle_check_finds_a_circle():
 #: gradient beside its forward (benchmarks/generated_gradient.py), and
 #: fosmc tune's own start and step rule raced against CMA-ES (tuning/tune_vs_cma.py: its learning
 #: rate, evaluation and compiled gradient), so no public switch is owed.
-WHITE_BOX = {"benchmarks/loop_variants.py", "tuning/front_ablation.py",
-             "benchmarks/idle_terms_cost.py", "benchmarks/generated_gradient.py", "benchmarks/linear_generated.py",
+WHITE_BOX = {"tuning/front_ablation.py",
+             "benchmarks/idle_terms_cost.py", "benchmarks/generated_gradient.py",
              "tuning/tune_vs_cma.py"}  # fmt: skip
 
 

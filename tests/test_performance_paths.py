@@ -1,8 +1,8 @@
-"""The fast paths against the reference path: the structure-of-arrays LinearPlant batch of
-simulate_batch against vmap of simulate (values, divergence, gradients, float32), and the
-sharded batch against the single-device one (in a subprocess with two host devices)."""
+"""The fast path against the reference path: the LinearPlant batch of simulate_batch (the kernel
+generated from its step) against vmap of simulate (values, divergence, gradients, float32), the
+kernels' build, and the sharded batch against the single-device one (in a subprocess with two
+host devices)."""
 
-import functools
 import os
 import subprocess
 import sys
@@ -15,7 +15,6 @@ import pytest
 
 import fosmc_jax as fj
 from fosmc_jax import paper
-from fosmc_jax._simulator import linear_path as _linear_path
 from fosmc_jax._simulator import native as _native
 
 BOX = (paper.A_LOWER, paper.A_UPPER, paper.B_LOWER, paper.B_UPPER)
@@ -116,45 +115,26 @@ def test_fast_batch_forward_mode_and_mixed_precision():
     assert_close(mixed, fj.simulate_batch(plants32, ctrl, ref, X0s, 1e-3, fast=False, **opts))
 
 
-@pytest.mark.skipif(_native._compiler() is None, reason="no C++ compiler: no kernel")
-def test_kernel_refuses_buffers_off_its_layout_with_an_error():
-    """A misuse of the kernel is an error, never a crash of the process."""
-    assert _native.available()
-    carry, ab = jnp.zeros((_native.ROWS, 16)), jnp.zeros((36, 16))
-    table = lambda k: jnp.zeros((k.shape[0], 23))
-    good = jnp.zeros(100)
-    out = _native.advance(carry, ab, good, table, jnp.int32(0), 3, rk4=False, switching="ratio", law="paper")
-    assert out.shape == carry.shape
-    for consts, ab_ in ((jnp.zeros(99), ab), (good, ab.astype(jnp.float32)), (good, ab[:, :8])):
-        with pytest.raises(Exception, match="fosmc kernel"):
-            jax.block_until_ready(_native.advance(carry, ab_, consts, table, jnp.int32(0), 3, rk4=False,
-                                                  switching="ratio", law="paper"))  # fmt: skip
-
-
-@pytest.mark.slow  # ~13 s
-def test_scan_loop_equals_vmap_of_simulate():
-    """The fast path's ``lax.scan`` loop, which runs where the native kernel cannot be built
-    (and under reverse-mode derivatives); the cases above run the kernel where it is."""
+def test_the_linear_batch_runs_the_generated_kernel():
+    """The linear plant under the FOSMC prints like any model: its batch calls the generated
+    kernel (kernel.cc and the structure-of-arrays scan, its hand-written copies, retired)."""
+    if not _native.available():
+        pytest.skip("no C++ compiler or not the CPU backend: the vmap path runs")
     plants, ctrl, ref, X0s = setup()
-    opts = dict(n_steps=300, integrator="rk4", switching="ratio")
-    scan = jax.jit(functools.partial(_linear_path._linear_batch, **opts))(plants, ctrl, ref, X0s, 1e-3)
-    assert_close(scan, reference_path(plants, ctrl, ref, X0s, 1e-3, **opts))
-
-
-@pytest.mark.skipif(_native._compiler() is None, reason="no C++ compiler: the fast path runs lax.scan")
-def test_native_kernel_is_built_where_a_compiler_is():
-    assert _native.available()
+    program = jax.make_jaxpr(lambda: fj.simulate_batch(plants, ctrl, ref, X0s, 1e-3, n_steps=10))()
+    assert "fosmc_gen_" in str(program)
 
 
 def test_failed_kernel_build_is_one_clear_error_and_leaves_no_file(tmp_path, monkeypatch):
     monkeypatch.setenv("FOSMC_JAX_CACHE", str(tmp_path))
     monkeypatch.setenv("CXX", "false")  # a "compiler" that fails at once
+    source = '#define FOSMC_T double\n#include "gen_kernel.h"\n'
     with pytest.raises(OSError, match="^false failed"):
-        _native._build()
+        _native.build_generated([source])
     assert list(tmp_path.iterdir()) == []
     monkeypatch.setattr(_native, "_compiler", lambda: None)
     with pytest.raises(OSError, match="no C\\+\\+ compiler found"):
-        _native._build()
+        _native.build_generated([source])
 
 
 @pytest.mark.slow  # reverse mode through both paths with RK4 (~35 s of compilation on 2 cores)
@@ -271,16 +251,3 @@ def test_tuners_split_over_the_devices_as_on_one():
     env.pop("JAX_NUM_CPU_DEVICES", None)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
-
-
-def test_the_kernels_layout_header_is_generated_from_the_accumulator():
-    """The kernels read their buffer layouts from layout.h, written from the Python side: every
-    accumulator field has its kernel name at its own index, and the carry rows follow."""
-    from fosmc_jax._simulator import metrics
-
-    fields = metrics.Accumulator._fields
-    assert set(_native.ACC_NAMES) == set(fields)
-    header = _native.layout_header()
-    for i, name in enumerate(fields):
-        assert f"{_native.ACC_NAMES[name]} = {i}" in header
-    assert _native.ROWS == 15 + 3 * len(fields) + 2 and f"kRows = {_native.ROWS}" in header

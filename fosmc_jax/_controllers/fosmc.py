@@ -90,15 +90,6 @@ def switch(s: Array, delta: Array, switching: str) -> Array:
     raise ValueError(f"switching must be one of {SWITCHING}, got {switching!r}")
 
 
-def reference_terms(a_rows: Array, b_rows: Array, r: Array) -> tuple[Array, Array, Array, Array]:
-    """What a sample of the law needs of the reference sample ``r`` (4, 3) alone: X_d (9,),
-    Omega (3,) of (10) for the nominal rows, and their norms (the reference's part of rho); the
-    fast paths compute it once per step for the whole batch."""
-    X_d = desired_state(r)
-    Omega = feedforward(a_rows, b_rows, r)
-    return X_d, Omega, safe_norm(X_d), safe_norm(Omega)
-
-
 def sliding_surface(ctrl: FOSMCParams, Z: Array, w: Array) -> Array:
     """s = C Z - w (14), where w = int_0^t (CA + CBK) Z dtau is the integral state, (3,)."""
     return ctrl.C @ Z - w
@@ -246,12 +237,6 @@ def _law(params: FOSMCParams, controller: Any, T: Array):
     if controller.sample_period:
         return DiscreteFOSMC(params, T, controller.switching, controller.law)
     return FOSMC(params, controller.switching, controller.law)
-
-
-def is_ideal_fosmc(controller: Any) -> bool:
-    """Whether ``controller`` is the FOSMC in the ideal loop, a :class:`FOSMC` (not a subclass,
-    which may change its law): the controller whose law the linear plant's fast path writes out."""
-    return type(controller) is FOSMC
 
 
 #: The input rules of the FOSMC's types (from their docstrings and the config's validators,

@@ -851,14 +851,12 @@ MODES = ("all", "0")
 
 
 def mode() -> str:
-    """The ``FOSMC_JAX_GENERATED`` mode, where generated kernels can be built here (the CPU backend,
-    a C++ compiler, native kernels not turned off by ``FOSMC_JAX_NATIVE=0``), else ``0``. (A
-    compiler that fails raises OSError at the build: its batch runs the ``vmap`` path.)"""
+    """The ``FOSMC_JAX_GENERATED`` mode where kernels can be built here
+    (:func:`fosmc_jax._simulator.native.available`), else ``0``."""
     value = os.environ.get("FOSMC_JAX_GENERATED", "all")
     if value not in MODES:
         raise ValueError(f"FOSMC_JAX_GENERATED: expected one of {', '.join(MODES)}, got {value!r}")
-    native = os.environ.get("FOSMC_JAX_NATIVE", "1") != "0" and _native._compiler() is not None
-    return value if value != "0" and jax.default_backend() == "cpu" and native else "0"
+    return value if _native.available() else "0"
 
 
 def jvp_perturbed(fn, primals: tuple, tangents: tuple):

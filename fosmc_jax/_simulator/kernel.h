@@ -1,5 +1,5 @@
-// What the native kernels (kernel.cc: linear plants; arm_kernel.cc: the arm) share: a block of
-// rollouts as one SIMD vector, and the blocks spread over XLA's intra-op thread pool.
+// What the generated kernels' skeleton (gen_kernel.h) builds on: a block of rollouts as one SIMD
+// vector, and the blocks spread over XLA's intra-op thread pool.
 #pragma once
 
 #include <algorithm>
@@ -17,7 +17,7 @@ namespace fosmc {
 // One block: the CPU's SIMD register (AVX-512: 64 bytes, 8 double or 16 float rollouts; AVX: 32;
 // else 16). A block wider than the register takes two registers per value, and the long
 // straight-line step then spills what it cannot hold (BENCHMARKS.md, "Issue 32").
-// -DFOSMC_SIMD_BYTES=N sets another width (benchmarks/arm_levers.py's ablation).
+// -DFOSMC_SIMD_BYTES=N sets another width (an ablation: FOSMC_JAX_KERNEL_FLAGS).
 #if defined(FOSMC_SIMD_BYTES)
 constexpr int kBytes = FOSMC_SIMD_BYTES;
 #elif defined(__AVX512F__)

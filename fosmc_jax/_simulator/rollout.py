@@ -1,7 +1,7 @@
 """The closed-loop simulator's batches: :func:`simulate` (one rollout, :mod:`fosmc_jax._simulator.step`)
-and :func:`simulate_batch`, which picks once the path that runs a batch (the linear plant's fast
-path, the arm's kernels, the generated kernel, else ``vmap`` of the one rollout), every input
-checked first (:mod:`fosmc_jax._simulator.checks`).
+and :func:`simulate_batch`, which picks once the path that runs a batch (the kernel generated from
+the step, else ``vmap`` of the one rollout), every input checked first
+(:mod:`fosmc_jax._simulator.checks`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from jax import Array
 from .._plants.arm import without_idle_terms
 from . import codegen as _codegen
 from . import generated as _generated
-from . import linear_path as _linear_path
 from . import metrics as _metrics
 from .checks import check_inputs
 from .step import _STATIC, INTEGRATORS, Result, Trace, _simulate, as_controller, check_save_every, sample_steps
@@ -51,20 +50,15 @@ def _simulate_batch(
     a Monte-Carlo sample's. ``options`` are :func:`simulate`'s keyword arguments (``key`` too,
     when ``keys`` is None).
 
-    With ``fast`` (static), batches with one noise key run a fast path with the same results to
-    rounding: :class:`LinearPlant` under the ideal-loop FOSMC without a trace (its time loop one
-    compiled kernel on every core, :mod:`fosmc_jax._simulator.native`, or, where that cannot be
-    built, a structure-of-arrays ``lax.scan``), and every other model that prints (the arm under
-    any of the package's laws, in the ideal loop or a noise-free :class:`fosmc_jax.DigitalLoop`,
-    a user's law or plant; with a trace, the linear plant too) the kernel generated from its
-    step, forward and adjoint (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap``
-    path's to rounding, built on first use; a trace's samples taken between blocks of
-    ``save_every`` steps); anything else runs ``vmap`` of :func:`simulate`, with one warning
-    naming what kept it there. Derivatives of the linear fast path are the ``vmap``
-    path's (its ``custom_jvp``). ``native=False`` (static) keeps the compiled kernels out: the
-    linear fast path runs its ``lax.scan``, the rest the ``vmap`` path (the benchmarks'
-    scan-only timings; ``FOSMC_JAX_GENERATED=0`` keeps the generated kernels out and
-    ``FOSMC_JAX_NATIVE=0`` does the same for a whole process)."""
+    With ``fast`` (static), batches with one noise key run the kernel generated from their step
+    wherever it prints (every plant and law of the package, a user's law or plant, the ideal
+    loop or a noise-free :class:`fosmc_jax.DigitalLoop`), forward and adjoint
+    (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to rounding, built on
+    first use; a trace's samples taken between blocks of ``save_every`` steps); anything else
+    runs ``vmap`` of :func:`simulate`, with one warning naming what kept it there.
+    ``native=False`` (static) keeps the compiled kernels out: the ``vmap`` path (the benchmarks'
+    baseline; ``FOSMC_JAX_GENERATED=0`` or ``FOSMC_JAX_NATIVE=0`` does the same for a whole
+    process)."""
     ctrl = as_controller(controller, options.get("switching", "ratio"), options.get("law", "paper"))
     paired = pairing == "paired"
     if pairing not in PAIRINGS:
@@ -82,8 +76,6 @@ def _simulate_batch(
     vmap = functools.partial(_vmap_batch, paired=paired, **options)
     if not (fast and keys.shape[0] == 1):
         return vmap(*args)  # noise realizations: the vmap path's alone
-    if not options.get("save_every") and _linear_path.supports(plants, ctrl, paired):
-        return _linear_path.simulate_batch(args, vmap, native=native, **options)
     if not native:
         return vmap(*args)
     return _generated_or(vmap, *args, paired=paired, **options)
@@ -135,18 +127,25 @@ def option_names(batch: bool) -> tuple[str, ...]:
 def _checked(jitted, batch: bool):
     """``jitted`` behind :func:`fosmc_jax._simulator.checks.check_inputs`: its inputs refused
     with a one-line error naming the field where wrong (shapes always, values where concrete),
-    lists turned into arrays; the jitted function's ``lower`` and ``_cache_size`` kept."""
+    lists turned into arrays, the arm's zero terms left out; ``lower`` does the same before
+    the jitted function's, and its ``_cache_size`` is kept."""
 
-    @functools.wraps(jitted)
-    def run(plant, controller, reference, X0, dt, **options):
+    def checked(plant, controller, reference, X0, dt, options):
         plant, controller, reference, X0, dt = check_inputs(
             plant, controller, reference, X0, dt, batch, options, option_names(batch)
         )
         plant = without_idle_terms(plant)  # the arm's zero friction and disturbance terms left out of the program
-        return jitted(plant, controller, reference, X0, dt, **options)
+        return plant, controller, reference, X0, dt
+
+    @functools.wraps(jitted)
+    def run(plant, controller, reference, X0, dt, **options):
+        return jitted(*checked(plant, controller, reference, X0, dt, options), **options)
 
     run.__name__ = run.__qualname__ = jitted.__name__.lstrip("_")
-    run.lower, run._cache_size = jitted.lower, jitted._cache_size
+    run.lower = lambda plant, controller, reference, X0, dt, **options: jitted.lower(
+        *checked(plant, controller, reference, X0, dt, options), **options
+    )
+    run._cache_size = jitted._cache_size
     return run
 
 
