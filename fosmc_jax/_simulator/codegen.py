@@ -181,6 +181,10 @@ class Printer:
         self.count = 0
         self.dtype = np.dtype(dtype)
         self.sincos: dict[str, tuple[str, str]] = {}
+        # a cotangent's array (``seed``): the derivative's rewrites then reach only the values
+        # that depend on it (``tainted``), the primal values are printed as the function's own
+        self.seed: str | None = None
+        self.tainted: set[str] = set()
 
     def fresh(self, kind: str, expr: str) -> Atom:
         # every expression is pure: one printed twice (the same accelerations in the plant's
@@ -192,7 +196,13 @@ class Printer:
         ctype = self.target.mask if kind == "M" else self.target.integer if self.integer else self.target.vector
         self.lines.append(f"const {ctype} {name} = {expr};")
         self.seen[kind, expr] = Atom(kind, name)
+        if self.seed is not None and (f"{self.seed}[" in expr or any(n in self.tainted for n in _NAME.findall(expr))):
+            self.tainted.add(name)
         return self.seen[kind, expr]
+
+    def cotangent(self, a: Atom) -> bool:
+        """Whether the derivative's rewrites reach ``a``: a value of the cotangent (any, without a seed)."""
+        return self.seed is None or (a.kind != "c" and (a.expr.startswith(f"{self.seed}[") or a.expr in self.tainted))
 
     def vec(self, a: Atom) -> str:
         """``a`` as a float vector expression."""
@@ -328,12 +338,12 @@ class Printer:
         # an operator takes a scalar literal as it is (V op T acts lane by lane); a function a vector
         functional = not fmt.startswith(("{0}", "-"))
         cast = self.vec if functional else self.operand
-        if fmt == "{0} / {1}" and self.zeros:  # a derivative divides by few values, many times: reciprocals
-            inverse = lambda b: self.fresh("V", self.t("Bc(1) / {0}").format(self.vec(b))).expr  # noqa: E731
-            return [self.folded(args) or self.identity(fmt, args) or
-                    self.fresh(kind, f"{cast(args[0])} * {inverse(args[1])}")
-                    for args in zip(*self.broadcast(ins))]  # fmt: skip
-        return [self.folded(args) or self.identity(fmt, args) or self.fresh(kind, fmt.format(*map(cast, args)))
+        inverse = lambda b: self.fresh("V", self.t("Bc(1) / {0}").format(self.vec(b))).expr  # noqa: E731
+        # a derivative divides by few values, many times: reciprocals
+        reciprocal = lambda args: fmt == "{0} / {1}" and self.zeros and self.cotangent(args[0])  # noqa: E731
+        return [self.folded(args) or self.identity(fmt, args) or
+                (self.fresh(kind, f"{cast(args[0])} * {inverse(args[1])}") if reciprocal(args) else
+                 self.fresh(kind, fmt.format(*map(cast, args))))
                 for args in zip(*self.broadcast(ins))]  # fmt: skip
 
     def identity(self, fmt: str, args) -> Atom | None:
@@ -349,7 +359,7 @@ class Printer:
         if fmt == "{0} - {1}":
             return a if c(b, 0) else None
         if fmt == "{0} * {1}":
-            if self.zeros and (c(a, 0) or c(b, 0)):
+            if self.zeros and (c(a, 0) or c(b, 0)) and self.cotangent(b if c(a, 0) else a):
                 return _const(np.zeros((), self.dtype))
             return b if c(a, 1) else a if c(b, 1) else None
         if fmt == "{0} / {1}":
@@ -652,9 +662,12 @@ def print_function(
     ``"out"``). ``derivative``: a vector-Jacobian product, whose products with a constant 0 are 0.
     ``split`` = (the cotangent's array, the primal outputs' arrays, the cotangents' output arrays):
     a vector-Jacobian product with its primal outputs, printed as a forward that stores residuals
-    and a backward from them (:func:`_split_function`)."""
+    and a backward from them (:func:`_split_function`); its
+    rewrites (x * 0 as 0, divisions by reciprocals) then reach the values of the cotangent only,
+    so that the primal outputs are computed as the step computes them, to the last bit."""
     closed, consts = _jaxpr_and_consts(jaxpr)
     p = Printer(dtype, zeros=derivative)
+    p.seed = None if split is None else split[0]
     args, offsets = [], {}
     with jax.ensure_compile_time_eval():
         for (array, kind), v in zip(inputs, closed.invars, strict=True):
