@@ -606,6 +606,7 @@ def run_starts(
     @jax.jit
     def update(U, state, grads, scale):
         def one(u, s, g, k):
+            g = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)  # a non-finite start's: no step
             updates, s = opt.update(g, s, u)
             return optax.apply_updates(u, jax.tree.map(lambda x: k * x, updates)), s
 
@@ -625,8 +626,9 @@ def run_starts(
     t_start = time.perf_counter()
     for step in range(settings.steps + 1):  # the last pass evaluates the last update's points
         (value, (err, chat)), grads = step_fn(U)
-        f = np.asarray(value, float)
-        norms = np.asarray([_norm(jax.tree.map(lambda x, i=i: x[i], grads)) for i in range(K)])
+        f, err, chat = (np.asarray(x, float) for x in (value, err, chat))  # one transfer each
+        rows = np.concatenate([np.asarray(x, float).reshape(K, -1) for x in jax.tree.leaves(grads)], axis=1)
+        norms = np.asarray([_norm(row) for row in rows])
         ok = np.isfinite(f) & np.isfinite(norms)
         better = ok & (f < best_f)
         if better.any():
@@ -635,7 +637,7 @@ def run_starts(
         if step == settings.steps:
             history["last"] = float(f[i]) if ok.any() else float("nan")
             break
-        history["params"].append([np.asarray(x[i]).tolist() for x in U])
+        history["params"].append([np.asarray(x)[i].tolist() for x in U])
         for k, v in (("loss", f[i]), ("error", err[i]), ("chattering", chat[i]), ("grad_norm", norms[i])):
             history[k].append(float(v))
         history["skipped"].append(not ok.any())
@@ -647,8 +649,7 @@ def run_starts(
         if deadline is not None and step > 0 and sharding.first(time.perf_counter() > deadline):
             log(f"tune: the budget's deadline passed: {step + 1} of {settings.steps} steps done")
             break
-        zero = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)
-        U, state = update(U, state, zero, jnp.asarray(scale))
+        U, state = update(U, state, grads, jnp.asarray(scale))
         if stuck.any():
             scale = np.where(stuck, scale / 2, scale)
             back = jnp.asarray(stuck)
