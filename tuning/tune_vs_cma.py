@@ -853,8 +853,8 @@ def main() -> int:
                     "longer than the training horizon gives the whole horizon's gradient)")  # fmt: skip
     ap.add_argument("--starts", type=int, default=1, help="tune's starts from the global stage, run at once "
                     "(fosmc tune's [tune] starts; default 1: the one-start tune)")  # fmt: skip
-    ap.add_argument("--spread", type=float, default=2.0, help="with --starts: the starts' learning rates span the "
-                    "config's rate / SPREAD .. x SPREAD (default 2)")  # fmt: skip
+    ap.add_argument("--spread", type=float, default=T.SPREAD, help="with --starts: the starts' learning rates span the "
+                    f"config's rate / SPREAD .. x SPREAD (default fosmc tune's, {T.SPREAD:g})")  # fmt: skip
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")

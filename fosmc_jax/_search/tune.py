@@ -541,7 +541,7 @@ def run(
 
 
 #: ``[tune] starts``' learning rates span the config's rate / SPREAD .. x SPREAD (:func:`rates_of`)
-SPREAD = 2.0
+SPREAD = 4.0
 
 
 def rates_of(rate: float, n: int, spread: float = SPREAD) -> np.ndarray:
