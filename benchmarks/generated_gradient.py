@@ -13,12 +13,13 @@ preset's 1 kHz digital loop (dt 0.1 ms: m = 10, encoder, delay, voltage limit); 
 For each, timed after compilation (the compile time recorded), in ``--rounds`` rounds that time
 each function in turn for ``--round-s`` seconds at least (interleaved, so that the machine's load
 reaches both alike; the ratio is the median of the rounds' ratios):
-- ``forward``: ``problem.simulate(p)`` (the default path: the arm's native kernel), jitted;
+- ``forward``: ``problem.simulate(p)`` (the default path: the generated kernel's forward), jitted;
 - ``value_and_grad``: ``jax.value_and_grad`` of the loss mean(rms_error) + 1e-3 mean(chattering)
   over ``problem.simulate(p)`` in the FOSMC's 15 parameters (delta, gamma, the poles): the
   generated adjoint kernel;
-- ``generated_forward``: the same loss through the generated kernel's forward (white-box), against
-  the hand-written kernel it is to replace;
+- ``generated_forward``: the same loss through ``generated.simulate_batch`` called directly
+  (white-box; the hand-written kernel it was measured against retired at 56dfce3, so that both
+  columns now time the generated forward);
 - ``vmap_value_and_grad`` (``--vmap``): the same through ``simulate(p, fast=False)`` (the
   ``vmap`` path, what a gradient cost before; slow: off by default).
 The gradients of the two paths are compared (max relative difference) where both run. The
