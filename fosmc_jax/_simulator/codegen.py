@@ -2,7 +2,7 @@
 
 A jaxpr of one rollout's step (or of its vector-Jacobian product, which JAX builds) is printed
 *scalarized*: every element of every array is one C++ variable holding that element for every
-rollout of a block (a GCC vector ``V``, :file:`kernel.h`'s ``Simd<T>::V``; booleans a lane mask
+rollout of a block (a GCC vector ``V``, :file:`vecmath.h`'s ``Simd<T>::V``; booleans a lane mask
 ``M``). Shapes are static, so indexing, broadcasting, reshapes, slices, gathers and scatters of
 static indices, transposes and the like print no code: they only rearrange which variable stands
 for which element. Arithmetic prints one statement per element; reductions and ``dot_general``

@@ -21,18 +21,11 @@
 // (k0 + k + 1) % kM == 0: Model::Sampled, else Model::Held (kM = 1: the ideal loop).
 #pragma once
 
-#include <sys/mman.h>
-
-#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
-#include <vector>
 
-#include "kernel.h"
 #include "vecmath.h"
-
-namespace ffi = xla::ffi;
 
 namespace gen {
 
@@ -80,6 +73,23 @@ inline V Lib2(V x, V y, F f) {
   for (int l = 0; l < W; l++) r[l] = f(x[l], y[l]);
   return r;
 }
+
+}  // namespace gen
+
+// A printed step's file (FOSMC_GEN_STEP) needs the types and helpers above only: without the
+// skeleton it does not parse the XLA FFI header (seconds of each file's build).
+#ifndef FOSMC_GEN_STEP
+
+#include <sys/mman.h>
+
+#include <algorithm>
+#include <vector>
+
+#include "kernel.h"
+
+namespace ffi = xla::ffi;
+
+namespace gen {
 
 template <class Mo>
 inline void Step(int64_t k, const V* x, const V* lv, const T* row, V* y) {
@@ -259,3 +269,5 @@ ffi::Error RunAdjoint(ffi::ThreadPool pool, ffi::AnyBuffer lanes, ffi::AnyBuffer
                                     .Attr<int64_t>("k0")                                                          \
                                     .Attr<int64_t>("K")                                                           \
                                     .Attr<int64_t>("truncate"));
+
+#endif  // FOSMC_GEN_STEP

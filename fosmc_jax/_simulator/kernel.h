@@ -1,5 +1,5 @@
-// What the generated kernels' skeleton (gen_kernel.h) builds on: a block of rollouts as one SIMD
-// vector, and the blocks spread over XLA's intra-op thread pool.
+// What the generated kernels' skeleton (gen_kernel.h) builds on: the blocks of rollouts (vecmath.h's
+// Simd) spread over XLA's intra-op thread pool.
 #pragma once
 
 #include <algorithm>
@@ -10,43 +10,10 @@
 #include <memory>
 #include <thread>
 
+#include "vecmath.h"  // Simd
 #include "xla/ffi/api/ffi.h"
 
 namespace fosmc {
-
-// One block: the CPU's SIMD register (AVX-512: 64 bytes, 8 double or 16 float rollouts; AVX: 32;
-// else 16). A block wider than the register takes two registers per value, and the long
-// straight-line step then spills what it cannot hold (BENCHMARKS.md, "Issue 32").
-// -DFOSMC_SIMD_BYTES=N sets another width (an ablation: FOSMC_JAX_KERNEL_FLAGS).
-#if defined(FOSMC_SIMD_BYTES)
-constexpr int kBytes = FOSMC_SIMD_BYTES;
-#elif defined(__AVX512F__)
-constexpr int kBytes = 64;
-#elif defined(__AVX__)
-constexpr int kBytes = 32;
-#else
-constexpr int kBytes = 16;
-#endif
-
-// A block's rollouts as one GCC vector: each variable below holds one quantity of every
-// rollout of the block, each operator acts lane by lane, and a comparison gives a lane mask.
-template <typename T>
-struct Simd {
-  typedef T V __attribute__((vector_size(kBytes)));
-  static constexpr int W = kBytes / sizeof(T);
-  static V Load(const T* p) { V v; std::memcpy(&v, p, sizeof v); return v; }
-  static void Store(T* p, V v) { std::memcpy(p, &v, sizeof v); }
-  template <typename F>
-  static V Map(V x, F f) {
-    V r;
-    for (int l = 0; l < W; l++) r[l] = f(x[l]);
-    return r;
-  }
-  static V Abs(V x) { return Map(x, [](T a) { return std::fabs(a); }); }
-  static V Sqrt(V x) { return Map(x, [](T a) { return std::sqrt(a); }); }
-  static V Max(V a, V b) { return a < b ? b : a; }  // jnp.maximum on finite values (NaN in a stays)
-  static V Min(V a, V b) { return b < a ? b : a; }
-};
 
 inline std::atomic<int64_t> g_busy{0};  // threads running blocks, over every call in the process
 
