@@ -121,6 +121,21 @@ def test_a_users_law_runs_on_the_kernel_with_the_vmap_paths_values_and_gradients
     assert np.any(np.asarray(g[0]) != 0) and np.any(np.asarray(g[1]) != 0)
 
 
+def test_a_model_traced_under_one_mesh_runs_under_another():
+    """A printed model is kept per mesh: fosmc tune's global stage traced it under a shard_map of
+    one axis ('candidates') and its gradient replayed it under another ('batch'), which JAX
+    refused (fosmc tune on realistic_arm failed so from 56dfce3 until the mesh joined the key)."""
+    gen, args = _users_law_loss("gen")
+    P = jax.sharding.PartitionSpec
+
+    def under(axis):
+        mesh = jax.sharding.Mesh(np.array(jax.devices()[:1]), (axis,))
+        f = jax.shard_map(lambda K: gen(K, args[1])[None], mesh=mesh, in_specs=P(), out_specs=P(axis))
+        return jax.jit(f)(args[0])
+
+    np.testing.assert_array_equal(under("candidates"), under("batch"))
+
+
 @pytest.mark.slow
 def test_the_adjoint_from_every_kth_carry_gives_the_gradients_of_every_carry(monkeypatch):
     """Where the checkpoints' budget admits only every K-th carry, the adjoint recomputes each

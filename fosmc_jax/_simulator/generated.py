@@ -584,8 +584,10 @@ _MODELS: dict = {}  # printed models by _model_key, for this process
 
 def _model_key(closed: list, m: int, dynamic, n_plant: int) -> tuple | None:
     """What a printed model depends on: its steps' jaxprs (their text, which names constants but
-    does not show them) and the constants' values; None where a constant is not concrete."""
-    parts = [m, np.asarray(dynamic, bool).tobytes(), n_plant]
+    does not show them), the constants' values and the mesh it is traced under (its recorded
+    values carry that mesh: replayed under another, in a ``shard_map`` of other axes, they are
+    refused); None where a constant is not concrete."""
+    parts = [m, np.asarray(dynamic, bool).tobytes(), n_plant, repr(jax.sharding.get_abstract_mesh())]
     for c in closed:
         parts.append(str(c.jaxpr))
         for x in c.consts:
