@@ -95,7 +95,7 @@ from fosmc_jax import search as fs  # noqa: E402
 from fosmc_jax import use_compilation_cache  # noqa: E402
 from fosmc_jax._search import tune as T  # noqa: E402  (learning_rate, _on_adjoint_kernel: run_tune's own choices)
 from fosmc_jax.io import jsonable, write_text  # noqa: E402
-from fosmc_jax.search import cma_es, global_stage  # noqa: E402
+from fosmc_jax.search import cma_es, global_stage, global_starts  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "tuning" / "configs"
@@ -420,7 +420,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
         fresh_models()
         t = time.perf_counter()
         if args.starts > 1:  # fosmc tune's [tune] starts: the best K of the same candidates
-            top = T.global_starts(train, obj, p0, tcfg["global_candidates"], args.starts, free=tuple(tcfg["params"]),
+            top = global_starts(train, obj, p0, tcfg["global_candidates"], args.starts, free=tuple(tcfg["params"]),
                                 log=lambda _: None)  # fmt: skip
             start, score = jax.tree.map(lambda x: x[0], top[0]), float(top[1][0])
         else:

@@ -136,6 +136,7 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
     else the best of the global stage's candidates (``tune.global_candidates``, within 30% of the
     time left before ``deadline``), else the config's parameters ``p0``; and with ``tune.starts``
     above 1 the best ``starts`` of those candidates (a leading axis; None otherwise)."""
+    from .._search import front
     from .._search import tune as tuner
 
     kept = tuner.checkpoint_extra(checkpoint) if checkpoint is not None else None
@@ -144,7 +145,7 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
     if not tcfg.global_candidates or floor is not None or checkpoint is not None:
         return p0, None
     share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
-    starts, scores = tuner.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts,
+    starts, scores = front.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts,
                                          free=tuple(tcfg.params), log=log, deadline=share)  # fmt: skip
     which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
     log(f"tune: global stage: {which} scores {scores[0]:.4f} (the config's parameters score about 0 with the log "

@@ -276,23 +276,31 @@ def evaluate_many(problem: tuner.Problem | Evaluator, params: tuner.Params, chun
     return evaluator(problem)(params, chunk, log=log, what=what, deadline=deadline, command=command, each=each)
 
 
-def global_stage(problem: tuner.Problem, obj: tuner.Objective, p0: tuner.Params, n: int, *,
-                 free: tuple[str, ...] | None = None, seed: int = 0, chunk: int = 16,
-                 log: Callable[[str], None] = print, command: str = "tune",
-                 deadline: float | None = None) -> tuple[tuner.Params, float]:  # fmt: skip
+def global_starts(problem: tuner.Problem, obj: tuner.Objective, p0: tuner.Params, n: int, k: int, *,
+                  free: tuple[str, ...] | None = None, seed: int = 0, chunk: int = 16,
+                  log: Callable[[str], None] = print, command: str = "tune",
+                  deadline: float | None = None) -> tuple[tuner.Params, np.ndarray]:  # fmt: skip
     """The coarse global stage of ``fosmc tune``: ``n`` candidates of :func:`sample_candidates`
     (the parameters not in ``free`` kept at p0, None: all free; p0 itself among them) scored
-    by ``obj`` on their batch-mean metrics; returns the best and its score. Its progress lines
+    by ``obj`` on their batch-mean metrics; returns the best ``k`` (a leading axis, best first:
+    the starts of :func:`fosmc_jax._search.tune.run_starts`) and their scores. Its progress lines
     start with ``command``. With a ``deadline`` (a ``time.perf_counter()`` value), only the
     candidates evaluated before it (one chunk at least)."""
     cands = sample_candidates(p0, n, seed)
     free = p0._fields if free is None else free
-    cands = type(p0)(*(c if k in free else jnp.broadcast_to(x, c.shape) for k, c, x in zip(p0._fields, cands, p0)))
+    cands = type(p0)(*(c if q in free else jnp.broadcast_to(x, c.shape) for q, c, x in zip(p0._fields, cands, p0)))
     m = evaluate_many(problem, cands, chunk, log=log, what="global stage", command=command, deadline=deadline)
-    means = type("Means", (), {k: jnp.asarray(v) for k, v in m.items()})
+    means = type("Means", (), {q: jnp.asarray(v) for q, v in m.items()})
     J = np.asarray(tuner.rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
-    best = int(np.nanargmin(J))
-    return jax.tree.map(lambda x: x[best], cands), float(J[best])
+    order = np.argsort(np.where(np.isnan(J), np.inf, J), kind="stable")[:k]  # NaN last, as nanargmin
+    return jax.tree.map(lambda x: x[order], cands), J[order]
+
+
+def global_stage(problem: tuner.Problem, obj: tuner.Objective, p0: tuner.Params, n: int,
+                 **options) -> tuple[tuner.Params, float]:  # fmt: skip
+    """The best of :func:`global_starts` (its ``options``) and its score."""
+    best, scores = global_starts(problem, obj, p0, n, 1, **options)
+    return jax.tree.map(lambda x: x[0], best), float(scores[0])
 
 
 def axes(m: dict) -> tuple[np.ndarray, np.ndarray]:

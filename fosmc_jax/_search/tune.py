@@ -659,21 +659,3 @@ def run_starts(
     history["best_step"] = int(np.argmin(np.where(np.isfinite(history["loss"]), history["loss"], np.inf)))
     log(f"tune: start {k}'s best point (loss {best_f[k]:.5f}) is returned: the lowest loss of the {K} starts")
     return u, history
-
-
-def global_starts(problem: Problem, obj: Objective, p0: Params, n: int, k: int, *, free: tuple[str, ...] | None = None,
-                  seed: int = 0, log: Callable[[str], None] = print,
-                  deadline: float | None = None) -> tuple[Params, np.ndarray]:  # fmt: skip
-    """The best ``k`` of the global stage's ``n`` candidates (:func:`fosmc_jax._search.front.global_stage`'s,
-    the same seed: the first is its best) and their scores, best first: :func:`run_starts`'s starts.
-    Physical parameters with a leading axis of k (fewer where fewer were evaluated before ``deadline``)."""
-    from . import front
-
-    cands = front.sample_candidates(p0, n, seed)
-    free = p0._fields if free is None else free
-    cands = type(p0)(*(c if q in free else jnp.broadcast_to(x, c.shape) for q, c, x in zip(p0._fields, cands, p0)))
-    m = front.evaluate_many(problem, cands, 16, log=log, what="global stage", command="tune", deadline=deadline)
-    means = type("Means", (), {q: jnp.asarray(v) for q, v in m.items()})
-    J = np.asarray(rollout_costs(means, jnp.asarray(m["diverged"] > 0), obj)[0])
-    order = np.argsort(np.where(np.isfinite(J), J, np.inf), kind="stable")[:k]
-    return jax.tree.map(lambda x: x[order], cands), J[order]
