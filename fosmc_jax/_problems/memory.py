@@ -42,8 +42,10 @@ OUTPUT_EXTRA_BYTES = 1 + 6 * 8
 #: metric), the device's metrics and ``diverged_at``, and its initial state (9).
 WORK_FLOATS = 9 + 3 * len(METRIC_NAMES) + 3 * len(METRIC_NAMES) + 1 + 9
 #: How many times :data:`WORK_FLOATS` (with a plant's entries) a chunk is sized at: XLA's
-#: temporaries, with room over the peak resident memory seen (BENCHMARKS.md, "Figures behind the code").
-WORK_FACTOR = 2
+#: temporaries and the generated kernel's per-rollout rows and carries, with room over the peak
+#: resident memory seen (BENCHMARKS.md, "Figures behind the code"; 2 until the linear batch moved
+#: onto the generated kernel, whose 500,000-rollout chunk then ran out of a 4 GB address space).
+WORK_FACTOR = 6
 #: Bytes of one rollout's record (``run_simulate(records=True)``: a dict of ints and of metric
 #: rows), rounded up from tracemalloc's count (BENCHMARKS.md, "Figures behind the code").
 RECORD_BYTES = 1700
