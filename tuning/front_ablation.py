@@ -56,23 +56,23 @@ import tomllib
 HERE = pathlib.Path(__file__).parent
 sys.path.insert(0, str(HERE))
 
-import budget_guide as G  # noqa: E402
-import reference_front as R  # noqa: E402
+import budget_guide  # noqa: E402
+import reference_front  # noqa: E402
 
-log = G.log
+log = budget_guide.log
 
 #: The child for the variants that change ``fosmc_jax._search.front`` in the process: argv[1] a JSON
 #: object of Settings fields to set (``__same_simulation_ignores_truncation``: the patch of
 #: ``no_surrogate``), the rest the CLI's arguments. Imports nothing the CLI does not import itself.
 CHILD = """import json, sys
-import fosmc_jax._app.cli as cli, fosmc_jax._search.front as F
+import fosmc_jax._app.cli as cli, fosmc_jax._search.front as front_module
 o = json.loads(sys.argv[1])
 if o.pop("__same_simulation_ignores_truncation", False):
-    same = F._same_simulation
+    same = front_module._same_simulation
     drop = lambda p: p._replace(options={k: v for k, v in p.options.items() if k != "truncate_every"})
-    F._same_simulation = lambda a, b: same(drop(a), drop(b))
-base = F.Settings
-F.Settings = lambda **kw: base(**{**kw, **o})
+    front_module._same_simulation = lambda a, b: same(drop(a), drop(b))
+base = front_module.Settings
+front_module.Settings = lambda **kw: base(**{**kw, **o})
 sys.exit(cli.main(sys.argv[2:]))"""
 
 #: Variant: (lever removed, how).
@@ -145,7 +145,7 @@ def wait_for_load(max_load: float, wait: float) -> None:
     while os.getloadavg()[0] > max_load and time.perf_counter() - t < wait:
         time.sleep(5)
     if time.perf_counter() - t > 1:
-        log(f"  waited {time.perf_counter() - t:.0f} s for the load ({R.load_text()})")
+        log(f"  waited {time.perf_counter() - t:.0f} s for the load ({reference_front.load_text()})")
 
 
 def one(variant: str, seed: int, args, base: pathlib.Path, runs: list[dict], reference: dict) -> dict:
@@ -154,20 +154,20 @@ def one(variant: str, seed: int, args, base: pathlib.Path, runs: list[dict], ref
         wait_for_load(args.max_load, args.wait)
         kw = plan(variant, seed, args.config, base, runs)
         out = base / (f"{variant}_s{seed}" + (f"_retry{attempt}" if attempt else ""))
-        uptime = R.load_text()
+        uptime = reference_front.load_text()
         log(f"{variant}, seed {seed}: {uptime}")
-        r = G.one_run(budget=args.budget, seed=seed, out=out, **kw)
+        r = budget_guide.one_run(budget=args.budget, seed=seed, out=out, **kw)
         if r["load_before"][0] <= args.max_load or attempt:
             break
         log(f"  started at load {r['load_before'][0]:.2f} > {args.max_load}: run again")
-    r.update(variant=variant, uptime_before=uptime, uptime_after=R.load_text(), out=str(out), retried=attempt,
+    r.update(variant=variant, uptime_before=uptime, uptime_after=reference_front.load_text(), out=str(out), retried=attempt,
              cache=kw.get("cache"), config=kw["config"], env=kw.get("env_extra", {}),
              wrapper=json.loads(kw["cli"][3]) if kw.get("cli") else None)  # fmt: skip
     text = (out / "cli.log").read_text()
     planned = re.search(r"costs ([\d.]+) s \(compilation ([\d.]+) s\): (\d+) s of search", text)
     r["chunk_s"], r["first_compile_s"], r["search_s"] = map(float, planned.groups()) if planned else (None,) * 3
-    r["reach"] = G.reach(*r["front"])
-    r["score"] = R.score(r.pop("front"), reference)
+    r["reach"] = budget_guide.reach(*r["front"])
+    r["score"] = reference_front.score(r.pop("front"), reference)
     r["eps1"], r["eps2"] = r["score"]["epsilon_0.1_10"], r["score"]["epsilon_0.5_10"]
     r["hv"] = r["score"]["hypervolume"] / r["score"]["reference_hypervolume"]
     log(f"  wall {r['wall_s']:.1f} s, {r['evaluations']} + {r['plain_evaluations']} evaluations, "
@@ -223,7 +223,7 @@ def markdown(data: dict, max_load: float = 3.5) -> str:
     for r in sorted(runs, key=lambda r: (list(VARIANTS).index(r["variant"]), r["seed"])):
         st = r["stages"]
         stages = f"{st['candidates']} / {st['cma_generations']} / {st['local_rounds']} / {st['plain_rounds']}"
-        reached = " / ".join(f"{r['reach'][f'{lim:g}']:.3g}" for lim in G.LEVELS)
+        reached = " / ".join(f"{r['reach'][f'{lim:g}']:.3g}" for lim in budget_guide.LEVELS)
         high = " (started above the load limit)" if r["load_before"][0] > max_load else ""
         lines.append(f"| `{r['variant']}` | {r['seed']}{high} | {r['wall_s']:.1f} | {r['evaluations']:,} + "
                      f"{r['plain_evaluations']:,} | {stages} | {r['eps1']:.3f} | {r['eps2']:.3f} | {r['hv']:.4f} | "
