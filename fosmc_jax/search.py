@@ -12,7 +12,7 @@ come from a config: :func:`fosmc_jax.config.tuning_problems`.
     front = fs.nondominated(e, c)
 """
 
-from ._controllers import Kind, register
+from ._controllers import Kind, register, rules
 from ._search.front import (
     AXES,
     DIM,
@@ -73,6 +73,7 @@ __all__ = [
     # controller kinds (fosmc_jax._controllers.kind): a kind is one file and one register() line
     "Kind",
     "register",
+    "rules",
     # tuning problems, objectives and the gradient tuner (fosmc_jax._search.tune)
     "SPACES",
     "Param",

@@ -31,7 +31,6 @@ import jax.numpy as jnp
 
 import fosmc_jax as fj
 from fosmc_jax import search
-from fosmc_jax._controllers import rules
 
 
 @functools.partial(jax.tree_util.register_dataclass, data_fields=["C", "k", "eps"], meta_fields=[])
@@ -62,7 +61,7 @@ KIND = search.Kind(
                                  search.Param("eps", "NAME_eps", 1, (-1.0, 1.0)))),
     {"NAME_k": (20.0, 20.0, 20.0), "NAME_eps": (1.0, 1.0, 1.0)},
     lambda params, controller, T: TanhSurface(params.C, controller.gains["NAME_k"], controller.gains["NAME_eps"]),
-    rules={TanhSurface: {"C": rules.MATRIX_3x9, "k": rules.GAINS, "eps": rules.GAINS}},
+    rules={TanhSurface: {"C": search.rules.MATRIX_3x9, "k": search.rules.GAINS, "eps": search.rules.GAINS}},
 )
 """
 
