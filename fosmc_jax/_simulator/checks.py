@@ -362,5 +362,5 @@ def check_inputs(
     plant = walk.object(plant, plant_name)
     message = _step_limit(walk, dt, options.get("integrator", "rk4"))
     if message is not None:
-        warnings.warn(message, stacklevel=4)  # the caller of simulate / simulate_batch (or of its lower)
+        warnings.warn(message, stacklevel=4)  # the caller of simulate / simulate_batch (through _checked)
     return plant, controller, reference, X0, dt

@@ -127,8 +127,8 @@ def option_names(batch: bool) -> tuple[str, ...]:
 def _checked(jitted, batch: bool):
     """``jitted`` behind :func:`fosmc_jax._simulator.checks.check_inputs`: its inputs refused
     with a one-line error naming the field where wrong (shapes always, values where concrete),
-    lists turned into arrays, the arm's zero terms left out; ``lower`` does the same before
-    the jitted function's, and its ``_cache_size`` is kept."""
+    lists turned into arrays, the arm's zero terms left out; the jitted function's ``lower``
+    and ``_cache_size`` kept."""
 
     def checked(plant, controller, reference, X0, dt, options):
         plant, controller, reference, X0, dt = check_inputs(
@@ -142,10 +142,9 @@ def _checked(jitted, batch: bool):
         return jitted(*checked(plant, controller, reference, X0, dt, options), **options)
 
     run.__name__ = run.__qualname__ = jitted.__name__.lstrip("_")
-    run.lower = lambda plant, controller, reference, X0, dt, **options: jitted.lower(
-        *checked(plant, controller, reference, X0, dt, options), **options
-    )
-    run._cache_size = jitted._cache_size
+    # lower is the jitted function's own: the inputs as given (a compiled program is then called
+    # with them, whose pytree the pruning of the arm's zero terms would change)
+    run.lower, run._cache_size = jitted.lower, jitted._cache_size
     return run
 
 
