@@ -4,14 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.backend_bases import FigureCanvasBase
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.backend_bases import FigureCanvasBase  # noqa: E402
-
-from .._io import atomic_write  # noqa: E402
+from .._io import atomic_write
 
 JOINTS = ("joint 1", "joint 2", "joint 3")
 
@@ -28,11 +25,17 @@ def check_figure_path(path: str | Path) -> None:
 
 
 def save_figure(fig, path: str | Path) -> None:
-    """Write ``fig`` atomically (see :func:`fosmc_jax._io.atomic_write`) and close it."""
+    """Write ``fig`` atomically (see :func:`fosmc_jax._io.atomic_write`); a pyplot figure (a
+    user's) is closed after. The package's own figures are :class:`matplotlib.figure.Figure`
+    objects outside pyplot's registry, so that threads may draw them at once (``fosmc reproduce``
+    draws its figures while other cases compile)."""
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format=Path(path).suffix[1:]))
     finally:
-        plt.close(fig)
+        if fig.canvas.manager is not None:
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
 
 
 def plot_rollouts(t, X, X_d, U, labels, path: str | Path, title: str = "") -> None:
@@ -41,7 +44,8 @@ def plot_rollouts(t, X, X_d, U, labels, path: str | Path, title: str = "") -> No
     ``t`` (m,) s; ``X``, ``X_d`` (B, m, 9); ``U`` (B, m, 3) V; ``labels``: B legend entries.
     """
     X, X_d, U = (np.asarray(a) for a in (X, X_d, U))
-    fig, axes = plt.subplots(3, 3, figsize=(14, 9), sharex=True, squeeze=False)
+    fig = Figure(figsize=(14, 9))
+    axes = fig.subplots(3, 3, sharex=True, squeeze=False)
     for j in range(3):
         ax_th, ax_e, ax_u = axes[j]
         ax_th.plot(t, X_d[0, :, 3 * j], "k--", lw=1.5, label="desired")
@@ -69,7 +73,8 @@ def plot_histograms(arrays: dict, names, units: dict, path: str | Path, title: s
     ``names`` (rows), over the rollouts that did not diverge, with the 5th, 50th and 95th
     percentiles marked. ``arrays``: {name: (N, 3)} and ``diverged`` (N,)."""
     ok = ~np.asarray(arrays["diverged"], bool)
-    fig, axes = plt.subplots(len(names), 3, figsize=(13, 3.4 * len(names)), squeeze=False)
+    fig = Figure(figsize=(13, 3.4 * len(names)))
+    axes = fig.subplots(len(names), 3, squeeze=False)
     for i, name in enumerate(names):
         v = np.asarray(arrays[name])[ok]
         for j in range(3):
@@ -95,7 +100,8 @@ def plot_joint_series(series, ylabel: str, path: str | Path, title: str, *, logy
     ``series``: list of (label, t (m,) s, Y (m, 3)); ``ylabel`` names the quantity and its unit.
     ``logy`` plots |Y| on a log axis.
     """
-    fig, axes = plt.subplots(3, 1, figsize=(9, 8), sharex=True)
+    fig = Figure(figsize=(9, 8))
+    axes = fig.subplots(3, 1, sharex=True)
     for i, (label, t, Y) in enumerate(series):
         Y = np.asarray(Y)
         style = (styles or {}).get(label, {})
@@ -141,7 +147,8 @@ def plot_tuning(history: dict, params: list[dict], path: str | Path) -> None:
     steps = np.arange(1, len(history["loss"]) + 1)
     names = list(params[0])
     rows = (len(names) + 2) // 2
-    fig, axes = plt.subplots(rows, 2, figsize=(12, 4 * rows), squeeze=False)
+    fig = Figure(figsize=(12, 4 * rows))
+    axes = fig.subplots(rows, 2, squeeze=False)
     axes = axes.ravel()
     ax = axes[0]
     curves = {key: np.asarray(history[key], float) for key in ("loss", "error", "chattering")}
@@ -175,7 +182,8 @@ def plot_tradeoff(sweeps, path: str | Path, title: str) -> None:
     metrics whose fields are (n, 3) arrays; each panel shows the mean over the joints."""
     rows = (("rms_error", "mean RMS tracking error (rad)"), ("chattering_hf", "mean chattering_hf (V)"),
             ("chattering", "mean total variation rate (V/s)"))  # fmt: skip
-    fig, axes = plt.subplots(len(rows), len(sweeps), figsize=(5.5 * len(sweeps), 3.2 * len(rows)), squeeze=False)
+    fig = Figure(figsize=(5.5 * len(sweeps), 3.2 * len(rows)))
+    axes = fig.subplots(len(rows), len(sweeps), squeeze=False)
     for c, sw in enumerate(sweeps):
         for r, (metric, label) in enumerate(rows):
             ax = axes[r, c]
@@ -200,7 +208,8 @@ def plot_front(front: dict, compare: list, path: str | Path) -> None:
     and any ``compare`` = [(label, front or tune result dict)]."""
     ex, ey = front["axes"]
     xy = lambda m: (np.mean(m[ey]), np.mean(m[ex]))
-    fig, ax = plt.subplots(figsize=(8, 6))
+    fig = Figure(figsize=(8, 6))
+    ax = fig.subplots()
     pts = np.array([xy(p["metrics"]) for p in front["points"]])
     ax.plot(pts[:, 0], pts[:, 1], "o-", color="C0", label="front (training batch)")
     held = [xy(p["held_out"]) for p in front["points"] if "held_out" in p]

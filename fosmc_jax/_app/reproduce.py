@@ -60,12 +60,21 @@ class Settings(NamedTuple):
 SHORT = Settings(t_final=0.1, vertices=8, save_every=0)
 
 
-def parallel(*thunks: Callable[[], Any]) -> list[Any]:
-    """Each thunk's result, in order, the thunks run in one thread per core: XLA compiles and
-    runs a program without holding the GIL, so independent case groups, whose time is mostly
-    single-threaded compilation, overlap."""
-    with concurrent.futures.ThreadPoolExecutor(max_workers=max(1, min(len(thunks), os.cpu_count() or 1))) as pool:
-        return [f.result() for f in [pool.submit(t) for t in thunks]]
+def parallel(*thunks: Callable[[], Any], workers: int | None = None) -> list[Any]:
+    """Each thunk's result, in order, the thunks run in ``workers`` threads (default: one per
+    core): XLA compiles and runs a program without holding the GIL, so independent case
+    groups, whose time is mostly compilation, overlap."""
+    workers = workers or max(1, min(len(thunks), os.cpu_count() or 1))
+    # JAX's configuration contexts are the thread's own: a thread starts from the global
+    # setting, so the caller's ``jax.enable_x64`` (run_reproduce's) is passed on explicitly
+    x64 = jax.config.jax_enable_x64
+
+    def run(thunk):
+        with jax.enable_x64(x64):
+            return thunk()
+
+    with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
+        return [f.result() for f in [pool.submit(run, t) for t in thunks]]
 
 
 def _batched(plants, ctrls, reference, X0, dt, **options):
@@ -414,11 +423,10 @@ def write_figures(cases: list[Case], out_dir, kind: str) -> list[str]:
     return written
 
 
-def write_realistic_figures(cases: list[Case], sweeps: list[Sweep], out_dir) -> list[str]:
+def write_realistic_figure(cases: list[Case], out_dir) -> str:
     """The realistic loop's control beside the ideal loop's (Table 1 set 1, heaviest payload;
-    ``cases`` holds both: the realistic ones and :func:`run_cases`' arm cases), and the
-    trade-off sweeps."""
-    from .plots import plot_joint_series, plot_tradeoff
+    ``cases`` holds both: the realistic ones and :func:`run_cases`' arm cases)."""
+    from .plots import plot_joint_series
 
     heavy = cases[-1].payload
     by = {(c.plant.replace("arm", "arm, ideal loop") if c.plant == "arm" else c.plant, c.payload, c.switching): c
@@ -431,9 +439,17 @@ def write_realistic_figures(cases: list[Case], sweeps: list[Sweep], out_dir) -> 
     plot_joint_series(series, "applied voltage U (V)", out_dir / name,
                       f"Table 1 set 1 in the ideal and the realistic loop (REPRODUCTION.md), arm, {heavy}",
                       styles={"Table 1 set 1, realistic loop": {"lw": 0.5}})  # fmt: skip
-    plot_tradeoff(sweeps, out_dir / "fig_realistic_tradeoff.png",
+    return name
+
+
+def write_tradeoff_figure(sweeps: list[Sweep], out_dir) -> str:
+    """The trade-off sweeps (:func:`tradeoff_sweeps`)."""
+    from .plots import plot_tradeoff
+
+    name = "fig_realistic_tradeoff.png"
+    plot_tradeoff(sweeps, out_dir / name,
                   "Table 1 set 1 on the arm (mean of 0 and 10 kg): smaller delta or faster poles")  # fmt: skip
-    return [name, "fig_realistic_tradeoff.png"]
+    return name
 
 
 # ---------------------------------------------------------------------------- report
@@ -483,36 +499,36 @@ def run_reproduce(
         f"fosmc reproduce: the shortened check table ({SHORT.t_final} s)"
         f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
     )
-    # every group at once, a thread per core: their time is mostly compilation, one core each
-    jobs = [
-        lambda: run_cases(plant, settings, log=log),
-        lambda: run_cases(plant, SHORT, log=log),
-    ]
+
+    # every group at once: their time is mostly compilation, which runs without the GIL, so a
+    # thread per group (more than the cores) keeps the cores busy while another group traces in
+    # Python or draws its figures; each group draws its figures as soon as its cases are done
+    def primary():
+        cases = run_cases(plant, settings, log=log)
+        return cases, [] if out is None else write_figures(cases, out, plant)
+
+    def sweeps():
+        sweeps = tradeoff_sweeps(t_final, log=log)
+        return sweeps, [] if out is None else [write_tradeoff_figure(sweeps, out)]
+
+    jobs = [primary, lambda: run_cases(plant, SHORT, log=log), design_facts]
     if plant == "arm":
-        jobs += [
-            lambda: run_realistic_cases(t_final, log=log),
-            lambda: tradeoff_sweeps(t_final, log=log),
-        ]
-    cases, short_cases, *arm_only = parallel(*jobs)
+        jobs += [lambda: run_realistic_cases(t_final, log=log), sweeps]
+    (cases, figures), short_cases, design, *arm_only = parallel(*jobs, workers=len(jobs))
     rows, short = metric_rows(cases), metric_rows(short_cases)
     files = {"metrics.csv": to_csv(rows), "metrics.md": to_markdown(rows),
-             "design.md": design_facts(), "metrics_short.csv": to_csv(short)}  # fmt: skip
+             "design.md": design, "metrics_short.csv": to_csv(short)}  # fmt: skip
     tables = {"metrics": rows, "metrics_short": short}
-    figures: list[str] = []
+    if plant == "arm":
+        realistic, (sweeps_, tradeoff_figure) = arm_only
+        tables["realistic"] = metric_rows(realistic, METRIC_NAMES)
+        files.update({"realistic.md": to_markdown(tables["realistic"], METRIC_NAMES),
+                      "tradeoff.md": sweep_markdown(sweeps_)})  # fmt: skip
+        if out is not None:
+            figures += [write_realistic_figure(cases + realistic, out), *tradeoff_figure]
     if out is not None:
         for name, text in files.items():
             write_text(out / name, text)
-        log("fosmc reproduce: drawing figures ...")
-        figures = write_figures(cases, out, plant)
-    if plant == "arm":
-        realistic, sweeps = arm_only
-        tables["realistic"] = metric_rows(realistic, METRIC_NAMES)
-        files.update({"realistic.md": to_markdown(tables["realistic"], METRIC_NAMES),
-                      "tradeoff.md": sweep_markdown(sweeps)})  # fmt: skip
-        if out is not None:
-            for name in ("realistic.md", "tradeoff.md"):
-                write_text(out / name, files[name])
-            figures += write_realistic_figures(cases + realistic, sweeps, out)
     if report:
         _refresh(report, files)
         log(f"fosmc reproduce: updated {report}")
