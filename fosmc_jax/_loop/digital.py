@@ -155,6 +155,21 @@ class DigitalLoop:
             applied, pending = U, state.pending
         return saturate(applied, self.u_max), LoopState(law, memory, pending, state.j + 1, state.key)
 
+    def without_clock(self, state: LoopState) -> LoopState:
+        """``state`` without its sample index and key (None there): on a rollout that has not
+        diverged they are functions of the step and of the batch's key (:meth:`with_clock`), so
+        that the generated kernel takes them, and the noise's draws, from its table of time
+        values instead of carrying them per rollout."""
+        return state._replace(j=None, key=None)
+
+    def with_clock(self, state: LoopState, k: Array, key: Array) -> LoopState:
+        """``state`` (from :meth:`without_clock`) at the start of simulation step ``k`` of a
+        rollout that has not diverged: j = floor(k / m) + 1 samples taken (t = 0 and every m-th
+        step since), the rollout's raw ``key``. A diverged rollout's frozen state differs, but
+        nothing it computes is kept (the simulator's guard)."""
+        j = (jnp.asarray(k, jnp.int32) // self.sample_steps + 1).astype(jnp.int32)
+        return state._replace(j=j, key=key)
+
     def sliding_variable(self, state: LoopState) -> Array:
         """The law's sliding variable at the last sample (NaN if it has none)."""
         if isinstance(self.law, HasSlidingVariable):

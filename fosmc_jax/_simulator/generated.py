@@ -6,8 +6,9 @@ too), is traced on one rollout's flat state and split by what each value depends
 
 - on the rollout's parameters only (the plant's and the controller's leaves: K, (CB)^-1, the
   arm's constants): hoisted out of the time loop, computed by JAX once per rollout ("lanes");
-- on time only (the step index, dt, the reference): computed by JAX once per step for every
-  rollout (the "table");
+- on time only (the step index, dt, the reference; a digital loop's sample index and the batch's
+  noise key, so its noise's draws too: :meth:`fosmc_jax.DigitalLoop.with_clock`): computed by JAX
+  once per step for every rollout (the "table");
 - on the state: printed by :mod:`fosmc_jax._simulator.codegen` into straight-line C++ over SIMD
   lanes, with its vector-Jacobian product (built by ``jax.vjp``, printed the same way).
 
@@ -52,6 +53,7 @@ from jax._src.custom_derivatives import linear_call_p as _LINEAR_CALL
 from jax._src.interpreters import batching
 from jax.custom_derivatives import SymbolicZero, linear_call
 
+from .._loop.digital import DigitalLoop
 from . import codegen
 from . import native as _native
 
@@ -247,6 +249,7 @@ def split(step, x_aval, lane_avals, glob_avals, closed=None, n_plant: int = 0) -
             else:
                 (lane_entries if c == _L else time_entries if c == _T else core_entries).append(e)
     lane_entries, core_entries = _moves_to_core(lane_entries, core_entries, out_ids, cls)
+    core_entries = _live_entries(core_entries, out_ids)
     used = [i for e in core_entries for i in e.ins] + list(out_ids)
     used = list(dict.fromkeys(used))
     in_core = {o for e in core_entries for o in e.outs}
@@ -272,6 +275,18 @@ def split(step, x_aval, lane_avals, glob_avals, closed=None, n_plant: int = 0) -
     k0 = jax.ShapeDtypeStruct((), jnp.int32)
     return Split(lane_pre, time_pre, core, jax.eval_shape(lane_pre, lane_avals),
                  jax.eval_shape(time_pre, k0, glob_avals), [i in controls for i in lane_hoist])  # fmt: skip
+
+
+def _live_entries(entries: list, out_ids) -> list:
+    """``entries`` without those whose results reach no output: what a step computes and drops
+    (a state's part that the kernel does not carry, such as a sampled loop's clock) would
+    otherwise be printed, and its inputs hoisted into the table."""
+    live, kept = set(out_ids), []
+    for e in reversed(entries):
+        if any(o in live for o in e.outs):
+            kept.append(e)
+            live.update(e.ins)
+    return kept[::-1]
 
 
 def _moves_to_core(lane_entries: list, core_entries: list, out_ids, cls: dict) -> tuple[list, list]:
@@ -924,40 +939,41 @@ def simulate_batch(
     O = 1 if paired else X0s.shape[0]
     N = P * O
     carry = start_batch(plants, ctrl, reference, X0s, keys[0], bound, paired)
+    # a digital loop's sample index and key are functions of the step and of the batch's one key
+    # (DigitalLoop.with_clock): they come with the time values, so that its noise's draws are
+    # computed by JAX once per step for every rollout (the table) instead of printed per rollout
+    clocked = isinstance(ctrl, DigitalLoop)
+    key = carry.ctrl_state.key[0] if clocked else None
     lane_plants = jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants)
     lane_leaves, lane_def = jax.tree.flatten((lane_plants, ctrl))
     n_plant = len(jax.tree.leaves(lane_plants))
     # the controller's leaves are one rollout's (shared); the plants' carry the batch axis
     lane_avals = [jax.ShapeDtypeStruct(x.shape[1:] if i < n_plant else jnp.shape(x), x.dtype)
                   for i, x in enumerate(lane_leaves)]  # fmt: skip
-    glob_leaves, glob_def = jax.tree.flatten((reference, dt, jnp.asarray(bound, dtype), jnp.asarray(cutoff, dtype)))
+    glob = (reference, dt, jnp.asarray(bound, dtype), jnp.asarray(cutoff, dtype), key)
+    glob_leaves, glob_def = jax.tree.flatten(glob)
     glob_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in glob_leaves]
-    one_carry = jax.tree.map(lambda x: x[0], carry)
+    unclocked = lambda c: c._replace(ctrl_state=ctrl.without_clock(c.ctrl_state)) if clocked else c
+    one_carry = unclocked(jax.tree.map(lambda x: x[0], carry))
     state_def, state_avals, dynamic = _state_layout(one_carry)
     n_state = _size(state_avals)
     m = sample_steps(ctrl)
 
     def flatten(c) -> Array:
-        return _as_float(jax.tree.leaves(tuple(c[1:])), dtype)
+        return _as_float(jax.tree.leaves(tuple(unclocked(c)[1:])), dtype)
 
-    def unflatten(k, x) -> Any:
-        return _Carry(
-            k,
-            *jax.tree.unflatten(
-                state_def,
-                [
-                    v.astype(a.dtype) if a.dtype != jnp.bool_ else v != 0
-                    for v, a in zip(_from_float(x, state_avals), state_avals)
-                ],
-            ),
-        )
+    def unflatten(k, x, key=key) -> Any:
+        leaves = [v.astype(a.dtype) if a.dtype != jnp.bool_ else v != 0
+                  for v, a in zip(_from_float(x, state_avals), state_avals)]  # fmt: skip
+        c = _Carry(k, *jax.tree.unflatten(state_def, leaves))
+        return c._replace(ctrl_state=ctrl.with_clock(c.ctrl_state, k, key)) if clocked else c
 
     def step_of(sample: bool):
         def step(x, lane, glob, k):
             plant, ctrl_ = jax.tree.unflatten(lane_def, lane)
-            ref, dt_, bound_, cutoff_ = jax.tree.unflatten(glob_def, glob)
+            ref, dt_, bound_, cutoff_, key_ = jax.tree.unflatten(glob_def, glob)
             advance_one = closed_loop_step(plant, ctrl_, ref, dt_, integrator, bound_, cutoff_)
-            return flatten(advance_one(unflatten(k, x), sample))
+            return flatten(advance_one(unflatten(k, x, key_), sample))
 
         return step
 
