@@ -392,3 +392,52 @@ def test_fosmc_tune_with_starts_tunes_the_global_stages_best_at_once(tmp_path):
     assert any("best of 2 starts" in line for line in lines)
     assert res["start"]["global_candidates"] == 16 and len(res["history"]["loss"]) == 3
     assert min(res["history"]["loss"] + [res["history"]["last"]]) <= res["history"]["loss"][0]
+
+
+def test_a_budget_gives_the_global_stage_what_the_steps_do_not_need():
+    """``fosmc tune --budget``'s plan, made once the gradient is compiled: the steps end at the
+    budget's end; the global stage takes the time ``tune.steps`` steps leave, ``GLOBAL_SHARE`` of
+    it at least, and none where that would not cover its own compilation."""
+    from fosmc_jax._app import tune as app
+
+    assert app.plan(None, 0.01, 100, 5.0, now=0.0) == app.Plan(None, None)
+    cheap = app.plan(100.0, 0.01, 100, 5.0, now=0.0)  # 100 steps need 1.03 s
+    assert cheap.steps == 100.0 and cheap.global_stage == pytest.approx(100.0 - 103 * 0.01)
+    dear = app.plan(100.0, 1.0, 100, 5.0, now=0.0)  # the steps would take it all: the least share
+    assert dear.global_stage == pytest.approx(app.GLOBAL_SHARE * 100.0)
+    short = app.plan(10.0, 1.0, 100, 5.0, now=0.0)  # 3 s left for a stage whose compilation takes 5 s
+    assert short.global_stage == -np.inf and short.steps == 10.0
+
+
+def test_run_steps_with_the_prepared_gradients_and_their_fallback():
+    """``prepare`` compiles and times a loss's value and gradient at a point of the starts' shape;
+    ``run`` and ``run_starts`` step with it (and with the fallback's, where they fall back) instead
+    of compiling their own: the same steps as without."""
+    target = tuner.Tunable(jnp.ones(3), 2 * jnp.ones(3), -jnp.ones((3, 3)))
+    base = quadratic(target)
+    steep = lambda u: (lambda v: (1e6 * v[0], v[1]))(base(u))
+    s = tuner.Settings(steps=3, learning_rate=0.1, schedule="constant", mode="reverse", checkpoint_every=0)
+    quiet = lambda _: None
+    calls = []
+
+    def counted(stepper, name):
+        return stepper._replace(fn=lambda u: (calls.append(name), stepper.fn(u))[1])
+
+    st = tuner.prepare(base, start_point(), "reverse", log=quiet)
+    assert st.mode == "reverse" and st.compile_seconds > 0 and st.step_seconds > 0
+    _, alone = tuner.run(base, start_point(), s, log=quiet)
+    _, hist = tuner.run(base, start_point(), s, stepper=counted(st, "loss"), log=quiet)
+    np.testing.assert_allclose(hist["loss"], alone["loss"], rtol=1e-12)
+    assert calls and set(calls) == {"loss"}
+    calls.clear()
+    steep_st = counted(tuner.prepare(steep, start_point(), "reverse", log=quiet), "steep")
+    _, fell = tuner.run(steep, start_point(), s, fallback=base, guard=1e3, stepper=steep_st,
+                        fallback_stepper=counted(st, "fallback"), log=quiet)  # fmt: skip
+    np.testing.assert_allclose(fell["loss"], alone["loss"], rtol=1e-12)
+    assert calls[0] == "steep" and set(calls[1:]) == {"fallback"}
+    calls.clear()
+    two = jax.tree.map(lambda x: jnp.stack([x, x]), start_point())
+    batched = tuner.prepare(base, two, starts=True, log=quiet)
+    _, starts = tuner.run_starts(base, two, s, stepper=counted(batched, "starts"), log=quiet)
+    assert calls and set(calls) == {"starts"}
+    np.testing.assert_allclose(starts["loss"], alone["loss"], rtol=1e-12)

@@ -6,7 +6,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import numpy as np
@@ -131,11 +131,42 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
     return cfg, out
 
 
+#: With ``--budget``: the global stage's least share of the time left once the gradient is compiled
+#: (it takes more where ``tune.steps`` steps need less), and the seconds kept back for writing
+#: ``result.json``, drawing ``tuning.png`` (matplotlib's import included) and the process's exit
+#: (JAX's teardown), which the budget counts as a stopwatch does.
+GLOBAL_SHARE, FINISH_SECONDS = 0.3, 4.0
+
+
+class Plan(NamedTuple):
+    """A ``--budget``'s deadlines, ``time.perf_counter()`` values counted from the process's start
+    (None: no budget): the global stage's, and the gradient steps' (the evaluations and files
+    after them kept back at their measured cost)."""
+
+    global_stage: float | None = None
+    steps: float | None = None
+
+
+def plan(end: float | None, step_seconds: float, steps: int, first_evaluation: float, now: float) -> Plan:
+    """The deadlines of a run whose steps must end by ``end`` (None: no budget), planned at ``now``
+    with the gradient compiled (a step: ``step_seconds``). The global stage gets what ``steps``
+    steps do not need, ``GLOBAL_SHARE`` of the time left at least; none (``-inf``: the config's
+    parameters start) where that is less than ``first_evaluation``, the seconds the first
+    evaluation of the training simulation took, an estimate of what compiling the global stage's
+    evaluation costs."""
+    if end is None:
+        return Plan()
+    left = end - now
+    share = max(GLOBAL_SHARE * left, left - (steps + 3) * step_seconds)  # + the steps' timing calls
+    return Plan(now + share if share >= first_evaluation else -math.inf, end)
+
+
 def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: float | None, log: Log):
     """Where the gradient steps start: a resumed run's first start (kept in its ``checkpoint``),
-    else the best of the global stage's candidates (``tune.global_candidates``, within 30% of the
-    time left before ``deadline``), else the config's parameters ``p0``; and with ``tune.starts``
-    above 1 the best ``starts`` of those candidates (a leading axis; None otherwise)."""
+    else the best of the global stage's candidates (``tune.global_candidates``, those evaluated
+    before ``deadline``; none where it is ``-inf``), else the config's parameters ``p0``; and with
+    ``tune.starts`` above 1 the best ``starts`` of those candidates (a leading axis; None
+    otherwise)."""
     from .._search import front
     from .._search import tune as tuner
 
@@ -144,10 +175,13 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
         return type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0))), None
     if not tcfg.global_candidates or floor is not None or checkpoint is not None:
         return p0, None
-    share = None if deadline is None else time.perf_counter() + 0.3 * max(0.0, deadline - time.perf_counter())
+    if deadline == -math.inf:
+        log("tune: --budget: no time left for the global stage once the gradient is compiled; the config's "
+            "parameters start the gradient steps")  # fmt: skip
+        return p0, None
     starts, scores = front.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts,
-                                         free=tuple(tcfg.params), log=log, deadline=share)  # fmt: skip
-    which = "the best candidate" if share else f"the best of {tcfg.global_candidates} candidates"
+                                         free=tuple(tcfg.params), log=log, deadline=deadline)  # fmt: skip
+    which = "the best candidate" if deadline else f"the best of {tcfg.global_candidates} candidates"
     log(f"tune: global stage: {which} scores {scores[0]:.4f} (the config's parameters score about 0 with the log "
         "scale)" + (f"; the best {len(scores)} start the gradient steps" if tcfg.starts > 1 else ""))  # fmt: skip
     return jax.tree.map(lambda x: x[0], starts), starts if len(scores) > 1 else None
@@ -168,11 +202,21 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg.gamma_bound_convention)
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg.params)}")  # fmt: skip
-    m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
     t0 = time.perf_counter()
+    m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
+    first_evaluation = time.perf_counter() - t0
     initial = tuner.evaluate(plain, p0)
-    # kept back for the final evaluation (compiled) and the held-out one (a program like this one)
-    deadline = None if budget is None else started + budget - 1.5 * (time.perf_counter() - t0) - 2.0
+    held = problems.held_out_config(cfg)
+    held_problem = problems.tuning_problems(held)[0]
+    end = None
+    if budget is not None:
+        # the held-out evaluation compiled now and its run timed: what follows the steps is known
+        # before the global stage and the steps share the rest (the final evaluation runs plain's
+        # program, compiled above, on fewer rollouts)
+        tuner.evaluate(held_problem, p0)
+        t0 = time.perf_counter()
+        tuner.evaluate(held_problem, p0)
+        end = started + budget - FINISH_SECONDS - 2 * sharding.first(time.perf_counter() - t0)
     obj = tuner.objective_of(tcfg, m)
     log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
@@ -180,9 +224,8 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
-    start_params, starts = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None, deadline, log)
     try:
-        u0 = tuner.to_internal(start_params, plain.base, floor)
+        u_p0 = tuner.to_internal(p0, plain.base, floor)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     lr = tuner.learning_rate(tcfg.learning_rate, problems.rough_loop(cfg))
@@ -191,29 +234,53 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     if fallback is not None:
         log(f"tune: the gradient follows the whole horizon; its fallback, where that gradient's norm at the start "
             f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
+    loss = tuner.make_loss(problem, obj, floor)
+    # compiled before the global stage: a budget then plans with the gradient's measured cost
+    K = tcfg.starts if tcfg.global_candidates and floor is None and not resuming else 1
+    grid = u_p0 if K == 1 else jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (K, *x.shape)), u_p0)
+    stepper = tuner.prepare(loss, grid, tcfg.mode, starts=K > 1, log=log)
+    # with a budget the fallback's too, though the start may not need it: its cost is then known
+    fell = None
+    if end is not None and fallback is not None:
+        fell = tuner.prepare(fallback, grid, stepper.mode, starts=K > 1, log=lambda _: None)
+    deadlines = plan(end, stepper.step_seconds, tcfg.steps, first_evaluation, time.perf_counter())
+    if end is not None:
+        both = stepper.compile_seconds + (0.0 if fell is None else fell.compile_seconds)
+        log(f"tune: --budget {budget:g} s: the gradient{'s' if fell else ''} compiled in {both:.1f} s, "
+            f"{stepper.step_seconds:.3f} s a step; "
+            + ("no global stage" if deadlines.global_stage == -math.inf
+               else f"the global stage until {deadlines.global_stage - started:.1f} s")
+            + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
+    start_params, starts = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None,
+                                  deadlines.global_stage, log)  # fmt: skip
+    if K > 1 and starts is None and start_params is p0:  # no global stage: each start at p0 at its own rate
+        starts = jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (K, *x.shape)), p0)
+    u0 = tuner.to_internal(start_params, plain.base, floor)
     settings = tuner.Settings(tcfg.steps, lr, tcfg.schedule, tcfg.clip, tcfg.mode, tuple(tcfg.params),
                               tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
     keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
-    if deadline is not None and time.perf_counter() > deadline:
+    if end is not None and time.perf_counter() > end:
         log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
     if starts is None:
-        u, history = tuner.run(tuner.make_loss(problem, obj, floor), u0, settings, checkpoint=checkpoint,
-                               resume=resume, terms=terms, extra=keep, deadline=deadline, fallback=fallback,
-                               guard=problems.GRADIENT_GUARD, log=log)  # fmt: skip
+        u, history = tuner.run(loss, u0, settings, checkpoint=checkpoint, resume=resume, terms=terms, extra=keep,
+                               deadline=end, fallback=fallback, guard=problems.GRADIENT_GUARD,
+                               stepper=stepper if K == 1 else None, fallback_stepper=fell if K == 1 else None,
+                               log=log)  # fmt: skip
     else:  # the starts at once; no checkpoint (a resumed run starts afresh)
         U0 = jax.vmap(lambda p: tuner.to_internal(p, plain.base, None))(starts)
-        u, history = tuner.run_starts(tuner.make_loss(problem, obj, floor), U0, settings,
-                                      rates=tuner.rates_of(lr, len(jax.tree.leaves(starts)[0])),
-                                      deadline=deadline, fallback=fallback, guard=problems.GRADIENT_GUARD,
-                                      terms=terms, log=log)  # fmt: skip
+        u, history = tuner.run_starts(loss, U0, settings, rates=tuner.rates_of(lr, len(jax.tree.leaves(starts)[0])),
+                                      deadline=end, fallback=fallback, guard=problems.GRADIENT_GUARD, terms=terms,
+                                      stepper=stepper, fallback_stepper=fell, log=log)  # fmt: skip
+    # on the host: the parameters as p0's (not placed on the gradient's devices), so the final
+    # evaluation runs the program that evaluated p0 instead of compiling another
+    u = jax.device_get(u)
     final_params = tuner.to_physical(u, plain.base, floor)
     final = tuner.evaluate(plain, final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
-    held = problems.held_out_config(cfg)
-    held_out = tuner.evaluate(problems.tuning_problems(held)[0], final_params)
+    held_out = tuner.evaluate(held_problem, final_params)
     log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
         f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
         f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip

@@ -296,6 +296,38 @@ def _step_function(loss, u, mode: str, log: Callable[[str], None]) -> tuple[Call
     return compiled[mode], mode
 
 
+class Stepper(NamedTuple):
+    """A loss's compiled value and gradient, ``fn(u) -> ((value, aux), grad)`` (vmapped over a
+    leading axis of starts for :func:`run_starts`), its gradient mode, and what it cost
+    (:func:`prepare`): a budget knows what the gradient steps cost before the global stage takes
+    its share."""
+
+    fn: Callable
+    mode: str
+    compile_seconds: float  # the tracing, the kernel's build and the compilation, with one call
+    step_seconds: float  # one call, compiled
+
+
+def prepare(loss, u: Params, mode: str = "auto", *, starts: bool = False,
+            log: Callable[[str], None] = print) -> Stepper:  # fmt: skip
+    """The :class:`Stepper` of ``loss`` at ``u`` (internal coordinates; with ``starts``, K of them
+    on a leading axis, the program of :func:`run_starts`, reverse mode): compiled and timed, for
+    :func:`run`'s and :func:`run_starts`' ``stepper``. The compiled program depends on ``u``'s
+    shapes only, so any point of the same shape (the config's parameters before the global stage
+    has found the start) compiles it."""
+    u = replicated(u)  # as run and run_starts place their parameters: the same program
+    t0 = time.perf_counter()
+    if starts:
+        fn, mode = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True))), "reverse"
+    else:
+        fn, mode = _step_function(loss, u, mode, log)
+    jax.block_until_ready(fn(u))
+    t1 = time.perf_counter()
+    jax.block_until_ready(fn(u))
+    t2 = time.perf_counter()
+    return Stepper(fn, mode, sharding.first(t1 - t0), sharding.first(t2 - t1))  # process 0's: one plan everywhere
+
+
 def _save(path: Path, header: dict, arrays: dict[str, Any]) -> None:
     """Atomically write a checkpoint: a NumPy .npz of named arrays and a JSON ``header``; by
     process 0 alone in a run across processes (the others hold the same state)."""
@@ -396,6 +428,8 @@ def run(
     deadline: float | None = None,
     fallback=None,
     guard: float = np.inf,
+    stepper: Stepper | None = None,
+    fallback_stepper: Stepper | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam, or
@@ -417,7 +451,10 @@ def run(
     schedule spans them; a resumed run keeps the first run's count), and the loop stops at it.
     ``fallback``: a loss to minimise instead where ``loss``'s gradient at ``u0`` is not finite or
     its norm is above ``guard`` (``fosmc tune``: the whole horizon's gradient, and a truncated
-    one's where it explodes); a resumed run keeps the first run's choice.
+    one's where it explodes); a resumed run keeps the first run's choice. ``stepper``: ``loss``'s
+    value and gradient already compiled (:func:`prepare`), used unless a resumed run follows the
+    fallback or another gradient mode; ``fallback_stepper``: ``fallback``'s, used where the run
+    falls back.
 
     (Long: the loop's checkpoint, resume, budget and fallback read and write one state, the
     parameters, optimizer state, step, mode and history; stages would pass all of it around.)
@@ -454,13 +491,19 @@ def run(
         loss = fallback
 
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
-    step_fn, mode = _step_function(loss, u, mode, log)
+    if stepper is not None and not fell_back and mode in ("auto", stepper.mode):
+        step_fn, mode = stepper.fn, stepper.mode
+    elif fallback_stepper is not None and fell_back and mode == fallback_stepper.mode:
+        step_fn = fallback_stepper.fn
+    else:
+        step_fn, mode = _step_function(loss, u, mode, log)
     if fallback is not None and not fell_back and start_step == 0:
         (value, _), grad = step_fn(u)
         norm = _norm(grad)  # NaN where the gradient is
         if sharding.first(not (np.isfinite(float(value)) and norm <= guard)):  # process 0's: the same everywhere
             fell_back = True
-            loss, step_fn = fallback, value_and_grad(fallback, mode)
+            compiled = fallback_stepper is not None and fallback_stepper.mode == mode
+            loss, step_fn = fallback, fallback_stepper.fn if compiled else value_and_grad(fallback, mode)
             log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
                 "fallback's gradient instead")  # fmt: skip
     if deadline is not None and start_step == 0:
@@ -563,6 +606,8 @@ def run_starts(
     fallback=None,
     guard: float = np.inf,
     terms: tuple[str, str] = ("error", "chattering"),
+    stepper: Stepper | None = None,
+    fallback_stepper: Stepper | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Adam from several starts at once: ``U0`` holds K starts on a leading axis (internal
@@ -574,22 +619,25 @@ def run_starts(
     zero (every rollout diverged: the flat penalty), goes back to its own best point with a fresh
     Adam state and half its rate. ``deadline``: as :func:`run`'s (the steps that fit at the
     batched step's measured time). ``fallback``, ``guard``: as :func:`run`'s, judged at the first
-    start (the global stage's best). Returns the internal parameters of the lowest finite loss
-    evaluated, over every start and step, and a history shaped as :func:`run`'s, each step's
-    entries those of its best start (``restarts``: per step, the starts sent back)."""
+    start (the global stage's best). ``stepper``: ``loss``'s batched value and gradient already
+    compiled (:func:`prepare` with ``starts``), ``fallback_stepper`` ``fallback``'s. Returns the
+    internal parameters of the lowest finite loss evaluated, over every start and step, and a
+    history shaped as :func:`run`'s, each step's entries those of its best start (``restarts``:
+    per step, the starts sent back)."""
     if settings.optimizer != "adam":
         raise ValueError("run_starts: Adam only (settings.optimizer = 'adam')")
     K = int(jax.tree.leaves(U0)[0].shape[0])
     free = U0._fields if settings.free is None else settings.free
     labels = type(U0)(*("free" if n in free else "frozen" for n in U0._fields))
     scale = np.ones(K) if rates is None else np.asarray(rates, float) / settings.learning_rate
-    step_fn = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))
+    step_fn = stepper.fn if stepper is not None else jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))
     U = replicated(U0)
     if fallback is not None:
         (value, _), grads = step_fn(U)
         norm = _norm(jax.tree.map(lambda x: x[0], grads))
         if sharding.first(not (np.isfinite(float(value[0])) and norm <= guard)):
-            step_fn = jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True)))
+            step_fn = (fallback_stepper.fn if fallback_stepper is not None
+                       else jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True))))  # fmt: skip
             log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
                 "fallback's gradient instead")  # fmt: skip
     if deadline is not None:
