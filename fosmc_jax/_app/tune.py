@@ -58,10 +58,11 @@ def run_tune(
     evaluated on the plain ``[sim]`` simulation.
 
     ``steps`` overrides ``tune.steps``. ``budget``: seconds of wall time from ``started`` (a
-    ``time.perf_counter()`` value; the CLI passes its process's start; None: this call's), which
-    the global stage (30% of what is left after the start's evaluations) and the gradient steps
-    (as many as fit, ``tune.steps`` at most) share, the final and held-out evaluations' time kept
-    back (estimated from the first evaluation's). ``out``: folder for ``result.json``, ``tuning.png``
+    ``time.perf_counter()`` value; the CLI passes its process's start; None: this call's),
+    compilation included, which the global stage and the gradient steps share (:func:`plan`,
+    planned once the gradient is compiled; the held-out evaluation compiled before and the
+    files' time kept back): the steps are as many as fit, ``FILL`` x ``tune.steps`` at most
+    (``steps`` at most where given). ``out``: folder for ``result.json``, ``tuning.png``
     and ``checkpoint.npz`` (None: nothing written; ``tuning.png`` draws the kind's
     parameters); ``resume`` continues from its checkpoint. Returns what
     ``result.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"}, "initial":
@@ -98,7 +99,7 @@ def run_tune(
             study.start_afresh(out, "result.json", "checkpoint.npz")
     if lead:
         _warn_one_plant(cfg, "tune")
-    return _tune(cfg, out, resume, budget, started, lead, log)
+    return _tune(cfg, out, resume, budget, started, lead, log, fill=budget is not None and steps is None)
 
 
 def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict, Path | None]:
@@ -137,6 +138,16 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
 #: (JAX's teardown), which the budget counts as a stopwatch does.
 GLOBAL_SHARE, FINISH_SECONDS = 0.3, 4.0
 
+#: With ``--budget`` and no ``--steps``: the gradient steps fill the budget, at most ``FILL`` x
+#: ``tune.steps`` of them (the cosine schedule spans those that fit). On the realistic preset a
+#: step costs a few hundredths of a second and the loss still falls after ``tune.steps`` of them
+#: (BENCHMARKS.md, "fosmc tune --budget").
+FILL = 10
+
+#: The global stage's candidates per evaluation (the config's parameters are evaluated by the
+#: same program, for the objective's scales)
+CHUNK = 16
+
 
 class Plan(NamedTuple):
     """A ``--budget``'s deadlines, ``time.perf_counter()`` values counted from the process's start
@@ -147,26 +158,26 @@ class Plan(NamedTuple):
     steps: float | None = None
 
 
-def plan(end: float | None, step_seconds: float, steps: int, first_evaluation: float, now: float) -> Plan:
+def plan(end: float | None, step_seconds: float, steps: int, fallback_seconds: float, now: float) -> Plan:
     """The deadlines of a run whose steps must end by ``end`` (None: no budget), planned at ``now``
-    with the gradient compiled (a step: ``step_seconds``). The global stage gets what ``steps``
-    steps do not need, ``GLOBAL_SHARE`` of the time left at least; none (``-inf``: the config's
-    parameters start) where that is less than ``first_evaluation``, the seconds the first
-    evaluation of the training simulation took, an estimate of what compiling the global stage's
-    evaluation costs."""
+    with the gradient and the global stage's evaluation compiled (a step: ``step_seconds``). The
+    global stage gets what ``steps`` steps and ``fallback_seconds`` (a second compilation, where
+    the gradient at the start may fall back to another loss's; the steps get it where it does
+    not) do not need, ``GLOBAL_SHARE`` of the time left at least (it evaluates one chunk of
+    candidates even past its deadline)."""
     if end is None:
         return Plan()
-    left = end - now
+    left = max(0.0, end - now - fallback_seconds)
     share = max(GLOBAL_SHARE * left, left - (steps + 3) * step_seconds)  # + the steps' timing calls
-    return Plan(now + share if share >= first_evaluation else -math.inf, end)
+    return Plan(now + share, end)
 
 
 def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: float | None, log: Log):
     """Where the gradient steps start: a resumed run's first start (kept in its ``checkpoint``),
     else the best of the global stage's candidates (``tune.global_candidates``, those evaluated
-    before ``deadline``; none where it is ``-inf``), else the config's parameters ``p0``; and with
-    ``tune.starts`` above 1 the best ``starts`` of those candidates (a leading axis; None
-    otherwise)."""
+    before ``deadline``, on ``problem``, a problem or its :class:`fosmc_jax._search.front.Evaluator`),
+    else the config's parameters ``p0``; and with ``tune.starts`` above 1 the best ``starts`` of
+    those candidates (a leading axis; None otherwise)."""
     from .._search import front
     from .._search import tune as tuner
 
@@ -175,11 +186,7 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
         return type(p0)(*(jax.numpy.asarray(kept["start"][k], x.dtype) for k, x in zip(p0._fields, p0))), None
     if not tcfg.global_candidates or floor is not None or checkpoint is not None:
         return p0, None
-    if deadline == -math.inf:
-        log("tune: --budget: no time left for the global stage once the gradient is compiled; the config's "
-            "parameters start the gradient steps")  # fmt: skip
-        return p0, None
-    starts, scores = front.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts,
+    starts, scores = front.global_starts(problem, obj, p0, tcfg.global_candidates, tcfg.starts, chunk=CHUNK,
                                          free=tuple(tcfg.params), log=log, deadline=deadline)  # fmt: skip
     which = "the best candidate" if deadline else f"the best of {tcfg.global_candidates} candidates"
     log(f"tune: global stage: {which} scores {scores[0]:.4f} (the config's parameters score about 0 with the log "
@@ -188,8 +195,9 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
 
 
 def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
-          log: Log) -> dict[str, Any]:  # fmt: skip
+          log: Log, fill: bool = False) -> dict[str, Any]:  # fmt: skip
     """``run_tune``'s work, its inputs checked."""
+    from .._search import front
     from .._search import tune as tuner
 
     tcfg = cfg.tune
@@ -202,9 +210,17 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         floor = tuner.GammaFloor(d.alpha.value, d.beta.value, tcfg.gamma_bound_convention)
     log(f"tune: {problem.rollouts} rollouts x {problem.options['n_steps']} steps (dt = {float(problem.dt)} s) "
         f"per training evaluation; free parameters: {', '.join(tcfg.params)}")  # fmt: skip
-    t0 = time.perf_counter()
-    m = tuner.evaluate(problem, p0)["metrics"]  # the objective's scales, on the training simulation
-    first_evaluation = time.perf_counter() - t0
+    checkpoint = None if out is None else out / "checkpoint.npz"
+    resuming = resume and checkpoint is not None and checkpoint.exists()
+    # the objective's scales: the metrics at p0 on the training simulation, by the global stage's
+    # evaluation where there is one (one program compiled for both)
+    searching = bool(tcfg.global_candidates) and floor is None and not resuming
+    evaluator = front.Evaluator(problem) if searching else problem
+    if searching:
+        at_p0 = evaluator(jax.tree.map(lambda x: x[None], p0), CHUNK, log=_quiet)
+        m = {k: v[0].tolist() for k, v in at_p0.items() if k != "diverged"}
+    else:
+        m = tuner.evaluate(problem, p0)["metrics"]
     initial = tuner.evaluate(plain, p0)
     held = problems.held_out_config(cfg)
     held_problem = problems.tuning_problems(held)[0]
@@ -222,8 +238,6 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
         f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
         f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
-    checkpoint = None if out is None else out / "checkpoint.npz"
-    resuming = resume and checkpoint is not None and checkpoint.exists()
     try:
         u_p0 = tuner.to_internal(p0, plain.base, floor)
     except ValueError as e:
@@ -236,28 +250,23 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
             f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
     loss = tuner.make_loss(problem, obj, floor)
     # compiled before the global stage: a budget then plans with the gradient's measured cost
-    K = tcfg.starts if tcfg.global_candidates and floor is None and not resuming else 1
+    K = tcfg.starts if searching else 1
     grid = u_p0 if K == 1 else jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (K, *x.shape)), u_p0)
     stepper = tuner.prepare(loss, grid, tcfg.mode, starts=K > 1, log=log)
-    # with a budget the fallback's too, though the start may not need it: its cost is then known
-    fell = None
-    if end is not None and fallback is not None:
-        fell = tuner.prepare(fallback, grid, stepper.mode, starts=K > 1, log=lambda _: None)
-    deadlines = plan(end, stepper.step_seconds, tcfg.steps, first_evaluation, time.perf_counter())
+    # the fallback's compilation, where the start needs it: the adjoint kernel's build and most of
+    # the tracing, the larger part of the first compilation, are not repeated
+    again = 0.0 if fallback is None else 0.5 * stepper.compile_seconds
+    deadlines = plan(end, stepper.step_seconds, tcfg.steps, again, time.perf_counter())
     if end is not None:
-        both = stepper.compile_seconds + (0.0 if fell is None else fell.compile_seconds)
-        log(f"tune: --budget {budget:g} s: the gradient{'s' if fell else ''} compiled in {both:.1f} s, "
+        log(f"tune: --budget {budget:g} s: the gradient compiled in {stepper.compile_seconds:.1f} s, "
             f"{stepper.step_seconds:.3f} s a step; "
-            + ("no global stage" if deadlines.global_stage == -math.inf
-               else f"the global stage until {deadlines.global_stage - started:.1f} s")
+            + (f"the global stage until {deadlines.global_stage - started:.1f} s" if searching else "no global stage")
             + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
-    start_params, starts = _start(tcfg, problem, obj, p0, floor, checkpoint if resuming else None,
+    start_params, starts = _start(tcfg, evaluator, obj, p0, floor, checkpoint if resuming else None,
                                   deadlines.global_stage, log)  # fmt: skip
-    if K > 1 and starts is None and start_params is p0:  # no global stage: each start at p0 at its own rate
-        starts = jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (K, *x.shape)), p0)
     u0 = tuner.to_internal(start_params, plain.base, floor)
-    settings = tuner.Settings(tcfg.steps, lr, tcfg.schedule, tcfg.clip, tcfg.mode, tuple(tcfg.params),
-                              tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
+    settings = tuner.Settings(tcfg.steps * (FILL if fill else 1), lr, tcfg.schedule, tcfg.clip, tcfg.mode,
+                              tuple(tcfg.params), tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
@@ -267,13 +276,12 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     if starts is None:
         u, history = tuner.run(loss, u0, settings, checkpoint=checkpoint, resume=resume, terms=terms, extra=keep,
                                deadline=end, fallback=fallback, guard=problems.GRADIENT_GUARD,
-                               stepper=stepper if K == 1 else None, fallback_stepper=fell if K == 1 else None,
-                               log=log)  # fmt: skip
+                               stepper=stepper if K == 1 else None, log=log)  # fmt: skip
     else:  # the starts at once; no checkpoint (a resumed run starts afresh)
         U0 = jax.vmap(lambda p: tuner.to_internal(p, plain.base, None))(starts)
         u, history = tuner.run_starts(loss, U0, settings, rates=tuner.rates_of(lr, len(jax.tree.leaves(starts)[0])),
                                       deadline=end, fallback=fallback, guard=problems.GRADIENT_GUARD, terms=terms,
-                                      stepper=stepper, fallback_stepper=fell, log=log)  # fmt: skip
+                                      stepper=stepper, log=log)  # fmt: skip
     # on the host: the parameters as p0's (not placed on the gradient's devices), so the final
     # evaluation runs the program that evaluated p0 instead of compiling another
     u = jax.device_get(u)

@@ -429,7 +429,6 @@ def run(
     fallback=None,
     guard: float = np.inf,
     stepper: Stepper | None = None,
-    fallback_stepper: Stepper | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Minimise ``loss(u) -> (value, (error part, chattering part))`` from ``u0`` with Adam, or
@@ -453,8 +452,7 @@ def run(
     its norm is above ``guard`` (``fosmc tune``: the whole horizon's gradient, and a truncated
     one's where it explodes); a resumed run keeps the first run's choice. ``stepper``: ``loss``'s
     value and gradient already compiled (:func:`prepare`), used unless a resumed run follows the
-    fallback or another gradient mode; ``fallback_stepper``: ``fallback``'s, used where the run
-    falls back.
+    fallback or another gradient mode.
 
     (Long: the loop's checkpoint, resume, budget and fallback read and write one state, the
     parameters, optimizer state, step, mode and history; stages would pass all of it around.)
@@ -493,8 +491,6 @@ def run(
     u, state = replicated((u, state))  # as the gradients come out: one compilation of each program
     if stepper is not None and not fell_back and mode in ("auto", stepper.mode):
         step_fn, mode = stepper.fn, stepper.mode
-    elif fallback_stepper is not None and fell_back and mode == fallback_stepper.mode:
-        step_fn = fallback_stepper.fn
     else:
         step_fn, mode = _step_function(loss, u, mode, log)
     if fallback is not None and not fell_back and start_step == 0:
@@ -502,8 +498,7 @@ def run(
         norm = _norm(grad)  # NaN where the gradient is
         if sharding.first(not (np.isfinite(float(value)) and norm <= guard)):  # process 0's: the same everywhere
             fell_back = True
-            compiled = fallback_stepper is not None and fallback_stepper.mode == mode
-            loss, step_fn = fallback, fallback_stepper.fn if compiled else value_and_grad(fallback, mode)
+            loss, step_fn = fallback, value_and_grad(fallback, mode)
             log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
                 "fallback's gradient instead")  # fmt: skip
     if deadline is not None and start_step == 0:
@@ -607,7 +602,6 @@ def run_starts(
     guard: float = np.inf,
     terms: tuple[str, str] = ("error", "chattering"),
     stepper: Stepper | None = None,
-    fallback_stepper: Stepper | None = None,
     log: Callable[[str], None] = print,
 ) -> tuple[Params, dict[str, list]]:
     """Adam from several starts at once: ``U0`` holds K starts on a leading axis (internal
@@ -620,7 +614,7 @@ def run_starts(
     Adam state and half its rate. ``deadline``: as :func:`run`'s (the steps that fit at the
     batched step's measured time). ``fallback``, ``guard``: as :func:`run`'s, judged at the first
     start (the global stage's best). ``stepper``: ``loss``'s batched value and gradient already
-    compiled (:func:`prepare` with ``starts``), ``fallback_stepper`` ``fallback``'s. Returns the
+    compiled (:func:`prepare` with ``starts``). Returns the
     internal parameters of the lowest finite loss evaluated, over every start and step, and a
     history shaped as :func:`run`'s, each step's entries those of its best start (``restarts``:
     per step, the starts sent back)."""
@@ -636,8 +630,7 @@ def run_starts(
         (value, _), grads = step_fn(U)
         norm = _norm(jax.tree.map(lambda x: x[0], grads))
         if sharding.first(not (np.isfinite(float(value[0])) and norm <= guard)):
-            step_fn = (fallback_stepper.fn if fallback_stepper is not None
-                       else jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True))))  # fmt: skip
+            step_fn = jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True)))
             log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
                 "fallback's gradient instead")  # fmt: skip
     if deadline is not None:
