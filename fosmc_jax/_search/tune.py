@@ -504,7 +504,8 @@ def run(
     if deadline is not None and start_step == 0:
         jax.block_until_ready(step_fn(u))  # compiled (where auto did not)
         t0 = time.perf_counter()
-        jax.block_until_ready(step_fn(u))
+        (value, _), grad = step_fn(u)
+        _norm(grad), float(value), [np.asarray(x).tolist() for x in u]  # with a step's work on the host
         per_step = sharding.first(time.perf_counter() - t0)
         # one evaluation more after the steps: the last update's loss (process 0's count, on every process)
         fit = sharding.first(max(1, int((deadline - time.perf_counter()) / per_step) - 1))
