@@ -532,7 +532,8 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--config", help="TOML config with a [tune] table (default: the paper's setup)")
     t.add_argument("--steps", type=int, help="optimizer steps (overrides tune.steps)")
     t.add_argument("--budget", type=float, help="wall time, s, from the process's start (compilation included): "
-                   "the global stage and as many gradient steps as fit (tune.steps at most)")  # fmt: skip
+                   "the global stage and as many gradient steps as fit (10 x tune.steps at most; --steps at most "
+                   "where given)")  # fmt: skip
     t.add_argument("--out", default="out/tune", help="output folder (default: out/tune)")
     t.add_argument("--resume", action="store_true", help="continue from --out's checkpoint")
     t.add_argument("--force", action="store_true", help="overwrite a non-empty --out")

@@ -134,9 +134,9 @@ def _checked_tune(config, steps, out, resume, force, budget, lead) -> tuple[dict
 
 #: With ``--budget``: the global stage's least share of the time left once the gradient is compiled
 #: (it takes more where ``tune.steps`` steps need less), and the seconds kept back for writing
-#: ``result.json``, drawing ``tuning.png`` (matplotlib's import included) and the process's exit
-#: (JAX's teardown), which the budget counts as a stopwatch does.
-GLOBAL_SHARE, FINISH_SECONDS = 0.3, 4.0
+#: ``result.json`` and the process's exit (JAX's teardown), which the budget counts as a stopwatch
+#: does, beside the drawing of ``tuning.png`` (measured: :func:`_drawing_seconds`).
+GLOBAL_SHARE, EXIT_SECONDS = 0.3, 2.0
 
 #: With ``--budget`` and no ``--steps``: the gradient steps fill the budget, at most ``FILL`` x
 #: ``tune.steps`` of them (the cosine schedule spans those that fit). On the realistic preset a
@@ -156,6 +156,20 @@ class Plan(NamedTuple):
 
     global_stage: float | None = None
     steps: float | None = None
+
+
+def _drawing_seconds() -> float:
+    """What drawing ``tuning.png`` costs, measured by a first drawing into a scratch folder after
+    matplotlib's import (both, under load, take seconds; done now, the real drawing then finds
+    them done)."""
+    import tempfile
+
+    from .plots import plot_tuning
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        plot_tuning({"loss": [1.0], "error": [1.0], "chattering": [1.0]}, [{"x": [1.0]}], Path(tmp) / "tuning.png")
+    return time.perf_counter() - t0
 
 
 def plan(end: float | None, step_seconds: float, steps: int, fallback_seconds: float, now: float) -> Plan:
@@ -232,7 +246,9 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         tuner.evaluate(held_problem, p0)
         t0 = time.perf_counter()
         tuner.evaluate(held_problem, p0)
-        end = started + budget - FINISH_SECONDS - 2 * sharding.first(time.perf_counter() - t0)
+        evaluations = sharding.first(time.perf_counter() - t0)
+        drawing = sharding.first(_drawing_seconds() if out is not None and lead else 0.0)  # process 0 draws
+        end = started + budget - EXIT_SECONDS - drawing - 2 * evaluations
     obj = tuner.objective_of(tcfg, m)
     log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
