@@ -835,6 +835,102 @@ def report(data: dict) -> str:
 # ---------------------------------------------------------------------------- main
 
 
+#: ``--cold``'s runs: config name and ``--budget`` (None: none, the default settings)
+COLD_RUNS = (("realistic_arm", 60.0), ("realistic_arm", 30.0), ("arm_ideal_set2", None), ("arm_ideal_set2", 30.0),
+             ("arm_ideal_set2", 60.0))  # fmt: skip
+COLD_OUT = ROOT / "tuning" / "results" / "tune_budget"
+REFERENCES = ROOT / "tuning" / "results" / "reference"
+
+
+def _log_product(metrics: dict) -> float:
+    """log10(E x C), E and C the means over rollouts and joints of rms_error and chattering_hf."""
+    return float(np.log10(np.mean(metrics["rms_error"]) * np.mean(metrics["chattering_hf"])))
+
+
+def cold_run(name: str, budget: float | None) -> dict:
+    """One ``fosmc tune`` as a new user runs it: a fresh process with empty caches (the kernels'
+    and XLA's), its wall time from before its start to its exit, and its point's measures: the
+    issue's log10(E x C) against the smallest among the reference front's points (where
+    tuning/results/reference/<name>/ has one), and mean rms_error and total variation."""
+    out = pathlib.Path(tempfile.mkdtemp(prefix=f"tune-cold-{name}-"))
+    env = dict(os.environ, XDG_CACHE_HOME=tempfile.mkdtemp(), FOSMC_JAX_CACHE=tempfile.mkdtemp())
+    cmd = [str(ROOT / ".venv" / "bin" / "fosmc"), "tune", "--config", str(CONFIGS / f"{name}.toml"), "--out",
+           str(out / "run")] + ([] if budget is None else ["--budget", f"{budget:g}"])  # fmt: skip
+    before = load()
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    wall = time.perf_counter() - t0
+    row = {"config": name, "budget": budget, "wall_s": round(wall, 2), "load_start_end": [before, load()],
+           "returncode": done.returncode, "log": [x for x in done.stderr.splitlines() if "step " not in x][-12:]}  # fmt: skip
+    if done.returncode:
+        return row
+    result = json.loads((out / "run" / "result.json").read_text())
+    final, history = result["final"]["metrics"], result["history"]
+    row.update(rms_error=float(np.mean(final["rms_error"])), chattering_hf=float(np.mean(final["chattering_hf"])),
+               total_variation=float(np.mean(final["chattering"])), log10_EC=_log_product(final),
+               steps=len(history["loss"]), start_loss=history["loss"][0] if history["loss"] else None,
+               best_loss=min(history["loss"] + [history.get("last", np.inf)]) if history["loss"] else None)  # fmt: skip
+    if budget is not None:
+        row["within_margin"] = bool(wall <= 1.05 * budget + 2.0)
+    reference = REFERENCES / name / "reference.json"
+    if reference.exists():
+        points = [q for q in json.loads(reference.read_text())["points"] if not q["diverged"]]
+        row["reference_min_log10_EC"] = min(_log_product(q["metrics"]) for q in points)
+        row["above_reference_min"] = row["log10_EC"] - row["reference_min_log10_EC"]
+    return row
+
+
+def cold_report(data: dict) -> str:
+    lines = ["# `fosmc tune` from cold caches: the budget held, and the point it reaches", "",
+             f"Written by `{data['command']}` at {data['commit']} (uncommitted in fosmc_jax/: "
+             f"{', '.join(data['uncommitted']) or 'nothing'}; {data['started']}; {data['uptime_start']} -> "
+             f"{data['uptime_end']}; {data['cores']} cores, shared). Each run: a fresh process with empty caches (`XDG_CACHE_HOME`, "
+             "`FOSMC_JAX_CACHE`: the kernels' C++ and XLA's programs compiled anew), its wall time from before its "
+             "start to its exit; E and C: the means over rollouts and joints of `rms_error` and `chattering_hf` in "
+             "result.json's `final.metrics`, TV of `chattering` (total variation); the reference: the smallest "
+             "log10(E x C) among tuning/results/reference/<config>/reference.json's points.", "",
+             "| config | --budget | wall, s | within 1.05 B + 2 s | load start / end | steps | E, rad | C, V | TV, V/s "
+             "| log10(E x C) | minus the reference's smallest |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for r in data["rows"]:
+        if r["returncode"]:
+            lines.append(f"| {r['config']} | {r['budget']} | {r['wall_s']:.1f} | failed ({r['returncode']}) |"
+                         " | | | | | | |")  # fmt: skip
+            continue
+        margin = "" if r["budget"] is None else ("yes" if r["within_margin"] else "**no**")
+        above = f"{r['above_reference_min']:+.3f}" if "above_reference_min" in r else ""
+        budget = "none" if r["budget"] is None else f"{r['budget']:g}"
+        lines.append(f"| {r['config']} | {budget} | {r['wall_s']:.1f} | "
+                     f"{margin} | {r['load_start_end'][0][0]:.1f} / {r['load_start_end'][1][0]:.1f} | {r['steps']} | "
+                     f"{r['rms_error']:.3g} | {r['chattering_hf']:.3g} | {r['total_variation']:.3g} | "
+                     f"{r['log10_EC']:.3f} | {above} |")  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def cold(args) -> int:
+    """``--cold``: :data:`COLD_RUNS` one after another (or ``--configs`` NAME:BUDGET,...), to
+    ``--out`` (default tuning/results/tune_budget.{json,md})."""
+    runs = COLD_RUNS
+    if args.configs:
+        runs = tuple((n, None if b in ("", "none") else float(b)) for n, _, b in (c.partition(":") for c in
+                                                                                args.configs.split(",")))  # fmt: skip
+    stem = pathlib.Path(args.out) if args.out else COLD_OUT
+    git = lambda *a: subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    data = {"command": " ".join(["tuning/tune_vs_cma.py"] + sys.argv[1:]), "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+            "uptime_start": uptime(), "cores": os.cpu_count(), "commit": git("rev-parse", "--short", "HEAD"),
+            "uncommitted": git("status", "--short", "--untracked-files=no", "fosmc_jax").splitlines(),
+            "rows": []}  # fmt: skip
+    for name, budget in runs:
+        log(f"cold: {name} --budget {budget} ({uptime()})")
+        data["rows"].append(cold_run(name, budget))
+        log(f"cold: {name}: {data['rows'][-1]['wall_s']:.1f} s")
+    data["uptime_end"] = uptime()
+    write_text(stem.with_suffix(".json"), json.dumps(jsonable(data), indent=1))
+    write_text(stem.with_suffix(".md"), cold_report(data))
+    log(f"wrote {stem.with_suffix('.json')} and {stem.with_suffix('.md')}")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", help="comma-separated config names of tuning/configs (default: "
@@ -858,7 +954,12 @@ def main() -> int:
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
+    ap.add_argument("--cold", action="store_true", help="fosmc tune itself, fresh processes with empty caches: "
+                    "the budget's margin and the point's measures (--configs NAME:BUDGET,...; default "
+                    f"{', '.join(f'{n}:{b}' for n, b in COLD_RUNS)}; --out default {COLD_OUT.relative_to(ROOT)})")  # fmt: skip
     args = ap.parse_args()
+    if args.cold:
+        return cold(args)
     stem = pathlib.Path(args.out) if args.out else (QUICK_OUT if args.quick else OUT)
     json_path, md_path = stem.with_suffix(".json"), stem.with_suffix(".md")
     if args.report_only:
