@@ -272,11 +272,13 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     # the fallback's compilation, where the start needs it: the adjoint kernel's build and most of
     # the tracing, the larger part of the first compilation, are not repeated
     again = 0.0 if fallback is None else 0.5 * stepper.compile_seconds
-    deadlines = plan(end, stepper.step_seconds, tcfg.steps, again, time.perf_counter())
+    now = time.perf_counter()
+    deadlines = plan(end, stepper.step_seconds, tcfg.steps, again, now)
     if end is not None:
         log(f"tune: --budget {budget:g} s: the gradient compiled in {stepper.compile_seconds:.1f} s, "
             f"{stepper.step_seconds:.3f} s a step; "
-            + (f"the global stage until {deadlines.global_stage - started:.1f} s" if searching else "no global stage")
+            + ("no global stage" if not searching else "one chunk of the global stage" if deadlines.global_stage <= now
+               else f"the global stage until {deadlines.global_stage - started:.1f} s")
             + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
     start_params, starts = _start(tcfg, evaluator, obj, p0, floor, checkpoint if resuming else None,
                                   deadlines.global_stage, log)  # fmt: skip
