@@ -15,7 +15,7 @@ import pytest
 
 import fosmc_jax as fj
 from fosmc_jax import paper
-from fosmc_jax._simulator import native, rollout
+from fosmc_jax._simulator import generated, native, rollout
 
 N_STEPS = 200
 KEYS = jax.random.split(jax.random.PRNGKey(7), 3)
@@ -107,3 +107,63 @@ def test_noise_realizations_run_on_the_kernel_with_the_vmap_paths_values_and_gra
     assert _rel(v, w) < 1e-12
     for a, b in zip(g, h):
         assert _rel(a, b) < 1e-6
+
+
+@pytest.mark.parametrize("tables", [1, 2])
+def test_realizations_beyond_the_tables_memory_run_in_groups_with_the_same_values(monkeypatch, tables):
+    """Where the R keys' tables exceed generated.TABLE_BYTES, the kernel runs them in groups of
+    ``tables`` keys (one: a call per key; two: a group and the rest): the same values. White-box
+    (generated.simulate_batch, not jitted: the limit is read when traced)."""
+    want = _run(K0, STD0, COUNTS, True, keys=KEYS)
+    plants, ref, X0s, dt = _linear()
+    full = lambda k: (plants, _loop(k, STD0, COUNTS), ref, X0s, dt, KEYS, jnp.asarray(1e6), jnp.asarray(10.0))
+    run = lambda k: generated.simulate_batch(full(k), n_steps=N_STEPS, integrator="euler", paired=False)
+    model = list(generated._MODELS.values())[-1]  # the model just built
+    table_bytes = N_STEPS * 8 * sum(generated._size(s.time_avals) for s in (model.held, model.sampled))
+    monkeypatch.setattr(generated, "TABLE_BYTES", tables * table_bytes)
+    text = str(jax.make_jaxpr(jax.value_and_grad(lambda k: _loss(run(k))))(K0))
+    assert "fosmc_gen_" in text and "scan" in text  # the groups' loop
+    got = run(K0)
+    for a, b in zip(got.metrics, want.metrics):
+        assert _rel(a, b) < 1e-12
+
+
+@pytest.mark.slow
+def test_the_realistic_arms_noisy_loop_on_the_default_path_equals_the_vmap_paths():
+    """The arm in the realistic_arm preset's loop (encoders, differenced rates, delay, limit) with
+    noise on the angles and 2 realizations, through ``problem.simulate``: metrics and gradients
+    in every controller parameter (1e-6: the quantized loop)."""
+    cfg = fj.config.load("realistic_arm").as_dict()
+    cfg["sensors"].update(noise_std=[1e-4, 0.0, 0.0] * 3, realizations=2)
+    cfg["sim"]["t_final"] = 300 * cfg["sim"]["dt"]
+    problem = fj.build(cfg)
+    p0 = problem.params()
+
+    def loss(p, fast):
+        res = problem.simulate(p, fast=fast)
+        m = res.mean()
+        return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering), res.metrics
+
+    assert "fosmc_gen_" in str(jax.make_jaxpr(lambda p: loss(p, True))(p0))
+    (v, gen), g = jax.jit(jax.value_and_grad(lambda p: loss(p, True), has_aux=True))(p0)
+    (w, vm), h = jax.jit(jax.value_and_grad(lambda p: loss(p, False), has_aux=True))(p0)
+    for a, b in zip(gen, vm):
+        assert _rel(a, b) < 1e-9
+    assert _rel(v, w) < 1e-12
+    for name in p0:
+        assert _rel(g[name], h[name]) < 1e-6, name
+
+
+def test_realizations_of_a_noise_free_loop_share_one_table_and_one_kernel_call():
+    """R keys whose draws nothing takes (no ``noise_std``): one table for all, the R batches'
+    rollouts folded into one call's lanes; the vmap path's values, R copies of each rollout's."""
+    plants, ref, X0s, dt = _linear()
+    loop = _loop(K0, None, COUNTS)
+    run = lambda fast: rollout.simulate_batch(plants, loop, ref, X0s, dt, n_steps=N_STEPS, integrator="euler",
+                                              keys=KEYS, fast=fast)  # fmt: skip
+    text = str(jax.make_jaxpr(lambda: run(True))())
+    assert text.count("fosmc_gen_") == 1 and "while" not in text and "scan" not in text
+    gen, vm = run(True), run(False)
+    for a, b in zip(gen.metrics, vm.metrics):
+        assert _rel(a, b) < 1e-9
+    np.testing.assert_array_equal(vm.metrics.rms_error[0], vm.metrics.rms_error[1])

@@ -11,7 +11,9 @@
 // Layouts (rows of N lanes, lane-minor; T the model's float):
 //   lanes  (kLaneHeld + kLaneSampled, N)  per rollout, what the steps take from the rollout's
 //          parameters (hoisted out of the time loop by JAX): the held step's, then the sampled step's
-//   table  (L, kTimeHeld + kTimeSampled)  per step k, what depends on time only (computed by JAX)
+//   table  (L, kTimeHeld + kTimeSampled)  per step k, what depends on time only (computed by JAX);
+//          or (C, L, ...): C tables, each for N / C lanes in whole blocks (the c-th for lanes
+//          [c N / C, (c + 1) N / C)), e.g. one per noise key (each key's own draws)
 //   carry  (kState, N)  the rollout's state, flat
 //   ckpt   the carry at steps 0, K, 2K, ... (the forward stores them for the adjoint, which
 //          recomputes each block's states from them), block-major: for each block of W lanes
@@ -117,7 +119,7 @@ inline void StepBwd(int64_t k, const V* x, const V* lv, const T* row, const V* r
 }
 
 struct Shape {
-  int64_t N, L, K, k0;
+  int64_t N, L, K, k0, per;  // per: the lanes that read one table
 };
 
 // One block of W lanes at column c: L steps from `in` to `out`, the carry stored every K steps
@@ -129,6 +131,7 @@ void Forward(const Shape& s, const T* lanes, const T* table, const T* in, T* out
   for (int r = 0; r < n; r++) a[r] = fosmc::Simd<T>::Load(in + r * s.N + c);
   for (int r = 0; r < nl; r++) lv[r] = fosmc::Simd<T>::Load(lanes + r * s.N + c);
   V *x = a, *y = b;
+  table += (c / s.per) * s.L * nt;  // this block's table
   if (ckpt) ckpt += c * ((s.L + s.K - 1) / s.K) * n;  // this block's
   for (int64_t k = 0; k < s.L; k++) {
     if (ckpt && k % s.K == 0)
@@ -155,6 +158,7 @@ void Adjoint(const Shape& s, int64_t truncate, const T* lanes, const T* table, c
   const int64_t K = std::min(s.K, s.L);
   std::vector<V> states(static_cast<size_t>(K + 1) * n), res(static_cast<size_t>(K) * Mo::kRes);
   ckpt += c * ((s.L + s.K - 1) / s.K) * n;  // this block's
+  table += (c / s.per) * s.L * nt;
   for (int64_t j = (s.L + s.K - 1) / s.K - 1; j >= 0; j--) {
     const int64_t k1 = j * s.K, k2 = std::min(s.L, k1 + s.K);
     V *st = states.data(), *rs = res.data();
@@ -178,12 +182,15 @@ ffi::Error Check(ffi::AnyBuffer lanes, ffi::AnyBuffer table, ffi::AnyBuffer carr
   const auto ld = lanes.dimensions(), td = table.dimensions(), cd = carry.dimensions();
   if (lanes.element_type() != type || table.element_type() != type || carry.element_type() != type)
     return ffi::Error::InvalidArgument("fosmc generated kernel: every buffer must have the model's dtype");
-  if (ld.size() != 2 || td.size() != 2 || cd.size() != 2 || cd[0] != Mo::kState ||
-      ld[0] != Mo::kLaneHeld + Mo::kLaneSampled || ld[1] != cd[1] || td[1] != Mo::kTimeHeld + Mo::kTimeSampled)
+  const size_t tn = td.size();
+  if (ld.size() != 2 || (tn != 2 && tn != 3) || cd.size() != 2 || cd[0] != Mo::kState ||
+      ld[0] != Mo::kLaneHeld + Mo::kLaneSampled || ld[1] != cd[1] || td[tn - 1] != Mo::kTimeHeld + Mo::kTimeSampled)
     return ffi::Error::InvalidArgument("fosmc generated kernel: buffer shapes do not match the model's layout");
-  if (cd[1] % W) return ffi::Error::InvalidArgument("fosmc generated kernel: the lane count must fill whole blocks");
+  const int64_t tables = tn == 3 ? td[0] : 1;
+  if (tables < 1 || cd[1] % tables || (cd[1] / tables) % W)
+    return ffi::Error::InvalidArgument("fosmc generated kernel: each table's lanes must fill whole blocks");
   if (K < 1) return ffi::Error::InvalidArgument("fosmc generated kernel: the checkpoint interval must be positive");
-  *s = Shape{cd[1], td[0], K, 0};
+  *s = Shape{cd[1], td[tn - 2], K, 0, cd[1] / tables};
   return ffi::Error::Success();
 }
 

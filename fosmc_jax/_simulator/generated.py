@@ -59,6 +59,9 @@ from . import native as _native
 
 #: The most memory the forward's checkpoints for the adjoint take (bytes).
 CHECKPOINT_BYTES = 256 * 2**20
+#: The most memory the tables of one kernel call take where each element of a ``vmap`` has its
+#: own (a noisy loop's noise realizations, :func:`_folded_call`), bytes.
+TABLE_BYTES = 64 * 2**20
 #: About the memory a block of steps' residuals and states take in the adjoint, per thread
 #: (bytes): within a core's cache, so that the reverse reads back what the block's recompute
 #: stored without going to memory.
@@ -726,34 +729,40 @@ def _folded_call(target: str, shapes, n: int, W: int, ckpt_in: bool = False, ckp
     calls of a block each waste most of their lanes on padding where n is small, as in tuning,
     and run on one core); the checkpoints of the folded call are kept as C rows of the declared
     shape (the first ones hold them), which only a folded adjoint call reads. Where the table is
-    mapped, or the checkpoints are not (a ``vmap`` over the cotangents alone), one call per element."""
+    mapped too (a noisy loop's R keys: each its own draws), each element's rollouts fill whole
+    blocks of their own and the kernel reads the element's table for them (C tables: C x
+    :data:`TABLE_BYTES` at most per call, lax.map over groups beyond). Where the checkpoints are
+    not mapped (a ``vmap`` over the cotangents alone), one call per element."""
     run = jax.custom_batching.custom_vmap(
         lambda *xs: jax.ffi.ffi_call(target, shapes, vmap_method="sequential")(*xs, **attrs)
     )
 
     @run.def_vmap
     def rule(C, batched, *xs):
-        if batched[1] or (ckpt_in and not batched[2]):
-            mapped = [i for i, b in enumerate(batched) if b]
+        mapped = [i for i, b in enumerate(batched) if b]
 
-            def one(values):
-                args = list(xs)
-                for i, v in zip(mapped, values):
-                    args[i] = v
-                return run(*args)
+        def one(values):
+            args = list(xs)
+            for i, v in zip(mapped, values):
+                args[i] = v
+            return run(*args)
 
-            out = jax.lax.map(one, [xs[i] for i in mapped])
+        group = max(1, TABLE_BYTES // (math.prod(xs[1].shape[1:]) * xs[1].dtype.itemsize)) if batched[1] else C
+        if (ckpt_in and not batched[2]) or group < C:
+            out = jax.lax.map(one, [xs[i] for i in mapped], batch_size=None if group >= C or group == 1 else group)
             return out, jax.tree.map(lambda _: True, out)
-        F = C * n
+        # per element: its n rollouts (a table each: their padding to whole blocks too), else n only
+        width = n + (-n) % W if batched[1] else n
+        F = C * width
         Fp = F + (-F) % W
 
         def fold(x, b):  # (C, ..., n + padding) -> (..., Fp)
-            x = (x if b else jnp.broadcast_to(x, (C, *x.shape)))[..., :n]
+            x = (x if b else jnp.broadcast_to(x, (C, *x.shape)))[..., :width]
             x = jnp.moveaxis(x, 0, -2).reshape(*x.shape[1:-1], F)
             return jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, Fp - F)], mode="edge")
 
         def unfold(y):  # (..., Fp) -> (C, ..., n + padding)
-            y = jnp.moveaxis(y[..., :F].reshape(*y.shape[:-1], C, n), -2, 0)
+            y = jnp.moveaxis(y[..., :F].reshape(*y.shape[:-1], C, width), -2, 0)[..., :n]
             return jnp.pad(y, [(0, 0)] * (y.ndim - 1) + [(0, (-n) % W)], mode="edge")
 
         outs = list(shapes) if isinstance(shapes, (tuple, list)) else [shapes]
@@ -924,13 +933,14 @@ def simulate_batch(
 ):
     """:func:`fosmc_jax.simulate_batch` of ``args`` = (plants, ctrl, reference, X0s, dt, keys,
     divergence_bound, chattering_cutoff) on the generated kernel, plants crossed with initial
-    states or (``paired``) the i-th with the i-th, one noise key; with ``save_every``, its trace
+    states or (``paired``) the i-th with the i-th, with each of the R noise ``keys`` (N x R
+    rollouts, realization-minor; R > 1: the keys in groups whose tables, one per key, take
+    :data:`TABLE_BYTES` at most, each group's in one kernel call); with ``save_every``, its trace
     too (the kernel run in blocks of ``save_every`` steps, a multiple of the controller's
     sample period, each block's carries sampled in JAX as :func:`fosmc_jax.simulate` samples
     them); raises :class:`codegen.Unsupported` or OSError where the model cannot be printed or
     built."""
-    from . import metrics as _metrics
-    from .step import Result, _Carry, as_trace, closed_loop_step, sample_steps, snapshot, start_batch, traced
+    from .step import _Carry, closed_loop_step, sample_steps, start_batch
 
     plants, ctrl, reference, X0s, dt, keys, bound, cutoff = args
     dtype = X0s.dtype
@@ -938,23 +948,28 @@ def simulate_batch(
     P = jax.tree.leaves(plants)[0].shape[0]
     O = 1 if paired else X0s.shape[0]
     N = P * O
-    carry = start_batch(plants, ctrl, reference, X0s, keys[0], bound, paired)
     # a digital loop's sample index and key are functions of the step and of the batch's one key
     # (DigitalLoop.with_clock): they come with the time values, so that its noise's draws are
     # computed by JAX once per step for every rollout (the table) instead of printed per rollout
     clocked = isinstance(ctrl, DigitalLoop)
-    key = carry.ctrl_state.key[0] if clocked else None
+    unclocked = lambda c: c._replace(ctrl_state=ctrl.without_clock(c.ctrl_state)) if clocked else c
+    begin = lambda key: start_batch(plants, ctrl, reference, X0s, key, bound, paired)
+    raw_key = lambda carry: carry.ctrl_state.key[0] if clocked else None  # DigitalLoop.init's raw key
+
+    def layout_of(key):  # one rollout's carry at t = 0, and the key its loop holds
+        c = begin(key)
+        return unclocked(jax.tree.map(lambda x: x[0], c)), raw_key(c)
+
+    one_carry, key_aval = jax.eval_shape(layout_of, keys[0])
     lane_plants = jax.tree.map(lambda x: jnp.repeat(x, O, axis=0), plants)
     lane_leaves, lane_def = jax.tree.flatten((lane_plants, ctrl))
     n_plant = len(jax.tree.leaves(lane_plants))
     # the controller's leaves are one rollout's (shared); the plants' carry the batch axis
     lane_avals = [jax.ShapeDtypeStruct(x.shape[1:] if i < n_plant else jnp.shape(x), x.dtype)
                   for i, x in enumerate(lane_leaves)]  # fmt: skip
-    glob = (reference, dt, jnp.asarray(bound, dtype), jnp.asarray(cutoff, dtype), key)
-    glob_leaves, glob_def = jax.tree.flatten(glob)
-    glob_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in glob_leaves]
-    unclocked = lambda c: c._replace(ctrl_state=ctrl.without_clock(c.ctrl_state)) if clocked else c
-    one_carry = unclocked(jax.tree.map(lambda x: x[0], carry))
+    glob_of = lambda key: jax.tree.flatten((reference, dt, jnp.asarray(bound, dtype), jnp.asarray(cutoff, dtype), key))
+    glob_def = glob_of(key_aval)[1]
+    glob_avals = [jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)) for x in glob_of(key_aval)[0]]
     state_def, state_avals, dynamic = _state_layout(one_carry)
     n_state = _size(state_avals)
     m = sample_steps(ctrl)
@@ -962,7 +977,7 @@ def simulate_batch(
     def flatten(c) -> Array:
         return _as_float(jax.tree.leaves(tuple(unclocked(c)[1:])), dtype)
 
-    def unflatten(k, x, key=key) -> Any:
+    def unflatten(k, x, key) -> Any:
         leaves = [v.astype(a.dtype) if a.dtype != jnp.bool_ else v != 0
                   for v, a in zip(_from_float(x, state_avals), state_avals)]  # fmt: skip
         c = _Carry(k, *jax.tree.unflatten(state_def, leaves))
@@ -980,9 +995,33 @@ def simulate_batch(
     # float views of the avals for the flat state (the bool rows are 0 / 1 floats there)
     state_aval = jax.ShapeDtypeStruct((n_state,), dtype)
     model = build(step_of, state_aval, lane_avals, glob_avals, m, dynamic, n_plant)
-    x0 = jax.vmap(flatten)(carry).T
     per_lane = [x if i < n_plant else jnp.broadcast_to(x, (N, *jnp.shape(x))) for i, x in enumerate(lane_leaves)]
     lanes = tuple(part.T for part in _vmap(lambda *leaves: model.lanes(list(leaves)), tuple(per_lane)))
+    one = lambda key: _run_batch(model, begin(key), raw_key, flatten, unflatten, glob_of, lanes, lane_plants, args,
+                                 n_steps, save_every, truncate_every)  # fmt: skip
+    R = keys.shape[0]
+    if R == 1:
+        return one(keys[0])
+    group = R  # the keys' tables are one where no draw depends on them: one call for all
+    if clocked and ctrl.sensors.noise_size():
+        row = _size(model.sampled.time_avals) + (0 if model.held is None else _size(model.held.time_avals))
+        group = min(R, max(1, TABLE_BYTES // max(1, n_steps * row * np.dtype(dtype).itemsize)))
+    result = jax.vmap(one)(keys) if group == R else jax.lax.map(one, keys, batch_size=group if group > 1 else None)
+    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((-1,) + x.shape[2:]), result)
+
+
+def _run_batch(model: Model, carry, raw_key, flatten, unflatten, glob_of, lanes, lane_plants, args, n_steps: int,
+               save_every: int, truncate_every: int):  # fmt: skip
+    """:func:`simulate_batch`'s run of one key from the batch's ``carry`` at t = 0: the table, the
+    kernel (in blocks of ``save_every`` steps for a trace), the metrics."""
+    from . import metrics as _metrics
+    from .step import Result, as_trace, snapshot, traced
+
+    _, ctrl, reference, _, dt, _, _, _ = args
+    dt = jnp.asarray(dt, model.dtype)
+    key = raw_key(carry)
+    glob_leaves = glob_of(key)[0]
+    x0 = jax.vmap(flatten)(carry).T
     table = _vmap(lambda k: model.table_row(k, glob_leaves), (jnp.arange(n_steps, dtype=jnp.int32),))
     trace = None
     if save_every:
@@ -992,13 +1031,13 @@ def simulate_batch(
             c[0] + steps,
             advance(model, c[1], lanes, jax.lax.dynamic_slice_in_dim(table, c[0], steps)),
         )
-        samples_of = lambda c: jax.vmap(lambda plant, x: snapshot(plant, ctrl, dt, unflatten(c[0], x)))(
+        samples_of = lambda c: jax.vmap(lambda plant, x: snapshot(plant, ctrl, dt, unflatten(c[0], x, key)))(
             lane_plants, c[1].T
         )
         (_, x), samples = traced(samples_of, block, (jnp.zeros((), jnp.int32), x0), n_steps, save_every)
         trace = jax.vmap(lambda *rollout: as_trace(reference, dt, *rollout), 1)(*samples)  # time-major -> rollouts
     else:
         x = advance(model, x0, lanes, table, truncate_every)
-    final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x))(x.T)
+    final = jax.vmap(lambda x: unflatten(jnp.asarray(n_steps, jnp.int32), x, key))(x.T)
     metrics = jax.vmap(lambda c: _metrics.masked(_metrics.finish(c.acc, n_steps * dt), c.diverged))(final)
     return Result(metrics, final.diverged, final.diverged_at, trace)

@@ -52,8 +52,8 @@ def _simulate_batch(
 
     With ``fast`` (static), batches run the kernel generated from their step wherever it prints
     (every plant and law of the package, a user's law or plant, the ideal loop or a
-    :class:`fosmc_jax.DigitalLoop` with or without sensor noise; R keys: the one-key batch mapped
-    over them, the same draws as the ``vmap`` path's), forward and adjoint
+    :class:`fosmc_jax.DigitalLoop` with or without sensor noise, one key or R: the same draws as
+    the ``vmap`` path's), forward and adjoint
     (:mod:`fosmc_jax._simulator.generated`, equal to the ``vmap`` path's to rounding, built on
     first use; a trace's samples taken between blocks of ``save_every`` steps); anything else
     runs ``vmap`` of :func:`simulate`, with one warning naming what kept it there.
@@ -77,19 +77,7 @@ def _simulate_batch(
     vmap = functools.partial(_vmap_batch, paired=paired, **options)
     if not (fast and native):
         return vmap(*args)
-    if keys.shape[0] == 1:
-        return _generated_or(vmap, *args, paired=paired, **options)
-    return _realizations(lambda *a: _generated_or(vmap, *a, paired=paired, **options), *args)
-
-
-def _realizations(one_key, plants, ctrl, reference, X0s, dt, keys, bound, cutoff) -> Result:
-    """``one_key`` (a batch of one key) mapped over the R ``keys``, its N rollouts' results in
-    :func:`_simulate_batch`'s order (rollout-major, realization-minor): (N*R, ...). The kernel's
-    batching rule runs the R batches' steps in one call where their time values are shared, one call
-    per key where they are not (a noisy digital loop's draws)."""
-    run = lambda key: one_key(plants, ctrl, reference, X0s, dt, key[None], bound, cutoff)
-    result = jax.vmap(run)(keys)
-    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((-1,) + x.shape[2:]), result)
+    return _generated_or(vmap, *args, paired=paired, **options)
 
 
 def _vmap_batch(plants, ctrl, reference, X0s, dt, keys, bound, cutoff, *, paired: bool, **options) -> Result:
