@@ -230,12 +230,22 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     # evaluation where there is one (one program compiled for both)
     searching = bool(tcfg.global_candidates) and floor is None and not resuming
     evaluator = front.Evaluator(problem) if searching else problem
+    # where training simulates [sim] itself, that program evaluates the plain results too
+    same = searching and problems.training_config(cfg) is cfg
+
+    def evaluate_plain(p) -> dict[str, Any]:
+        if not same:
+            return tuner.evaluate(plain, p)
+        r = evaluator(jax.tree.map(lambda x: jax.numpy.asarray(x)[None], p), CHUNK, log=_quiet)
+        metrics = {k: v[0].tolist() for k, v in r.items() if k != "diverged"}
+        return {"metrics": metrics, "diverged": int(r["diverged"][0]), "rollouts": plain.rollouts}
+
     if searching:
         at_p0 = evaluator(jax.tree.map(lambda x: x[None], p0), CHUNK, log=_quiet)
         m = {k: v[0].tolist() for k, v in at_p0.items() if k != "diverged"}
     else:
         m = tuner.evaluate(problem, p0)["metrics"]
-    initial = tuner.evaluate(plain, p0)
+    initial = evaluate_plain(p0)
     held = problems.held_out_config(cfg)
     held_problem = problems.tuning_problems(held)[0]
     end = None
@@ -304,7 +314,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     # evaluation runs the program that evaluated p0 instead of compiling another
     u = jax.device_get(u)
     final_params = tuner.to_physical(u, plain.base, floor)
-    final = tuner.evaluate(plain, final_params)
+    final = evaluate_plain(final_params)
     # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
     held_out = tuner.evaluate(held_problem, final_params)
     log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
