@@ -22,6 +22,9 @@ reaches both alike; the ratio is the median of the rounds' ratios):
   columns now time the generated forward);
 - ``vmap_value_and_grad`` (``--vmap``): the same through ``simulate(p, fast=False)`` (the
   ``vmap`` path, what a gradient cost before; slow: off by default).
+With ``--arm``, every function takes the arm's 19 calibrated parameters too (the
+:class:`fosmc_jax.ArmParams` fields ``d1`` ... ``Kb``, through ``problem.with_arm``) and the value
+and gradient is in both (the issue's 5x bound: 15 + 19 parameters).
 The gradients of the two paths are compared (max relative difference) where both run. The
 1-minute load average is recorded with every round; ``--out`` writes all as JSON.
 
@@ -188,6 +191,7 @@ def main(argv=None):
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--round-s", type=float, default=1.0)
     ap.add_argument("--vmap", action="store_true", help="also time the vmap path's value and gradient (slow)")
+    ap.add_argument("--arm", action="store_true", help="differentiate in the arm's 19 calibrated parameters too")
     ap.add_argument("--build", action="store_true", help="time the cold builds of the forward and the adjoint")
     ap.add_argument("--build-run", help=argparse.SUPPRESS)  # one sequence of --build, in its own process
     ap.add_argument("--out", help="write the results as JSON")
@@ -200,6 +204,8 @@ def main(argv=None):
     import jax.numpy as jnp
     import numpy as np
 
+    import fosmc_jax as fj
+
     jax.config.update("jax_enable_x64", True)
     uptime = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     info = {"command": "python benchmarks/generated_gradient.py " + " ".join(sys.argv[1:] if argv is None else argv),
@@ -208,18 +214,22 @@ def main(argv=None):
     for shape in args.only or ["ideal", "digital", "euler32"]:
         problem, steps = build(shape, args.steps)
         p0 = problem.params()
+        calibrated = fj.ArmParams._fields[: fj.ArmParams._fields.index("Kb") + 1]  # d1 ... Kb: 19
+        x0 = (p0, {k: v for k, v in problem.arm_params().items() if k in calibrated}) if args.arm else p0
+        of = lambda x: (problem.with_arm(x[1]), x[0]) if args.arm else (problem, x)  # (problem, params)
 
-        def loss(p, fast=True):
-            m = problem.simulate(p, fast=fast).mean()
+        def loss(x, fast=True):
+            prob, p = of(x)
+            m = prob.simulate(p, fast=fast).mean()
             return jnp.mean(m.rms_error) + 1e-3 * jnp.mean(m.chattering)
 
-        row = {"rollouts": problem.rollouts, "steps": steps}
+        row = {"rollouts": problem.rollouts, "steps": steps, "arm_params": bool(args.arm)}
         runs = {
-            "forward": compiled(lambda p: loss(p), (p0,)),
-            "value_and_grad": compiled(jax.value_and_grad(loss), (p0,)),
-            "generated_forward": compiled(lambda p: generated_loss(problem, p), (p0,)),
+            "forward": compiled(lambda x: loss(x), (x0,)),
+            "value_and_grad": compiled(jax.value_and_grad(loss), (x0,)),
+            "generated_forward": compiled(lambda x: generated_loss(*of(x)), (x0,)),
         }
-        times = interleaved(runs, (p0,), args.rounds, args.round_s)
+        times = interleaved(runs, (x0,), args.rounds, args.round_s)
         fwd, vg = times["forward"], times["value_and_grad"]
         row.update(times)
         ratios = [b / a for a, b in zip(fwd["all_s"], vg["all_s"])]
@@ -234,9 +244,9 @@ def main(argv=None):
                 f"{vg['s'] * 1e3:.1f} ms = {row['ratio']:.2f}x (rounds {min(ratios):.2f}-{max(ratios):.2f}x; "
                 f"compile {fwd['compile_s']:.1f} / {vg['compile_s']:.1f} s), load {vg['loads']}")  # fmt: skip
         if args.vmap:
-            vm = compiled(jax.value_and_grad(lambda p: loss(p, fast=False)), (p0,))
+            vm = compiled(jax.value_and_grad(lambda x: loss(x, fast=False)), (x0,))
             t0 = time.perf_counter()
-            jax.block_until_ready(vm[0](p0))
+            jax.block_until_ready(vm[0](x0))
             row["vmap_value_and_grad"] = {"s": time.perf_counter() - t0, "compile_s": vm[1], "load": load()}
             diffs = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-300))),
                                  v_out[1], vm[3][1])  # fmt: skip
