@@ -5,9 +5,6 @@ and the objects linked into a library, cached under ``$FOSMC_JAX_CACHE`` (defaul
 ``~/.cache/fosmc_jax``, :func:`fosmc_jax._simulator.cache.cache_dir`), keyed by the sources, the
 headers, the flags, the compiler's version, jaxlib's and the CPU. Where no compiler is, or with
 ``FOSMC_JAX_NATIVE=0``, every batch runs ``vmap`` of ``simulate``, with the same results.
-
-(The linear plant and the arm each had a hand-written kernel here until issue 32: ``kernel.cc``
-and ``arm_kernel.cc``, copies of the closed loop's formulas in C++, retired for the printed ones.)
 """
 
 from __future__ import annotations
