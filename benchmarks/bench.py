@@ -358,18 +358,16 @@ def arm_cell_inputs(cell: dict):
     anchor's case file where ``cell["case"]`` names one; or the realistic preset's digital loop.
     The arm's zero friction and disturbance terms are left out as a call of simulate_batch
     leaves them out (its ``lower``, which the table times, compiles the inputs as given)."""
-    from fosmc_jax._plants.arm import without_idle_terms
-
     dtype = np.dtype(cell["dtype"]).type
     if cell["loop"] == "digital":
         (plants, *rest), dynamic, static = realistic(cell["batch"], dtype, cell["steps"])
-        return (without_idle_terms(plants), *rest), dynamic, static
+        return (fj.without_idle_terms(plants), *rest), dynamic, static
     plants, ctrl, ref, X0s, dt = problem(cell["batch"], dtype, arm=True)
     if cell.get("case"):
         payloads, x0 = read_case(cell["case"], cell["batch"], dtype)
         plants, X0s = fj.arm_sweep(jnp.asarray(payloads)), jnp.asarray(x0)
     return (
-        (without_idle_terms(plants), ctrl, ref, X0s, dt),
+        (fj.without_idle_terms(plants), ctrl, ref, X0s, dt),
         {},
         dict(n_steps=cell["steps"], integrator=cell["integrator"]),
     )

@@ -48,7 +48,16 @@ from ._design.gains import (
     summarize,
 )
 from ._loop.digital import DERIVATIVES, DigitalLoop, Sensors, measure, quantize, saturate
-from ._plants.arm import ARM_PARAMS, PAYLOAD_RANGE, Arm, ArmParams, arm_box, arm_sweep, third_order_rows
+from ._plants.arm import (
+    ARM_PARAMS,
+    PAYLOAD_RANGE,
+    Arm,
+    ArmParams,
+    arm_box,
+    arm_sweep,
+    third_order_rows,
+    without_idle_terms,
+)
 from ._plants.base import Plant
 from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
@@ -88,6 +97,7 @@ __all__ = [
     "stable_step",
     "summarize",
     "third_order_rows",
+    "without_idle_terms",
     "config",
     "io",
     "search",
