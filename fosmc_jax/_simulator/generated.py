@@ -15,9 +15,11 @@ too), is traced on one rollout's flat state and split by what each value depends
 The skeleton ``gen_kernel.h`` runs the time loop over blocks of lanes on every core, the forward
 storing the state every step (every K steps where that would not fit in
 :data:`CHECKPOINT_BYTES`), the adjoint recomputing each block from its checkpoint and sweeping
-it backwards. The forward and the adjoint are two libraries, each built on its first use: a run
-without derivatives compiles the printed step alone, a derivative the adjoint's library (the
-step, its vector-Jacobian product and the checkpointing forward; the step's object compiled
+it backwards. It is built once per precision (cached like every build) and runs every model: a
+model's library holds its printed steps alone, registered in the skeleton with the model's
+layout under an id its calls name (the skeleton's compilation, the XLA FFI header and the loop,
+was most of a model's build). A run without derivatives builds the printed steps' library, a
+derivative the adjoint's (the steps, their vector-Jacobian products; the steps' objects compiled
 once for both, :func:`fosmc_jax._simulator.native.build_generated`). In JAX the kernel is one
 function of (state, lanes, table) with a ``custom_jvp`` whose tangent is a ``linear_call``:
 forward mode runs a ``lax.scan`` of the same split step, reverse mode the transpose, the adjoint
@@ -38,6 +40,7 @@ import hashlib
 import math
 import os
 import re
+import threading
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -336,10 +339,18 @@ def _size(avals) -> int:
     return sum(math.prod(a.shape) for a in avals)
 
 
+class Target(NamedTuple):
+    """What a kernel call names: the skeleton's FFI target and the model it runs (the id its
+    library is registered under, the call's ``model`` attribute)."""
+
+    name: str
+    model: int
+
+
 class Kernels(NamedTuple):
     """A model's adjoint library: its FFI targets and the checkpoints' rows."""
 
-    targets: tuple[str, str]  # the forward that stores the checkpoints, the adjoint
+    targets: tuple[Target, Target]  # the forward that stores the checkpoints, the adjoint
     residuals: int  # the most values a step's reverse reads from its forward (the adjoint stores a block's)
 
 
@@ -364,12 +375,12 @@ class Model(NamedTuple):
             self.built["steps"] = _print_steps(self)
         return self.built["steps"]
 
-    def forward(self) -> str:
-        """The FFI target of the forward's library (the step alone), built on first use."""
+    def forward(self) -> Target:
+        """The FFI target of the forward (the steps' library), built on first use."""
         if "forward" not in self.built:
-            self.built["forward"] = _load(
-                (_print_main(self, None), *self.steps()), ("FosmcGenForward",), _native.generated_flags()
-            )[0]
+            dtype, flags = np.dtype(self.dtype).name, _native.generated_flags()
+            model = _load(tuple(self.steps()), _layout(self, None), dtype, flags)
+            self.built["forward"] = Target(_skeleton(dtype, flags) + "FosmcGenForward", model)
         return self.built["forward"]
 
     def kernels(self, with_plant: bool) -> Kernels:
@@ -379,10 +390,10 @@ class Model(NamedTuple):
         library holds the printed steps too (their objects compiled once, :func:`native.build_generated`)."""
         if with_plant not in self.built:
             vjps, n_res = _print_vjps(self, with_plant)
-            sources = (_print_main(self, n_res), *self.steps(), *vjps)
-            self.built[with_plant] = Kernels(
-                _load(sources, ("FosmcGenForwardCk", "FosmcGenAdjoint"), _native.generated_flags()), n_res
-            )
+            dtype, flags = np.dtype(self.dtype).name, _native.generated_flags()
+            model, prefix = _load((*self.steps(), *vjps), _layout(self, n_res), dtype, flags), _skeleton(dtype, flags)
+            self.built[with_plant] = Kernels((Target(prefix + "FosmcGenForwardCk", model),
+                                              Target(prefix + "FosmcGenAdjoint", model)), n_res)  # fmt: skip
         return self.built[with_plant]
 
     def lanes(self, lane_leaves) -> tuple[Array, Array]:
@@ -434,6 +445,8 @@ def _head(dtype, step: bool = False) -> list[str]:
 
 
 def _one_file(dtype, text: str) -> str:
+    """A printed step's source; its functions have C linkage, looked up by name in its library."""
+    text = re.sub(r"^void ", 'extern "C" void ', text, flags=re.M)
     return "\n".join([*_head(dtype, step=True), text, "}  // namespace gen", ""])
 
 
@@ -443,7 +456,7 @@ def _print_steps(model: Model) -> list[str]:
     sig = [("x", "V"), ("lv", "V"), ("tv", "T"), ("y", "out")]
     out = []
     for name, s in (("held", model.held), ("sampled", model.sampled)):
-        if s is None:  # the ideal loop: an empty step in the skeleton's file (:func:`_print_main`)
+        if s is None:  # the ideal loop: no held step (the skeleton never calls it)
             continue
         lv, tv = list(s.lane_avals), list(s.time_avals)
         fwd = jax.make_jaxpr(s.core)(x_aval, lv, tv)
@@ -485,47 +498,49 @@ def _print_vjps(model: Model, with_plant: bool) -> tuple[list[str], int]:
     return [_one_file(model.dtype, t) for t in texts], n_res
 
 
-def _print_main(model: Model, n_res: int | None) -> str:
-    """The skeleton's source of a library: the layout and the FFI handlers of the forward
-    (``n_res`` None) or of the checkpointing forward and the adjoint (``n_res``: the most
-    residuals a step's ``*_fwd`` stores)."""
-    held, sampled, n_state = model.held, model.sampled, model.n_state
-    nl = [0 if s is None else _size(s.lane_avals) for s in (held, sampled)]
-    nt = [0 if s is None else _size(s.time_avals) for s in (held, sampled)]
-    kinds = {"": _SIGNATURES[""]} if n_res is None else _SIGNATURES
-    # the ideal loop's held step, never called, is empty here: a file of its own would cost a
-    # compiler run (the headers alone take seconds)
-    declarations = [f"void {name}{k}({v}){' {}' if s is None else ';'}" for name, s in (("held", held),
-                    ("sampled", sampled)) for k, v in kinds.items()]  # fmt: skip
-    struct = [
-        f"  static constexpr int kState = {n_state}, kLaneHeld = {nl[0]}, kLaneSampled = {nl[1]}, "
-        f"kTimeHeld = {nt[0]}, kTimeSampled = {nt[1]}, kM = {model.m};",
-        f"  static constexpr bool kAdjoint = {'false' if n_res is None else 'true'};",
-        "  static void Held(const V* x, const V* lv, const T* tv, V* y) { held(x, lv, tv, y); }",
-        "  static void Sampled(const V* x, const V* lv, const T* tv, V* y) { sampled(x, lv, tv, y); }",
-    ]
-    if n_res is not None:
-        flags = ", ".join("true" if d else "false" for d in model.dynamic)
-        struct += [
-            f"  static constexpr bool kDynamic[{n_state}] = {{{flags}}};",
-            f"  static constexpr int kRes = {n_res};",
-            "  static void HeldFwd(const V* x, const V* lv, const T* tv, V* y, V* res) {",
-            "    held_fwd(x, lv, tv, y, res);",
-            "  }",
-            "  static void SampledFwd(const V* x, const V* lv, const T* tv, V* y, V* res) {",
-            "    sampled_fwd(x, lv, tv, y, res);",
-            "  }",
-            "  static void HeldBwd(const V* x, const V* lv, const T* tv, const V* res, const V* ct, V* gx, V* glv) {",
-            "    held_bwd(x, lv, tv, res, ct, gx, glv);",
-            "  }",
-            "  static void SampledBwd(const V* x, const V* lv, const T* tv, const V* res, const V* ct, V* gx,",
-            "                         V* glv) {",
-            "    sampled_bwd(x, lv, tv, res, ct, gx, glv);",
-            "  }",
-        ]  # fmt: skip
-    handlers = "FOSMC_GENERATED_FORWARD(Model)" if n_res is None else "FOSMC_GENERATED_ADJOINT(Model)"
-    return "\n".join([*_head(model.dtype), *declarations, "}  // namespace gen", "namespace {", "using namespace gen;",
-                      "struct Model {", *struct, "};", "}  // namespace", handlers, ""])  # fmt: skip
+class _Layout(ctypes.Structure):
+    """gen_kernel.h's ``gen::Model``: a model's layout and its steps, as the skeleton runs it."""
+
+    _fields_ = [*((f, ctypes.c_int64) for f in ("n", "nl_held", "nl_sampled", "nt_held", "nt_sampled", "m", "n_res")),
+                ("dynamic", ctypes.c_void_p),
+                *((f, ctypes.c_void_p) for f in ("held", "sampled", "held_fwd", "sampled_fwd", "held_bwd",
+                                                 "sampled_bwd"))]  # fmt: skip
+
+
+def _layout(model: Model, n_res: int | None) -> tuple:
+    """What the skeleton needs of ``model`` beside its steps (hashable, :func:`_load`'s key): the
+    sizes of its state, lane and table rows, m, the most residuals a step's ``*_fwd`` stores
+    (``n_res``, None: a forward alone) and the dynamic rows."""
+    sizes = [(0, 0) if s is None else (_size(s.lane_avals), _size(s.time_avals)) for s in (model.held, model.sampled)]
+    (nlh, nth), (nls, nts) = sizes
+    return (model.n_state, nlh, nls, nth, nts, model.m, n_res, tuple(bool(d) for d in model.dynamic),
+            model.held is not None)  # fmt: skip
+
+
+def _skeleton(dtype: str, flags: tuple[str, ...] = ()) -> str:
+    """The skeleton of the kernels of ``dtype`` (its name), built (cached) and loaded once per
+    process, its FFI targets registered (under a lock: threads of one process build models at
+    once, ``fosmc reproduce``'s); returns their names' prefix."""
+    with _SKELETON_LOCK:
+        if (dtype, flags) not in _SKELETONS:
+            source = "\n".join([*_head(dtype), "}  // namespace gen", ""])
+            headers = [h.read_text() for h in _native._HEADERS]
+            tag = hashlib.sha256("\n".join([source, *flags, *headers]).encode()).hexdigest()[:16]
+            lib = ctypes.cdll.LoadLibrary(str(_native.build_generated([source])))
+            lib.fosmc_gen_register.argtypes = [ctypes.c_int64, ctypes.POINTER(_Layout)]
+            lib.fosmc_gen_register.restype = None
+            prefix = f"fosmc_gen_{tag}_"
+            for symbol in ("FosmcGenForward", "FosmcGenForwardCk", "FosmcGenAdjoint"):
+                jax.ffi.register_ffi_target(prefix + symbol, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+            _LIBRARIES.append(lib)
+            _REGISTER[prefix] = lib.fosmc_gen_register
+            _SKELETONS[dtype, flags] = prefix
+        return _SKELETONS[dtype, flags]
+
+
+_SKELETON_LOCK = threading.Lock()
+_SKELETONS: dict = {}  # (dtype, flags) -> the prefix of its FFI targets
+_REGISTER: dict = {}  # a skeleton's prefix -> its fosmc_gen_register
 
 
 def _merge(lv, diff_values, diff):
@@ -544,21 +559,28 @@ def _renumber_glv(text: str, lv, diff) -> str:
 
 
 @functools.lru_cache(maxsize=64)
-def _load(sources: tuple[str, ...], symbols: tuple[str, ...], flags: tuple[str, ...] = ()) -> tuple[str, ...]:
-    """Builds and registers a library of ``sources`` (once per source and extra compiler ``flags``,
-    :func:`native.generated_flags`, in a process); the FFI targets of its handlers ``symbols``."""
-    tag = hashlib.sha256("\n".join([*sources, *flags]).encode()).hexdigest()[:16]
+def _load(sources: tuple[str, ...], layout: tuple, dtype: str, flags: tuple[str, ...] = ()) -> int:
+    """Builds and loads the library of a model's printed ``sources`` (once per source and extra
+    compiler ``flags``, :func:`native.generated_flags`, in a process) and registers its steps with
+    ``layout`` (:func:`_layout`) in the skeleton of ``dtype`` (its name): the id its calls name."""
+    tag = hashlib.sha256("\n".join([*sources, repr(layout), *flags]).encode()).hexdigest()[:16]
     if os.environ.get("FOSMC_JAX_GENERATED_DUMP"):  # a folder to keep the printed sources in, to read them
         folder = Path(os.environ["FOSMC_JAX_GENERATED_DUMP"])
         folder.mkdir(parents=True, exist_ok=True)
         for i, source in enumerate(sources):
             (folder / f"{tag}-{i}.cc").write_text(source)
     lib = ctypes.cdll.LoadLibrary(str(_native.build_generated(list(sources))))
-    names = tuple(f"fosmc_gen_{tag}_{symbol}" for symbol in symbols)
-    for name, symbol in zip(names, symbols):
-        jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
+    n, nlh, nls, nth, nts, m, n_res, dynamic, has_held = layout
+    address = lambda name: ctypes.cast(getattr(lib, name), ctypes.c_void_p).value if name else None
+    flags_c = (ctypes.c_uint8 * max(n, 1))(*dynamic)
+    steps = [s if (has_held or not s.startswith("held")) and (n_res is not None or "_" not in s) else None
+             for s in ("held", "sampled", "held_fwd", "sampled_fwd", "held_bwd", "sampled_bwd")]  # fmt: skip
+    entry = _Layout(n, nlh, nls, nth, nts, m, 0 if n_res is None else n_res, ctypes.cast(flags_c, ctypes.c_void_p),
+                    *map(address, steps))  # fmt: skip
+    model = int(tag[:15], 16)  # fits an int64 attribute; the same in every process, as XLA's cache needs
+    _REGISTER[_skeleton(dtype, flags)](model, ctypes.byref(entry))
     _LIBRARIES.append(lib)
-    return names
+    return model
 
 
 _LIBRARIES: list = []  # the loaded libraries stay loaded while their targets are registered
@@ -720,21 +742,23 @@ def _linear_call_batched(axis_data, args, dims, *, callee, transpose_thunk, num_
     return out, [0] * len(out)
 
 
-def _folded_call(target: str, shapes, n: int, W: int, ckpt_in: bool = False, ckpt_out: bool = False, **attrs):
+def _folded_call(target: Target, shapes, n: int, W: int, ckpt_in: bool = False, ckpt_out: bool = False, **attrs):
     """``jax.ffi.ffi_call(target, shapes)`` with ``attrs``, on buffers whose last axis holds the
     rollouts (``n`` of them, padded to whole blocks of ``W``), but for the table (the second
     input) and the checkpoints (``ckpt_in``: the third input; ``ckpt_out``: the second output),
-    whose layout is the kernel's own (block-major). Under ``vmap`` with a shared table, the
-    mapped axis C is folded into the rollouts: one call runs C x n rollouts in whole blocks (C
-    calls of a block each waste most of their lanes on padding where n is small, as in tuning,
-    and run on one core); the checkpoints of the folded call are kept as C rows of the declared
-    shape (the first ones hold them), which only a folded adjoint call reads. Where the table is
-    mapped too (a noisy loop's R keys: each its own draws), each element's rollouts fill whole
-    blocks of their own and the kernel reads the element's table for them (C tables: C x
-    :data:`TABLE_BYTES` at most per call, lax.map over groups beyond). Where the checkpoints are
-    not mapped (a ``vmap`` over the cotangents alone), one call per element."""
+    whose layout is the kernel's own (block-major); the call names ``target``'s model. Under
+    ``vmap`` with a shared table, the mapped axis C is folded into the rollouts: one call runs
+    C x n rollouts in whole blocks (C calls of a block each waste most of their lanes on
+    padding where n is small, as in tuning, and run on one core); the checkpoints of the
+    folded call are kept as C rows of the declared shape (the first ones hold them), which only
+    a folded adjoint call reads. Where the table is mapped too (a noisy loop's R keys: each its
+    own draws), each element's rollouts fill whole blocks of their own and the kernel reads the
+    element's table for them (C tables: C x :data:`TABLE_BYTES` at most per call, lax.map over
+    groups beyond). Where the checkpoints are not mapped (a ``vmap`` over the cotangents
+    alone), one call per element."""
+    attrs = {**attrs, "model": np.int64(target.model)}
     run = jax.custom_batching.custom_vmap(
-        lambda *xs: jax.ffi.ffi_call(target, shapes, vmap_method="sequential")(*xs, **attrs)
+        lambda *xs: jax.ffi.ffi_call(target.name, shapes, vmap_method="sequential")(*xs, **attrs)
     )
 
     @run.def_vmap
@@ -772,7 +796,8 @@ def _folded_call(target: str, shapes, n: int, W: int, ckpt_in: bool = False, ckp
         args = [x if i == 1 else fold(x, b) for i, (x, b) in enumerate(zip(xs, batched))]
         if ckpt_in:
             args[2] = xs[2].reshape(-1)[: xs[2][0].size // xs[2].shape[-1] * Fp]
-        out = jax.ffi.ffi_call(target, wide if len(wide) > 1 else wide[0], vmap_method="sequential")(*args, **attrs)
+        call = jax.ffi.ffi_call(target.name, wide if len(wide) > 1 else wide[0], vmap_method="sequential")
+        out = call(*args, **attrs)
         out = [out] if len(wide) == 1 else list(out)
         out = [y if ckpt_out and i == 1 else unfold(y) for i, y in enumerate(out)]
         out = tuple(out) if isinstance(shapes, (tuple, list)) else out[0]
