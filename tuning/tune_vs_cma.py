@@ -5,14 +5,14 @@ realistic_arm_uncertain of tuning/configs/, and two configs nobody tuned on,
 tuning/configs/unseen_ideal_payloads.toml and unseen_ideal_set3.toml; ``--configs`` for others):
 
 1. tune's start, exactly as ``fosmc tune`` (``run_tune`` in fosmc_jax/_app/tune.py) computes
-   it: ``_config.tuning_problems(cfg)``, the objective ``T.objective_of`` with its scales from
+   it: ``_config.tuning_problems(cfg)``, the objective ``tuner.objective_of`` with its scales from
    the training problem's metrics at the config's parameters p0, ``global_stage`` of
-   ``[tune] global_candidates`` on the training problem (same seed), ``T.to_internal``;
-   the training loss is ``T.make_loss(train, obj, None)`` (its value does not depend on the
+   ``[tune] global_candidates`` on the training problem (same seed), ``tuner.to_internal``;
+   the training loss is ``tuner.make_loss(train, obj, None)`` (its value does not depend on the
    gradient window, which changes derivatives only).
 2. A race of three methods from that start, each given ``--budget`` (60) s of its own wall time:
    - tune: the package's tuner loop ``fosmc_jax._search.tune.run`` (``fs.tune``) with the
-     config's learning rate (``T.learning_rate``), schedule and clip, mode reverse, the
+     config's learning rate (``tuner.learning_rate``), schedule and clip, mode reverse, the
      config's free parameters, for N steps, N the number of steps that covers the budget at the
      step time measured just before (x 1.3), so that the cosine schedule spans about the budget
      (as ``fosmc tune --budget`` fits its steps); stopped once its own time passes the budget;
@@ -93,7 +93,7 @@ from jax.sharding import PartitionSpec as Spec  # noqa: E402
 from fosmc_jax import config as _config  # noqa: E402
 from fosmc_jax import search as fs  # noqa: E402
 from fosmc_jax import use_compilation_cache  # noqa: E402
-from fosmc_jax._search import tune as T  # noqa: E402  (learning_rate, _on_adjoint_kernel: run_tune's own choices)
+from fosmc_jax._search import tune as tuner  # noqa: E402  (learning_rate, _on_adjoint_kernel: run_tune's own choices)
 from fosmc_jax.io import jsonable, write_text  # noqa: E402
 from fosmc_jax.search import cma_es, global_stage, global_starts  # noqa: E402
 
@@ -276,8 +276,8 @@ def race(s: dict, u_flat: np.ndarray, budget: float, per_step: float, label: str
             fresh_models()  # run's (or run_starts's) own jit traces afresh, after CMA-ES's compilation
             if s["starts"] is not None and label.endswith("from start"):  # K starts at once (run_starts)
                 U0 = jax.vmap(unravel)(jnp.asarray(s["starts"]))
-                rates = T.rates_of(s["lr"], len(s["starts"]), s["spread"])
-                u, hist = T.run_starts(s["loss"], U0, settings, rates=rates, log=hook)
+                rates = tuner.rates_of(s["lr"], len(s["starts"]), s["spread"])
+                u, hist = tuner.run_starts(s["loss"], U0, settings, rates=rates, log=hook)
             else:
                 u, hist = fs.tune(s["loss"], replicated(unravel(jnp.asarray(u_flat))), settings, log=hook)
             tune_out["finished"] = True
@@ -432,7 +432,7 @@ def study_config(name: str, cfg: dict, args) -> dict:
     u_p0 = fs.to_internal(p0, plain.base, None)
     flat_p0, unravel = ravel_pytree(u_p0)
     flat_start = ravel_pytree(fs.to_internal(start, plain.base, None))[0]
-    s = {"tcfg": tcfg, "unravel": unravel, "lr": T.learning_rate(tcfg["learning_rate"], _config.rough_loop(cfg)),
+    s = {"tcfg": tcfg, "unravel": unravel, "lr": tuner.learning_rate(tcfg["learning_rate"], _config.rough_loop(cfg)),
          "optimizer": args.optimizer or tcfg.get("optimizer", "adam"),
          "loss": fs.make_loss(train, obj, None), "train_eval": Batched(train, obj, unravel),
          "plain_eval": Batched(plain, obj, unravel), "starts": None, "spread": args.spread}  # fmt: skip
@@ -445,7 +445,9 @@ def study_config(name: str, cfg: dict, args) -> dict:
     u0 = replicated(unravel(jnp.asarray(flat_start)))
     fresh_models()
     t = time.perf_counter()
-    on_kernel = T._on_adjoint_kernel(s["loss"], u0)  # traces the gradient once: the kernels are generated (and built)
+    on_kernel = tuner._on_adjoint_kernel(
+        s["loss"], u0
+    )  # traces the gradient once: the kernels are generated (and built)
     trace_s = time.perf_counter() - t
     vg = fs.value_and_grad(s["loss"], "reverse")
     t = time.perf_counter()
@@ -454,8 +456,8 @@ def study_config(name: str, cfg: dict, args) -> dict:
     # as fosmc tune: on a rough loop the whole horizon, or the window where its gradient explodes at the start
     fallback = None
     if (truncated := _config.fallback_problem(cfg, train)) is not None:
-        fallback = bool(not (np.isfinite(float(value)) and T._norm(grad) <= _config.GRADIENT_GUARD))
-        log(f"{name}: the whole horizon's gradient at the start has norm {T._norm(grad):.3e}"
+        fallback = bool(not (np.isfinite(float(value)) and tuner._norm(grad) <= _config.GRADIENT_GUARD))
+        log(f"{name}: the whole horizon's gradient at the start has norm {tuner._norm(grad):.3e}"
             + (f": the {_config.GRADIENT_WINDOW:g} s window's instead" if fallback else ""))  # fmt: skip
         if fallback:
             s["loss"] = fs.make_loss(truncated, obj, None)
@@ -787,7 +789,7 @@ def report(data: dict) -> str:
             "tune stops where the line search finds no decrease)."
         )
     A("\n**How.** tune = the package's tuner loop (`fosmc_jax._search.tune.run`, Adam with the config's learning "
-      "rate as `T.learning_rate` resolves it, its schedule and clip, mode reverse, its free parameters) for N steps, "
+      "rate as `tuner.learning_rate` resolves it, its schedule and clip, mode reverse, its free parameters) for N steps, "
       f"N = {st['step_margin']:g} x the steps that fit the budget at the step time measured before the race (the cosine "
       "schedule spans about the budget, as `fosmc tune --budget` fits its steps), stopped when its time passes the "
       f"budget. CMA-ES = `fosmc_jax.search.cma_es` (pycma), popsize {st['popsize']}, sigma "
@@ -944,13 +946,13 @@ def main() -> int:
         default="ideal",
         help="where the race from p0 (no global stage) runs too (default: the ideal loops)",
     )
-    ap.add_argument("--optimizer", choices=T.OPTIMIZERS, help="tune's optimizer (default: the config's)")
+    ap.add_argument("--optimizer", choices=tuner.OPTIMIZERS, help="tune's optimizer (default: the config's)")
     ap.add_argument("--window", type=float, help="tune's [tune] gradient_window, s (default: the config's; a window "
                     "longer than the training horizon gives the whole horizon's gradient)")  # fmt: skip
     ap.add_argument("--starts", type=int, default=1, help="tune's starts from the global stage, run at once "
                     "(fosmc tune's [tune] starts; default 1: the one-start tune)")  # fmt: skip
-    ap.add_argument("--spread", type=float, default=T.SPREAD, help="with --starts: the starts' learning rates span the "
-                    f"config's rate / SPREAD .. x SPREAD (default fosmc tune's, {T.SPREAD:g})")  # fmt: skip
+    ap.add_argument("--spread", type=float, default=tuner.SPREAD, help="with --starts: the starts' learning rates span the "
+                    f"config's rate / SPREAD .. x SPREAD (default fosmc tune's, {tuner.SPREAD:g})")  # fmt: skip
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
