@@ -50,6 +50,7 @@ LONG_FILES = (
     "test_arm_disturbances.py",
     "test_digital_loop.py",
     "test_generated.py",
+    "test_kernel_noise.py",
     "test_build.py",
     "test_arm.py",
     "test_performance_paths.py",
