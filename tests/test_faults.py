@@ -210,7 +210,7 @@ def test_reproduce_horizon_follows_the_config_rules(t_final, dt):
         valid = True
     except _config.ConfigError:
         valid = False
-    original, reproduction.parallel = reproduction.parallel, stub
+    original, reproduction.run_groups = reproduction.run_groups, stub
     try:
         commands.run_reproduce(plant="linear", t_final=t_final, dt=dt)
         raise AssertionError("neither refused nor started")
@@ -219,7 +219,7 @@ def test_reproduce_horizon_follows_the_config_rules(t_final, dt):
     except _config.ConfigError as e:
         assert not valid and str(e).split(":")[0] in ("--t-final", "--dt") and "\n" not in str(e)
     finally:
-        reproduction.parallel = original
+        reproduction.run_groups = original
 
 
 # ---------------------------------------------------------------------------- unwritable outputs

@@ -60,21 +60,61 @@ class Settings(NamedTuple):
 SHORT = Settings(t_final=0.1, vertices=8, save_every=0)
 
 
+class Jobs(NamedTuple):
+    """A group of cases as independent runs (``thunks``, each compiling its own programs) and
+    how their results make the group's (``combine``)."""
+
+    thunks: list[Callable[[], Any]]
+    combine: Callable[[list], Any]
+
+    def run(self) -> Any:
+        return self.combine(parallel(*self.thunks))
+
+
+def _in_context(thunk: Callable[[], Any]) -> Callable[[], Any]:
+    """``thunk`` run in its caller's precision: JAX's configuration contexts are the thread's
+    own (a thread starts from the global setting), so ``run_reproduce``'s ``jax.enable_x64`` is
+    passed on to the threads explicitly."""
+    x64 = jax.config.jax_enable_x64
+
+    def run():
+        with jax.enable_x64(x64):
+            return thunk()
+
+    return run
+
+
 def parallel(*thunks: Callable[[], Any], workers: int | None = None) -> list[Any]:
     """Each thunk's result, in order, the thunks run in ``workers`` threads (default: one per
     core): XLA compiles and runs a program without holding the GIL, so independent case
     groups, whose time is mostly compilation, overlap."""
     workers = workers or max(1, min(len(thunks), os.cpu_count() or 1))
-    # JAX's configuration contexts are the thread's own: a thread starts from the global
-    # setting, so the caller's ``jax.enable_x64`` (run_reproduce's) is passed on explicitly
-    x64 = jax.config.jax_enable_x64
-
-    def run(thunk):
-        with jax.enable_x64(x64):
-            return thunk()
-
     with concurrent.futures.ThreadPoolExecutor(max_workers=workers) as pool:
-        return [f.result() for f in [pool.submit(run, t) for t in thunks]]
+        return [f.result() for f in [pool.submit(_in_context(t)) for t in thunks]]
+
+
+#: Threads of :func:`run_groups`' pool: one per core (XLA's compilation of a program uses more
+#: than one core; more threads measured no faster, with more CPU time in all).
+WORKERS = os.cpu_count() or 1
+
+
+def run_groups(groups: list[Jobs], done: Callable[[int, list], None] = lambda i, results: None) -> list[Any]:
+    """Every group's result, the groups' thunks run in one pool of :data:`WORKERS` threads in
+    order (the first group's first); ``done(i, results)`` is called, in a thread of its own, as
+    soon as group i and every group before it are done (results: theirs), so that the figures
+    of the first groups are drawn while later groups still compile."""
+    with (concurrent.futures.ThreadPoolExecutor(max_workers=WORKERS) as pool,
+          concurrent.futures.ThreadPoolExecutor(max_workers=1) as drawing):  # fmt: skip
+        futures = [[pool.submit(_in_context(t)) for t in g.thunks] for g in groups]
+
+        def collect() -> list[Any]:
+            results = []
+            for i, (g, fs) in enumerate(zip(groups, futures)):
+                results.append(g.combine([f.result() for f in fs]))
+                done(i, results)
+            return results
+
+        return drawing.submit(_in_context(collect)).result()
 
 
 def _batched(plants, ctrls, reference, X0, dt, **options):
@@ -113,9 +153,13 @@ def plants_under_test(kind: str, dtype) -> list[tuple[str, Any]]:
 def run_cases(
     kind: str, settings: Settings | None = None, dtype=jnp.float64, log: Callable[[str], None] = print
 ) -> list[Case]:
-    """Simulate every case. Per plant group, SGN is one vmapped call over the group's plants and
-    the three Table 1 sets are one call over (set x plant): four compilations in all, run in
-    :func:`parallel`."""
+    """Simulate every case (:func:`case_jobs`, run in :func:`parallel`)."""
+    return case_jobs(kind, settings, dtype, log).run()
+
+
+def case_jobs(kind: str, settings: Settings, dtype=jnp.float64, log: Callable[[str], None] = print) -> Jobs:
+    """The cases of :func:`run_cases`: per plant group, SGN is one vmapped call over the group's
+    plants and the three Table 1 sets are one call over (set x plant), four runs in all."""
     reference = Cycloid(*(jnp.asarray(x, dtype) for x in (paper.THETA_START, paper.THETA_END, paper.TAU)))
     X0 = desired_state(reference(jnp.zeros((), dtype)))
     n_steps = round(settings.t_final / settings.dt)
@@ -150,9 +194,9 @@ def run_cases(
     jobs = [functools.partial(run, g, plant_kind, labelled, switching, sets)
             for g, (plant_kind, labelled) in enumerate(groups)
             for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2]))]  # fmt: skip
-    cases = [c for part in parallel(*jobs) for c in part]
     order = {s: i for i, s in enumerate(SWITCHINGS)}
-    return sorted(cases, key=lambda c: (c.plant != kind, "vertices" in c.payload, c.payload, order[c.switching]))
+    key = lambda c: (c.plant != kind, "vertices" in c.payload, c.payload, order[c.switching])
+    return Jobs(jobs, lambda parts: sorted((c for part in parts for c in part), key=key))
 
 
 # ---------------------------------------------------------------------------- the realistic loop
@@ -185,15 +229,20 @@ def _run(cfg: problems.Config, params: list[FOSMCParams], switching: str, realis
 def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Case]:
     """SGN and Table 1's sets with the paper's gains on the arm at 0 and 10 kg, in the
     realistic loop (the ideal loop's cases are :func:`run_cases`')."""
+    return realistic_jobs(t_final, log).run()
+
+
+def realistic_jobs(t_final: float | None = None, log: Callable[[str], None] = print) -> Jobs:
+    """The runs of :func:`run_realistic_cases`: SGN, and the three sets in one call."""
     cfg = realistic_config(t_final)
     dtype = jnp.dtype(cfg.sim.precision)
     payloads = [f"{p:g} kg" for p in cfg.plant.payloads]
-    cases = []
-    for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2])):
+
+    def run(switching: str, sets: list[int]) -> list[Case]:
         start = time.perf_counter()
         params = [_controller(paper.DELTA_SETS[k], dtype) for k in sets]
         result = _run(cfg, params, switching, True, save_every=problems.sample_steps(cfg))
-        i = 0
+        cases, i = [], 0
         for k in sets:
             for load in payloads:
                 part = jax.tree.map(lambda x, i=i: np.asarray(x)[i : i + 1], result)
@@ -201,7 +250,10 @@ def run_realistic_cases(t_final: float | None = None, log: Callable[[str], None]
                 i += 1
         log(f"arm realistic {switching:5} {i:2d} rollout(s) x {cfg.sim.t_final} s  "
             f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
-    return cases
+        return cases
+
+    thunks = [functools.partial(run, switching, sets) for switching, sets in (("sign", [0]), ("ratio", [0, 1, 2]))]
+    return Jobs(thunks, lambda parts: [c for part in parts for c in part])
 
 
 class Sweep(NamedTuple):
@@ -216,6 +268,11 @@ class Sweep(NamedTuple):
 def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = print) -> list[Sweep]:
     """Table 1 set 1 with delta scaled by :data:`DELTA_SCALES`, and with the poles (33) sped up
     by :data:`POLE_SPEEDUPS`, on the arm at 0 and 10 kg, in both loops (one call per loop)."""
+    return tradeoff_jobs(t_final, log).run()
+
+
+def tradeoff_jobs(t_final: float | None = None, log: Callable[[str], None] = print) -> Jobs:
+    """The runs of :func:`tradeoff_sweeps`: the ideal loop's, the realistic loop's."""
     cfg = realistic_config(t_final)
     dtype = jnp.dtype(cfg.sim.precision)
     base = _controller(paper.DELTA_SETS[0], dtype)
@@ -223,21 +280,25 @@ def tradeoff_sweeps(t_final: float | None = None, log: Callable[[str], None] = p
     axes = (("delta scale", DELTA_SCALES, lambda v: base._replace(delta=base.delta * v)),
             ("pole speed-up", POLE_SPEEDUPS, lambda v: base._replace(poles=base.poles * v)))  # fmt: skip
     params = [vary(v) for _, values, vary in axes for v in values]
-    loops = []
-    for realistic in (False, True):
+
+    def run(realistic: bool):
         start = time.perf_counter()
         r = _run(cfg, params, "ratio", realistic)
         ok = ~np.asarray(r.diverged).reshape(len(params), P, 1)
         mean = lambda x, ok=ok: np.nanmean(np.where(ok, np.asarray(x).reshape(len(params), P, 3), np.nan), axis=1)
-        loops.append(jax.tree.map(mean, r.metrics))
         log(f"trade-off {'realistic' if realistic else 'ideal':9} {len(params) * P:3d} rollouts  "
             f"{time.perf_counter() - start:6.2f} s")  # fmt: skip
-    sweeps, i = [], 0
-    for name, values, _ in axes:
-        part = lambda m, i=i, n=len(values): jax.tree.map(lambda x: x[i : i + n], m)  # noqa: B008
-        sweeps.append(Sweep(name, values, part(loops[0]), part(loops[1])))
-        i += len(values)
-    return sweeps
+        return jax.tree.map(mean, r.metrics)
+
+    def combine(loops) -> list[Sweep]:
+        sweeps, i = [], 0
+        for name, values, _ in axes:
+            part = lambda m, i=i, n=len(values): jax.tree.map(lambda x: x[i : i + n], m)  # noqa: B008
+            sweeps.append(Sweep(name, values, part(loops[0]), part(loops[1])))
+            i += len(values)
+        return sweeps
+
+    return Jobs([functools.partial(run, False), functools.partial(run, True)], combine)
 
 
 def sweep_markdown(sweeps: list[Sweep]) -> str:
@@ -500,32 +561,35 @@ def run_reproduce(
         f"{', the realistic loop and the trade-off sweeps' if plant == 'arm' else ''}, beside ..."
     )
 
-    # every group at once: their time is mostly compilation, which runs without the GIL, so a
-    # thread per group (more than the cores) keeps the cores busy while another group traces in
-    # Python or draws its figures; each group draws its figures as soon as its cases are done
-    def primary():
-        cases = run_cases(plant, settings, log=log)
-        return cases, [] if out is None else write_figures(cases, out, plant)
-
-    def sweeps():
-        sweeps = tradeoff_sweeps(t_final, log=log)
-        return sweeps, [] if out is None else [write_tradeoff_figure(sweeps, out)]
-
-    jobs = [primary, lambda: run_cases(plant, SHORT, log=log), design_facts]
+    # one pool for every group's runs, the paper's cases first: their figures are drawn while
+    # the other groups compile (drawing holds the GIL; compiling does not)
+    groups = [case_jobs(plant, settings, log=log)]
     if plant == "arm":
-        jobs += [lambda: run_realistic_cases(t_final, log=log), sweeps]
-    (cases, figures), short_cases, design, *arm_only = parallel(*jobs, workers=len(jobs))
+        groups += [realistic_jobs(t_final, log=log), tradeoff_jobs(t_final, log=log)]
+    groups += [Jobs([design_facts], lambda parts: parts[0]), case_jobs(plant, SHORT, log=log)]
+    figures: list[str] = []
+
+    def draw(i: int, done: list) -> None:
+        if out is None:
+            return
+        if i == 0:
+            log("fosmc reproduce: drawing figures ...")
+            figures.extend(write_figures(done[0], out, plant))
+        elif plant == "arm" and i == 1:
+            figures.append(write_realistic_figure(done[0] + done[1], out))
+        elif plant == "arm" and i == 2:
+            figures.append(write_tradeoff_figure(done[2], out))
+
+    cases, *arm_only, design, short_cases = run_groups(groups, draw)
     rows, short = metric_rows(cases), metric_rows(short_cases)
     files = {"metrics.csv": to_csv(rows), "metrics.md": to_markdown(rows),
              "design.md": design, "metrics_short.csv": to_csv(short)}  # fmt: skip
     tables = {"metrics": rows, "metrics_short": short}
     if plant == "arm":
-        realistic, (sweeps_, tradeoff_figure) = arm_only
+        realistic, sweeps = arm_only
         tables["realistic"] = metric_rows(realistic, METRIC_NAMES)
         files.update({"realistic.md": to_markdown(tables["realistic"], METRIC_NAMES),
-                      "tradeoff.md": sweep_markdown(sweeps_)})  # fmt: skip
-        if out is not None:
-            figures += [write_realistic_figure(cases + realistic, out), *tradeoff_figure]
+                      "tradeoff.md": sweep_markdown(sweeps)})  # fmt: skip
     if out is not None:
         for name, text in files.items():
             write_text(out / name, text)
