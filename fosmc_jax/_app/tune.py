@@ -227,8 +227,10 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
     # the objective's scales: the metrics at p0 on the training simulation, by the global stage's
-    # evaluation where there is one (one program compiled for both)
-    searching = bool(tcfg.global_candidates) and floor is None and not resuming
+    # evaluation where there is one (one program compiled for both); a resumed run, whose global
+    # stage is over, computes them by the same program (another one's last bits would move the
+    # resumed steps off the uninterrupted run's)
+    searching = bool(tcfg.global_candidates) and floor is None
     evaluator = front.Evaluator(problem) if searching else problem
     # where training simulates [sim] itself, that program evaluates the plain results too
     same = searching and problems.training_config(cfg) is cfg
@@ -276,7 +278,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
             f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
     loss = tuner.make_loss(problem, obj, floor)
     # compiled before the global stage: a budget then plans with the gradient's measured cost
-    K = tcfg.starts if searching else 1
+    K = tcfg.starts if searching and not resuming else 1  # a resumed run continues its one start
     grid = u_p0 if K == 1 else jax.tree.map(lambda x: jax.numpy.broadcast_to(x, (K, *x.shape)), u_p0)
     stepper = tuner.prepare(loss, grid, tcfg.mode, starts=K > 1, log=log)
     # the fallback's compilation, where the start needs it: the adjoint kernel's build and most of
@@ -287,7 +289,8 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     if end is not None:
         log(f"tune: --budget {budget:g} s: the gradient compiled in {stepper.compile_seconds:.1f} s, "
             f"{stepper.step_seconds:.3f} s a step; "
-            + ("no global stage" if not searching else "one chunk of the global stage" if deadlines.global_stage <= now
+            + ("no global stage" if not searching or resuming
+               else "one chunk of the global stage" if deadlines.global_stage <= now
                else f"the global stage until {deadlines.global_stage - started:.1f} s")
             + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
     start_params, starts = _start(tcfg, evaluator, obj, p0, floor, checkpoint if resuming else None,
