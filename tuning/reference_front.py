@@ -194,11 +194,12 @@ def build(args) -> dict:
     """Run one method on the config's plain problem for the budget; write its non-dominated
     candidates (no diverged rollout) with their plain metrics to <OUT>/<config>/<method>.json
     (the front: its front.json's points), and every candidate it evaluated to ``--save-all``
-    (.npz) when given. CMA-ES (:func:`fosmc_jax.search.cma_front`) is restarted with the next
-    seed while budget is left: pycma stops a run at its own criteria (tolfun, ...)."""
+    (.npz) when given; ``--out``: another folder than <OUT>/<config>. CMA-ES
+    (:func:`fosmc_jax.search.cma_front`) is restarted with the next seed while budget is left:
+    pycma stops a run at its own criteria (tolfun, ...)."""
     cfg = _config.load(args.config)
     name = config_name(args.config)
-    folder = OUT / name
+    folder = pathlib.Path(args.out) if args.out else OUT / name
     folder.mkdir(parents=True, exist_ok=True)
     start, load0 = time.perf_counter(), load_text()
     command = " ".join(shlex.quote(a) for a in [".venv/bin/python", "tuning/reference_front.py", *sys.argv[1:]])
@@ -206,7 +207,7 @@ def build(args) -> dict:
     plain, _, p0 = _config.tuning_problems(cfg)
     if args.method == "front":  # the CLI, as a user runs it; its files in <config>/front/
         cli = [str(ROOT / ".venv" / "bin" / "fosmc"), "front", "--config", args.config, "--budget", f"{args.budget:g}",
-               "--out", str(folder / "front"), "--force"]  # fmt: skip
+               "--seed", str(args.seed), "--out", str(folder / "front"), "--force"]  # fmt: skip
         log("running " + " ".join(cli))
         subprocess.run(cli, check=True)
         front = json.loads((folder / "front" / "front.json").read_text())
@@ -354,6 +355,7 @@ def main(argv=None) -> None:
     b.add_argument("--popsize", type=int, default=64, help="NSGA-II's population (default 64)")
     b.add_argument("--seed", type=int, default=0)
     b.add_argument("--weights", help="CMA-ES: the weights w of log E + w log C, comma-separated")
+    b.add_argument("--out", metavar="DIR", help="<method>.json's folder (default: tuning/results/reference/<config>)")
     b.add_argument("--save-all", metavar="NPZ", help="every candidate evaluated (z, params, metrics) to this .npz")
     b.add_argument("--weights-from", metavar="FRONT_JSON",
                    help="CMA-ES: the weights from a front's slopes at four points, as tuning/frontier.py picks them")  # fmt: skip
