@@ -79,10 +79,10 @@ def cmd_simulate(args) -> int:
                               **across)  # fmt: skip
     if not sharding.leads():  # process 0 alone prints and writes
         return 0
-    cfg, summary, index = r["config"], r["summary"], r["arrays"]
+    cfg, summary, index = problems.as_config(r["config"]), r["summary"], r["arrays"]
     n = len(index["plant_index"])
-    title = (f"{cfg['controller']['kind']}, {cfg['controller']['switching']} switching, "
-             f"{cfg['sim']['integrator']} dt = {cfg['sim']['dt']} s")  # fmt: skip
+    title = (f"{cfg.controller.kind}, {cfg.controller.switching} switching, "
+             f"{cfg.sim.integrator} dt = {cfg.sim.dt} s")  # fmt: skip
     if args.plot and sampled:
         from .plots import plot_histograms
 

@@ -210,8 +210,10 @@ def _start(tcfg, problem, obj, p0, floor, checkpoint: Path | None, deadline: flo
 
 def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | None, started: float, lead: bool,
           log: Log, fill: bool = False) -> dict[str, Any]:  # fmt: skip
-    """``run_tune``'s work, its inputs checked."""
-    from .._search import front
+    """``run_tune``'s work, its inputs checked: the evaluations at the config's parameters
+    (:func:`_evaluations`), the budget's end (:func:`_end`), the gradient compiled and the
+    deadlines planned, the global stage (:func:`_start`), the gradient steps, and the final and
+    held-out evaluations with the files (:func:`_result`)."""
     from .._search import tune as tuner
 
     tcfg = cfg.tune
@@ -226,41 +228,12 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"per training evaluation; free parameters: {', '.join(tcfg.params)}")  # fmt: skip
     checkpoint = None if out is None else out / "checkpoint.npz"
     resuming = resume and checkpoint is not None and checkpoint.exists()
-    # the objective's scales: the metrics at p0 on the training simulation, by the global stage's
-    # evaluation where there is one (one program compiled for both); a resumed run, whose global
-    # stage is over, computes them by the same program (another one's last bits would move the
-    # resumed steps off the uninterrupted run's)
     searching = bool(tcfg.global_candidates) and floor is None
-    evaluator = front.Evaluator(problem) if searching else problem
-    # where training simulates [sim] itself, that program evaluates the plain results too
-    same = searching and problems.training_config(cfg) is cfg
-
-    def evaluate_plain(p) -> dict[str, Any]:
-        if not same:
-            return tuner.evaluate(plain, p)
-        r = evaluator(jax.tree.map(lambda x: jax.numpy.asarray(x)[None], p), CHUNK, log=_quiet)
-        metrics = {k: v[0].tolist() for k, v in r.items() if k != "diverged"}
-        return {"metrics": metrics, "diverged": int(r["diverged"][0]), "rollouts": plain.rollouts}
-
-    if searching:
-        at_p0 = evaluator(jax.tree.map(lambda x: x[None], p0), CHUNK, log=_quiet)
-        m = {k: v[0].tolist() for k, v in at_p0.items() if k != "diverged"}
-    else:
-        m = tuner.evaluate(problem, p0)["metrics"]
+    evaluator, evaluate_plain, m = _evaluations(cfg, plain, problem, p0, searching)
     initial = evaluate_plain(p0)
     held = problems.held_out_config(cfg)
     held_problem = problems.tuning_problems(held)[0]
-    end = None
-    if budget is not None:
-        # the held-out evaluation compiled now and its run timed: what follows the steps is known
-        # before the global stage and the steps share the rest (the final evaluation runs plain's
-        # program, compiled above, on fewer rollouts)
-        tuner.evaluate(held_problem, p0)
-        t0 = time.perf_counter()
-        tuner.evaluate(held_problem, p0)
-        evaluations = sharding.first(time.perf_counter() - t0)
-        drawing = sharding.first(_drawing_seconds() if out is not None and lead else 0.0)  # process 0 draws
-        end = started + budget - EXIT_SECONDS - drawing - 2 * evaluations
+    end = None if budget is None else _end(held_problem, p0, started + budget, out is not None and lead)
     obj = tuner.objective_of(tcfg, m)
     log(f"tune: objective {obj.form} ({obj.scale} scale) of {metric_label(obj.error_metric)} and "
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
@@ -271,11 +244,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     except ValueError as e:
         raise ConfigError(str(e)) from None
     lr = tuner.learning_rate(tcfg.learning_rate, problems.rough_loop(cfg))
-    truncated = problems.fallback_problem(cfg, problem)
-    fallback = None if truncated is None else tuner.make_loss(truncated, obj, floor)
-    if fallback is not None:
-        log(f"tune: the gradient follows the whole horizon; its fallback, where that gradient's norm at the start "
-            f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
+    fallback = _fallback(cfg, problem, obj, floor, log)
     loss = tuner.make_loss(problem, obj, floor)
     # compiled before the global stage: a budget then plans with the gradient's measured cost
     K = tcfg.starts if searching and not resuming else 1  # a resumed run continues its one start
@@ -298,7 +267,6 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     u0 = tuner.to_internal(start_params, plain.base, floor)
     settings = tuner.Settings(tcfg.steps * (FILL if fill else 1), lr, tcfg.schedule, tcfg.clip, tcfg.mode,
                               tuple(tcfg.params), tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
-    start = time.perf_counter()
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
     keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
@@ -317,9 +285,78 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     # evaluation runs the program that evaluated p0 instead of compiling another
     u = jax.device_get(u)
     final_params = tuner.to_physical(u, plain.base, floor)
-    final = evaluate_plain(final_params)
-    # the final parameters on what training did not see (fresh payloads, sampled arms, draws)
-    held_out = tuner.evaluate(held_problem, final_params)
+    return _result(cfg, obj, (p0, start_params, final_params), initial, evaluate_plain(final_params), history,
+                   (held, held_problem), lambda p: tuner.to_physical(p, plain.base, floor), out if lead else None,
+                   log)  # fmt: skip
+
+
+def _evaluations(cfg: problems.Config, plain, problem, p0, searching: bool):
+    """The evaluator of the global stage (``problem``'s :class:`fosmc_jax._search.front.Evaluator`
+    where there is one, else ``problem``), the plain evaluation (a function of the parameters),
+    and the training metrics at ``p0`` (the objective's scales)."""
+    from .._search import front
+    from .._search import tune as tuner
+
+    # the objective's scales by the global stage's evaluation where there is one (one program
+    # compiled for both); a resumed run, whose global stage is over, computes them by the same
+    # program (another one's last bits would move the resumed steps off the uninterrupted run's)
+    evaluator = front.Evaluator(problem) if searching else problem
+    # where training simulates [sim] itself, that program evaluates the plain results too
+    same = searching and problems.training_config(cfg) is cfg
+
+    def evaluate_plain(p) -> dict[str, Any]:
+        if not same:
+            return tuner.evaluate(plain, p)
+        r = evaluator(jax.tree.map(lambda x: jax.numpy.asarray(x)[None], p), CHUNK, log=_quiet)
+        metrics = {k: v[0].tolist() for k, v in r.items() if k != "diverged"}
+        return {"metrics": metrics, "diverged": int(r["diverged"][0]), "rollouts": plain.rollouts}
+
+    if searching:
+        at_p0 = evaluator(jax.tree.map(lambda x: x[None], p0), CHUNK, log=_quiet)
+        return evaluator, evaluate_plain, {k: v[0].tolist() for k, v in at_p0.items() if k != "diverged"}
+    return evaluator, evaluate_plain, tuner.evaluate(problem, p0)["metrics"]
+
+
+def _fallback(cfg: problems.Config, problem, obj, floor, log: Log):
+    """The loss of truncated windows that the steps follow where the whole horizon's gradient at
+    the start is not finite or too large (on a rough loop; None elsewhere)."""
+    from .._search import tune as tuner
+
+    truncated = problems.fallback_problem(cfg, problem)
+    if truncated is None:
+        return None
+    log(f"tune: the gradient follows the whole horizon; its fallback, where that gradient's norm at the start "
+        f"is above {problems.GRADIENT_GUARD:g} or not finite: {problems.GRADIENT_WINDOW:g} s windows")  # fmt: skip
+    return tuner.make_loss(truncated, obj, floor)
+
+
+def _end(held_problem, p0, deadline: float, drawn: bool) -> float:
+    """When the gradient steps must end for the run to end by ``deadline``: the held-out
+    evaluation is compiled now and its run timed, and the drawing of ``tuning.png`` (where
+    ``drawn``) measured, so that what follows the steps is known before the global stage and the
+    steps share the rest (the final evaluation runs the plain program, compiled already, on fewer
+    rollouts)."""
+    from .._search import tune as tuner
+
+    tuner.evaluate(held_problem, p0)
+    t0 = time.perf_counter()
+    tuner.evaluate(held_problem, p0)
+    evaluations = sharding.first(time.perf_counter() - t0)
+    drawing = sharding.first(_drawing_seconds() if drawn else 0.0)  # process 0 draws
+    return deadline - EXIT_SECONDS - drawing - 2 * evaluations
+
+
+def _result(cfg, obj, params, initial, final, history, held, physical, out: Path | None, log: Log) -> dict[str, Any]:
+    """The result (``run_tune``'s return) of a run from ``params`` (p0, the start, the final
+    parameters) with plain metrics ``initial`` and ``final``: the final parameters evaluated on
+    what training did not see (``held``: the held-out config and its problem: fresh payloads,
+    sampled arms, draws); with ``out`` result.json and tuning.png written there (``physical``:
+    the history's internal parameters to physical ones)."""
+    from .._search import tune as tuner
+
+    p0, start_params, final_params = params
+    start = time.perf_counter()
+    held_out = tuner.evaluate(held[1], final_params)
     log(f"tune: held out ({held_out['rollouts']} rollouts, {held_out['diverged']} diverged): "
         f"{obj.error_metric} {np.mean(held_out['metrics'][obj.error_metric]):.4g}, "
         f"{obj.chattering_metric} {np.mean(held_out['metrics'][obj.chattering_metric]):.4g}")  # fmt: skip
@@ -328,21 +365,20 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         "initial": {"params": as_dict(p0), **initial},
         "start": {
             "params": as_dict(start_params),
-            "global_candidates": 0 if start_params is p0 else tcfg.global_candidates,
+            "global_candidates": 0 if start_params is p0 else cfg.tune.global_candidates,
         },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
         "held_out": held_out,
-        "held_out_batch": problems.held_out_batch(held),
+        "held_out_batch": problems.held_out_batch(held[0]),
         "objective": obj._asdict(),
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg.as_dict(),
     })  # fmt: skip
-    if out is not None and lead:
+    if out is not None:
         from .plots import plot_tuning
 
         write_text(out / "result.json", json.dumps(jsonable(result), indent=1))
-        params_history = [as_dict(tuner.to_physical(type(p0)(*map(jax.numpy.asarray, p)), plain.base, floor))
-                          for p in history["params"]]  # fmt: skip
+        params_history = [as_dict(physical(type(p0)(*map(jax.numpy.asarray, p)))) for p in history["params"]]
         plot_tuning(history, params_history, out / "tuning.png")
         log(f"tune: wrote {out}/result.json and {out}/tuning.png in {time.perf_counter() - start:.1f} s")
     return result

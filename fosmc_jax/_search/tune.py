@@ -607,8 +607,8 @@ def run_starts(
 ) -> tuple[Params, dict[str, list]]:
     """Adam from several starts at once: ``U0`` holds K starts on a leading axis (internal
     coordinates), each step is one call of ``jax.vmap`` of ``loss``'s value and gradient over
-    them (the generated kernels fold the K candidates into their lanes: BENCHMARKS.md, "Issue 33:
-    gradients of a batch of candidates in one call"), and each start follows its own Adam state
+    them (the generated kernels fold the K candidates into their lanes: BENCHMARKS.md, "gradients
+    of a batch of candidates in one call"), and each start follows its own Adam state
     with its own learning rate (``rates``, K of them; default: ``settings.learning_rate`` each)
     on ``settings``' schedule. A start whose loss or gradient is not finite, or whose gradient is
     zero (every rollout diverged: the flat penalty), goes back to its own best point with a fresh
@@ -627,40 +627,10 @@ def run_starts(
     scale = np.ones(K) if rates is None else np.asarray(rates, float) / settings.learning_rate
     step_fn = stepper.fn if stepper is not None else jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))
     U = replicated(U0)
-    if fallback is not None:
-        (value, _), grads = step_fn(U)
-        norm = _norm(jax.tree.map(lambda x: x[0], grads))
-        if sharding.first(not (np.isfinite(float(value[0])) and norm <= guard)):
-            step_fn = jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True)))
-            log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
-                "fallback's gradient instead")  # fmt: skip
-    if deadline is not None:
-        jax.block_until_ready(step_fn(U))  # compiled
-        t0 = time.perf_counter()
-        jax.block_until_ready(step_fn(U))
-        per_step = sharding.first(time.perf_counter() - t0)
-        fit = sharding.first(max(1, int((deadline - time.perf_counter()) / per_step) - 1))
-        settings = settings._replace(steps=min(settings.steps, fit))
-        log(f"tune: budget: {settings.steps} gradient steps of {K} starts ({per_step:.3f} s each) before the deadline")
+    step_fn, settings = _starts_plan(step_fn, U, settings, fallback, guard, deadline, log)
     opt = make_optimizer(settings, labels)
     state = jax.vmap(opt.init)(U)
-
-    @jax.jit
-    def update(U, state, grads, scale):
-        def one(u, s, g, k):
-            g = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)  # a non-finite start's: no step
-            updates, s = opt.update(g, s, u)
-            return optax.apply_updates(u, jax.tree.map(lambda x: k * x, updates)), s
-
-        return jax.vmap(one)(U, state, grads, scale)
-
-    @jax.jit
-    def choose(mask, a, b):
-        """a's rows where ``mask`` (K,), b's elsewhere, leaf by leaf."""
-        return jax.tree.map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
-
-    restart = jax.jit(lambda best_U: jax.vmap(opt.init)(best_U))  # a fresh Adam state, its schedule from the top
-
+    update, choose, restart = _starts_updates(opt)
     history: dict[str, list] = {"loss": [], "error": [], "chattering": [], "grad_norm": [], "skipped": [],
                                 "params": [], "restarts": []}  # fmt: skip
     best_f = np.full(K, np.inf)
@@ -701,3 +671,49 @@ def run_starts(
     history["best_step"] = int(np.argmin(np.where(np.isfinite(history["loss"]), history["loss"], np.inf)))
     log(f"tune: start {k}'s best point (loss {best_f[k]:.5f}) is returned: the lowest loss of the {K} starts")
     return u, history
+
+
+def _starts_plan(step_fn, U, settings: Settings, fallback, guard: float, deadline: float | None, log):
+    """:func:`run_starts`' value and gradient (``fallback``'s where the first start's gradient is
+    not finite or its norm above ``guard``) and its settings (with a ``deadline``: as many steps
+    as fit at the batched step's measured time)."""
+    K = len(jax.tree.leaves(U)[0])
+    if fallback is not None:
+        (value, _), grads = step_fn(U)
+        norm = _norm(jax.tree.map(lambda x: x[0], grads))
+        if sharding.first(not (np.isfinite(float(value[0])) and norm <= guard)):
+            step_fn = jax.jit(jax.vmap(jax.value_and_grad(fallback, has_aux=True)))
+            log(f"tune: the gradient at the start has norm {norm:.3e} (above {guard:g} or not finite): the "
+                "fallback's gradient instead")  # fmt: skip
+    if deadline is not None:
+        jax.block_until_ready(step_fn(U))  # compiled
+        t0 = time.perf_counter()
+        jax.block_until_ready(step_fn(U))
+        per_step = sharding.first(time.perf_counter() - t0)
+        fit = sharding.first(max(1, int((deadline - time.perf_counter()) / per_step) - 1))
+        settings = settings._replace(steps=min(settings.steps, fit))
+        log(f"tune: budget: {settings.steps} gradient steps of {K} starts ({per_step:.3f} s each) before the deadline")
+    return step_fn, settings
+
+
+def _starts_updates(opt):
+    """:func:`run_starts`' compiled pieces: ``update`` (each start's Adam step, scaled by its own
+    rate; a non-finite gradient's entries make no step), ``choose(mask, a, b)`` (a's rows where
+    ``mask``, b's elsewhere, leaf by leaf) and ``restart`` (fresh Adam states, the schedule from
+    the top)."""
+
+    @jax.jit
+    def update(U, state, grads, scale):
+        def one(u, s, g, k):
+            g = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)  # a non-finite start's: no step
+            updates, s = opt.update(g, s, u)
+            return optax.apply_updates(u, jax.tree.map(lambda x: k * x, updates)), s
+
+        return jax.vmap(one)(U, state, grads, scale)
+
+    @jax.jit
+    def choose(mask, a, b):
+        return jax.tree.map(lambda x, y: jnp.where(mask.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), a, b)
+
+    restart = jax.jit(lambda best_U: jax.vmap(opt.init)(best_U))
+    return update, choose, restart

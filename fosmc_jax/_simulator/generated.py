@@ -806,24 +806,28 @@ def _folded_call(target: Target, shapes, n: int, W: int, ckpt_in: bool = False, 
     return run
 
 
+def _checkpoint_every(residuals: int, n_state: int, N: int, L: int, W: int, dtype) -> int:
+    """K: the adjoint's carry stored every K of the L steps. The adjoint recomputes each block of
+    K steps storing its residuals, then sweeps it backwards: a block's residuals and states in
+    about RESIDUAL_BYTES (a core's cache), and the checkpoints within CHECKPOINT_BYTES."""
+    per_row = (N + (-N) % W) * np.dtype(dtype).itemsize
+    K = max(1, RESIDUAL_BYTES // ((residuals + n_state) * 64), -(-L * n_state * per_row // CHECKPOINT_BYTES))
+    return min(K, L)
+
+
 def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, truncate: int = 0) -> Array:
     """The state rows (n_state, N) after the table's L steps from ``x0`` (n_state, N), with the
     rollouts' ``lanes`` (:meth:`Model.lanes`' two parts, rows by N): the generated kernel,
     differentiable in ``x0`` and ``lanes`` (reverse mode: the adjoint kernel; forward mode: a
     ``lax.scan`` of the split step) and, by the scan, in ``table``. ``truncate`` > 0: the dynamic
-    rows' derivatives stop every ``truncate`` steps (:func:`fosmc_jax.simulate`'s ``truncate_every``)."""
+    rows' derivatives stop every ``truncate`` steps (:func:`fosmc_jax.simulate`'s ``truncate_every``).
+
+    (Long: the forward call, the scan, the adjoint's tangent and transpose and the JVP rule that
+    picks between them are closures over one model, its padding and its shapes.)"""
     dtype = model.dtype
     W = 64 // np.dtype(dtype).itemsize
     L, N, n_state = table.shape[0], x0.shape[1], x0.shape[0]
     truncate = truncate if 0 < truncate < L else 0
-
-    def layout(residuals: int) -> int:
-        # K: the carry stored every K steps; the adjoint recomputes each block of K steps storing
-        # its residuals, then sweeps it backwards: a block's residuals and states in about
-        # RESIDUAL_BYTES (a core's cache), and the checkpoints within CHECKPOINT_BYTES
-        per_row = (N + (-N) % W) * np.dtype(dtype).itemsize
-        K = max(1, RESIDUAL_BYTES // ((residuals + n_state) * 64), -(-L * n_state * per_row // CHECKPOINT_BYTES))
-        return min(K, L)
 
     def forward(x0, varying, fixed, table):
         xp, lp = _pad(x0, W), _pad(model.assemble((varying, fixed)), W)
@@ -848,7 +852,7 @@ def advance(model: Model, x0: Array, lanes: tuple[Array, Array], table: Array, t
         x0, the varying lanes, the fixed lanes): the others' tangents are zero, so they get no
         cotangent (a linear_call's every linear input must be one)."""
         kernels = model.kernels(with_plant=2 in moving)
-        K = layout(kernels.residuals)
+        K = _checkpoint_every(kernels.residuals, n_state, N, L, W, dtype)
 
         def tangent(res, lin):
             primals = res[:3]

@@ -12,7 +12,7 @@ namespace fosmc {
 
 // One block: the CPU's SIMD register (AVX-512: 64 bytes, 8 double or 16 float rollouts; AVX: 32;
 // else 16). A block wider than the register takes two registers per value, and the long
-// straight-line step then spills what it cannot hold (BENCHMARKS.md, "Issue 32").
+// straight-line step then spills what it cannot hold (BENCHMARKS.md: "the block's width").
 // -DFOSMC_SIMD_BYTES=N sets another width (an ablation: FOSMC_JAX_KERNEL_FLAGS).
 #if defined(FOSMC_SIMD_BYTES)
 constexpr int kBytes = FOSMC_SIMD_BYTES;
