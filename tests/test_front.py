@@ -336,3 +336,59 @@ def test_a_training_problem_that_differs_only_in_its_gradient_is_no_surrogate():
     assert train.options["truncate_every"] > 0 and "truncate_every" not in plain.options
     assert search_front._same_simulation(train, plain)
     assert not search_front._same_simulation(train._replace(dt=2 * train.dt), plain)
+
+
+def test_gradient_stage_scalarization_matches_central_differences():
+    """The gradient stage's objective log E + w log C of the log factors (y = z ln 10): its
+    value is the plain evaluator's axes at those factors, and its gradient equals central
+    differences of itself (h = 1e-5 in y, rtol 1e-5)."""
+    import jax
+    import jax.numpy as jnp
+
+    plain, _, p0 = _config.tuning_problems(_config.resolve(TINY))
+    f = search_front.scalarized(plain, p0)
+    y, w = jnp.asarray(np.linspace(-0.3, 0.3, search_front.DIM)), 1.7
+    (value, (E, C, bad)), g = jax.value_and_grad(f, has_aux=True)(y, w)
+    m = search_front.evaluate_many(plain, search_front.from_factors(p0, np.asarray(y)[None] / np.log(10.0)), 1,
+                                   log=lambda _: None)  # fmt: skip
+    e, c = search_front.axes(m)
+    assert not bad
+    np.testing.assert_allclose([E, C], [e[0], c[0]], rtol=1e-12)
+    np.testing.assert_allclose(value, np.log(e[0]) + w * np.log(c[0]), rtol=1e-12)
+    h = 1e-5
+    fd = [(f(y.at[i].add(h), w)[0] - f(y.at[i].add(-h), w)[0]) / (2 * h) for i in range(search_front.DIM)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.slow  # a front with gradient steps, killed in them and resumed, then replayed (~40 s)
+def test_gradient_steps_join_the_front_resume_and_replay(tmp_path):
+    """Given gradient steps: the stage records them, the points they add hold plain metrics (the
+    front's points re-simulate to them), a run killed in the stage resumes to the same front,
+    and the recorded work replays to it bit for bit."""
+    plain, _, p0 = _config.tuning_problems(_config.resolve(TINY))
+    settings = SETTINGS._replace(gradient=4, gradient_rate=0.05)
+    res = search_front.front_search(plain, plain, p0, settings, log=lambda _: None)
+    st = res["stages"]
+    assert st["gradient_steps"] == 4 and st["replay"]["gradient_steps"] == 4
+    assert st["from_gradient"] > 0  # on this small problem the steps improve on the rounds' front
+    for pt in res["points"]:
+        p = tuner.Tunable(*(np.asarray(pt["params"][k]) for k in tuner.PARAM_NAMES))
+        np.testing.assert_allclose(tuner.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"],
+                                   rtol=1e-9)  # fmt: skip
+
+    class Crash(Exception):
+        pass
+
+    def crash(msg):
+        if msg.startswith("front: gradient step 1 "):
+            raise Crash
+
+    with pytest.raises(Crash):
+        search_front.front_search(plain, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
+    resumed = search_front.front_search(
+        plain, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None
+    )
+    replayed = search_front.front_search(plain, plain, p0, search_front.replay_settings(st), log=lambda _: None)
+    for other in (resumed, replayed):
+        assert other["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
+        assert [pt["params"] for pt in other["points"]] == [pt["params"] for pt in res["points"]]

@@ -283,8 +283,9 @@ def cmd_front(args) -> int:
     start = process_start()
     result = commands.run_front(args.config, out=args.out, points=args.points, budget=args.budget,
                                 candidates=args.candidates, steps=args.steps, seed=args.seed,
-                                compare=tuple(args.compare), force=args.force, resume=args.resume,
-                                replay=args.replay, started=start, log=_log, **_processes(args))  # fmt: skip
+                                gradient_share=args.gradient_share, compare=tuple(args.compare), force=args.force,
+                                resume=args.resume, replay=args.replay, started=start, log=_log,
+                                **_processes(args))  # fmt: skip
     if not sharding.leads():
         return 0
     _log(
@@ -507,6 +508,9 @@ def parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
     f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")
+    f.add_argument("--gradient-share", type=float, default=0.0, metavar="X",
+                   help="share of the search time spent last on gradient steps refining the front's points "
+                   "(with a budget; default 0: none)")  # fmt: skip
     f.add_argument(
         "--compare",
         action="append",

@@ -37,6 +37,7 @@ def run_front(
     candidates: int | None = None,
     steps: int | None = None,
     seed: int = 0,
+    gradient_share: float = 0.0,
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
@@ -55,7 +56,10 @@ def run_front(
     gamma, poles; SMC's k, phi; super-twisting's k1, k2; per-joint log scale factors in the
     kind's box, ``fosmc_jax._search.tune.SPACES``), by ``fosmc_jax._app.study.study``: ``points``
     parents per local round, default 8; ``candidates``, ``steps``: the global stage's size and
-    the local rounds, default from the budget; ``seed``: of the search's draws. ``out``: folder for ``front.json``,
+    the local rounds, default from the budget; ``seed``: of the search's draws;
+    ``gradient_share``: with sizes from the budget, the share of the search time spent at the end
+    on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
+    0: none). ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
@@ -87,17 +91,19 @@ def run_front(
     with agreeing(across) as agree:
         cfg, out = _checked_front(config, out, points, budget, candidates, steps, seed, compare, force, resume, replay,
                                   lead)  # fmt: skip
+        if not (_is_real(gradient_share) and 0 <= gradient_share < 1):
+            raise ConfigError(f"--gradient-share: expected a number in [0, 1), got {gradient_share}")
         files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
         agree(digest({"command": "front", "config": cfg.as_dict(), "out": out, "points": points, "budget": budget,
-                      "candidates": candidates, "steps": steps, "seed": seed, "compare": list(compare),
+                      "candidates": candidates, "steps": steps, "seed": seed, "gradient_share": gradient_share,
+                      "compare": list(compare),
                       "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
     if lead:
         _warn_one_plant(cfg, "front")
     if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
-    settings = search_front.Settings(
-        points=points or 8, budget=budget, candidates=candidates or 0, steps=steps or 0, seed=seed
-    )
+    settings = search_front.Settings(points=points or 8, budget=budget, candidates=candidates or 0,
+                                     steps=steps or 0, seed=seed, gradient_share=gradient_share)  # fmt: skip
     if replay is not None:
         settings = study.replayed(replay)[1]._replace(budget=budget)
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)

@@ -61,6 +61,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from jax.sharding import Mesh
 from jax.sharding import PartitionSpec as Spec
 
@@ -92,6 +93,7 @@ class Plan(NamedTuple):
     local_horizon: int
     plain_rounds: int
     plain_horizon: int
+    gradient_steps: int = 0
 
 
 class Settings(NamedTuple):
@@ -119,6 +121,12 @@ class Settings(NamedTuple):
     polish: int = 0
     polish_share: float = 0.25
     polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
+    # gradient steps at the end: the front's points refined by Adam on the weighted log objective
+    # at the front's slope there, on the plain problem, ``chunk`` points at once (:func:`_gradient`);
+    # steps (0: from the budget, gradient_share of the search time; given sizes: none)
+    gradient: int = 0
+    gradient_share: float = 0.0
+    gradient_rate: float = 0.01  # Adam's rate in log coordinates (fosmc tune's on a rough loop)
     plan: Plan | None = None  # the work to redo (a replay, replay_settings): no clock, sizes and rounds as recorded
 
 
@@ -433,9 +441,11 @@ class _Run:
                 "cma": f"CMA-ES generation {state.get('cma_round')}",
                 "local": f"local round {state.get('round')}",
                 "polish": f"plain round {state.get('polish_round')}",
+                "gradient": "the start of the gradient steps",
             }
             log(f"front: resumed from {checkpoint} at {where[state['stage']]}")  # fmt: skip
         self.state, self.ckpt = state, ckpt
+        self.gradient_program: tuple | None = None  # _gradient_program's, built on first use
         self.train, self.plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
         self.surrogate = not _same_simulation(self.train.problem, self.plain.problem)
         plan = self.plan = settings.plan
@@ -444,6 +454,7 @@ class _Run:
         self.rounds = state.get("steps", plan.local_rounds if plan else settings.steps)
         self.polish = state.get("polish", plan.plain_rounds if plan else settings.polish if self.surrogate else 0)
         self.generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
+        self.gradient_steps = state.get("gradient_steps", plan.gradient_steps if plan else settings.gradient)
         self.horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
         self.probe = state.get("probe", plan.probe if plan else self.timed)
         self.costs = state.get("costs", {})  # s per chunk of the training and plain evaluations (the budget's plan)
@@ -467,7 +478,7 @@ class _Run:
                       "candidates": self.n_cand, "global_end": self.n_global, "cma_end": self.n_cma,
                       "steps": self.rounds, "polish": self.polish, "keys": list(m),
                       "cma_generations": self.generations, "horizon": self.horizon, "probe": self.probe,
-                      "costs": self.costs, **(extra or {})}  # fmt: skip
+                      "costs": self.costs, "gradient_steps": self.gradient_steps, **(extra or {})}  # fmt: skip
             stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
             if stage == "global" and self.m0:  # the probe's, which join the global stage at its end
                 stored.update({"probe.z": self.z0, **{f"probe.m.{k}": v for k, v in self.m0.items()}})
@@ -516,7 +527,7 @@ def front_search(
     10 s); ``resume`` continues from it where it was written (a fresh run otherwise).
 
     The stages, each over the run's state (:class:`_Run`): :func:`_probe_and_plan`,
-    :func:`_global`, :func:`_cma`, :func:`_local`, :func:`_plain`, :func:`_result`."""
+    :func:`_global`, :func:`_cma`, :func:`_local`, :func:`_plain`, :func:`_gradient`, :func:`_result`."""
     run = _Run(train, plain, p0, settings, checkpoint, resume, reserve_per_point, log, time.perf_counter())
     _probe_and_plan(run, deadline)
     if run.stage == "global":
@@ -526,10 +537,15 @@ def front_search(
     if run.stage == "local":
         _local(run)
     n_train = len(run.z)
-    idx = np.arange(n_train)  # the points of (zp, mp) among the training evaluations (-1: a plain round's)
-    zp, mp = run.z, run.m
-    if run.surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
+    # the points of (zp, mp) among the training evaluations (-1: a plain round's, -2: a gradient step's)
+    idx, zp, mp = np.arange(n_train), run.z, run.m
+    if run.stage == "gradient":  # resumed in the gradient stage: the front it started from
+        idx, zp = run.ckpt["gradient.idx"], run.ckpt["gradient.z"]
+        mp = {k: run.ckpt[f"gradient.m.{k}"] for k in run.keys}
+    elif run.surrogate:  # plain metrics of the points non-dominated on the training metrics, then plain rounds
         idx, zp, mp = _plain(run)
+    if run.gradient_steps:
+        idx, zp, mp = _gradient(run, idx, zp, mp)
     return _result(run, zp, mp, idx, n_train)
 
 
@@ -556,6 +572,14 @@ def _probe_and_plan(run: _Run, deadline: float | None) -> None:
             run.evaluate(run.plain, run.z0, log=lambda _: None)
         costs["plain"] = sharding.first(time.perf_counter() - t)
         plain_point_s = costs["plain"] / settings.chunk
+    if settings.gradient_share and not settings.gradient:  # the gradient steps compiled now, and a step timed
+        step, update, init = _gradient_program(run)
+        Y, W = jnp.asarray(np.log(10.0) * run.z0), jnp.ones(len(run.z0))
+        for _ in range(2):
+            t = time.perf_counter()
+            (_, _), g = jax.block_until_ready(step(Y, W))
+            jax.block_until_ready(update(Y, init(Y), g))
+        costs["gradient"] = sharding.first(time.perf_counter() - t)
     end = settings.budget if deadline is None else deadline - run.t0
     # the search's time, less the final evaluations of a front of a few hundred points
     # once, and at most the end: the stages' ends must not pass the run's (local = now + search <= end),
@@ -568,14 +592,23 @@ def _probe_and_plan(run: _Run, deadline: float | None) -> None:
     ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
     ends["local"] = now + (1 - (settings.polish_share if run.surrogate else 0.0)) * search
     ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
+    if settings.gradient_share and not settings.gradient:
+        # the gradient steps take the search's last share from the local and plain rounds' time
+        rest = max(1e-9, 1 - settings.global_share - settings.cma_share)
+        tail = min(settings.gradient_share, rest) * search
+        ends["local"] = ends["cma"] + (ends["local"] - ends["cma"]) * (1 - tail / (rest * search + 1e-12))
+        ends["plain"] = now + search - tail
+        ends["gradient"] = end
+        run.gradient_steps = 10**9
     run.clock = _Clock(run.clock.start, ends)
     run.n_cand = run.n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
     run.generations = run.generations or 10**9
     run.rounds, run.polish = run.rounds or 10**9, run.polish or (10**9 if run.surrogate else 0)
     run.log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
             f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {run.n_cand} global candidates, then "
-            f"CMA-ES, local rounds{' and plain rounds' if run.surrogate else ''} until their shares of it are "
-            "spent")  # fmt: skip
+            f"CMA-ES, local rounds{' and plain rounds' if run.surrogate else ''}"
+            + (f", gradient steps ({costs['gradient']:.3f} s each)" if "gradient" in costs else "")
+            + " until their shares of it are spent")  # fmt: skip
     if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
         serve = settings.budget - end + elapsed + final + MIN_SEARCH_S
         run.log(f"front: warning: --budget {settings.budget:g} s leaves {search:.1f} s of search after "
@@ -629,7 +662,8 @@ def _local(run: _Run) -> None:
     """The local rounds on the training problem, around its front."""
     r0 = run.state.get("round", 0) if run.state.get("stage") == "local" else 0
     local_end = None if run.clock.ends is None else (
-        (lambda n: run.clock.end("local")) if run.surrogate else (lambda n: run.finish_by("end", n)))  # fmt: skip
+        (lambda n: run.clock.end("local")) if run.surrogate or run.gradient_steps
+        else (lambda n: run.finish_by("end", n)))  # fmt: skip
     h = run.rounds_horizon("local", run.rounds, None if local_end is None else local_end(front_size(run.m)))
     at = {"global_evaluated": run.evaluated}
     save_local = lambda r, z_, m_: run.save("local", z_, m_, {"round": r, **at})
@@ -652,13 +686,101 @@ def _plain(run: _Run) -> tuple[np.ndarray, np.ndarray, dict]:
         p_run, zp = 0, z[idx]
         mp = run.evaluate(run.plain, zp, log=run.log, what="plain evaluation")
         run.save("polish", z, m, *plain_state(0, zp, mp))
-    plain_end = None if run.clock.ends is None else (lambda n: run.finish_by("plain", n))
+    plain_end = (
+        None
+        if run.clock.ends is None
+        else ((lambda n: run.clock.end("plain")) if run.gradient_steps else (lambda n: run.finish_by("plain", n)))
+    )
     h = run.rounds_horizon("plain", run.polish, None if plain_end is None else plain_end(front_size(mp)))
     save_plain = lambda r, z_, m_: run.save("polish", z, m, *plain_state(r, z_, m_))
     zp, mp, run.polish = _rounds_on(run, run.plain, zp, mp, p_run, run.polish, run.settings.polish_sigma,
                                     run.settings.seed * 1_000_003 + 500_000, plain_end, "plain", save_plain,
                                     h)  # fmt: skip
     return np.concatenate([idx, np.full(len(zp) - len(idx), -1)]), zp, mp
+
+
+def scalarized(problem: tuner.Problem, p0: tuner.Params) -> Callable:
+    """f(y, w) -> (log E + w log C, (E, C, diverged)) of one candidate: p0 scaled by the log
+    factors z = y / ln 10 (:func:`from_factors`), E and C its means over rollouts and joints of
+    :data:`AXES` on ``problem``; 1e3 with no gradient where a rollout diverged."""
+    p0 = jax.tree.map(jnp.asarray, p0)
+
+    def f(y, w):
+        z = y / np.log(10.0)
+        scale = lambda x, f: x * 10.0 ** f.reshape(f.shape + (1,) * (x.ndim - 1))
+        p = type(p0)(*(scale(x, z[3 * i : 3 * i + 3]) for i, x in enumerate(p0)))
+        r = problem.simulate(p, split=True)
+        E, C = (jnp.mean(getattr(r.metrics, a)) for a in AXES)
+        bad = jnp.any(r.diverged) | ~jnp.isfinite(E + C)
+        return jnp.where(bad, jax.lax.stop_gradient(1e3), jnp.log(E) + w * jnp.log(C)), (E, C, bad)
+
+    return f
+
+
+def _gradient_program(run: _Run) -> tuple[Callable, Callable, Callable]:
+    """The gradient stage's compiled functions, built once per run: ``step(Y, W)`` (the values,
+    means and gradients of :func:`scalarized` for a batch of candidates), ``update(Y, state,
+    g)`` (Adam's step; a non-finite gradient's entries make no step) and ``init(Y)`` (Adam's
+    states). The steps are not kept in the box the derivative-free stages sample: it is where
+    they look, not a limit on the controller (the log factors keep every parameter's sign), and
+    on the realistic preset the front's ends lie on its faces."""
+    if run.gradient_program is None:
+        opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(run.settings.gradient_rate))
+
+        @jax.jit
+        def update(Y, state, g):
+            g = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
+            d, state = jax.vmap(opt.update)(g, state, Y)
+            return Y + d, state
+
+        step = jax.jit(jax.vmap(jax.value_and_grad(scalarized(run.plain.problem, run.p0), has_aux=True)))
+        run.gradient_program = step, update, jax.jit(jax.vmap(opt.init))
+    return run.gradient_program
+
+
+def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Gradient steps on the plain front (``run.gradient_steps`` of them, or until the stage's
+    time is spent): ``chunk`` points spread along it (:func:`pick_starts`), each minimising
+    log E + w log C at the front's slope w there (:func:`scalarized`) by Adam in y = z ln 10
+    (leaving the box where the descent leads), all at once: one ``vmap`` of the value and
+    gradient per step (the generated adjoint folds the candidates into its lanes). The points
+    the steps reach that join the front (by the steps' own means) are evaluated by the plain
+    evaluator and added (index -2). A run killed during the stage resumes at its start."""
+    settings, log = run.settings, run.log
+    step, update, init = _gradient_program(run)
+    if run.stage != "gradient":
+        run.stage = "gradient"
+        at = {"global_evaluated": run.evaluated}
+        run.save("gradient", run.z, run.m, at, {"gradient.idx": idx, "gradient.z": zp,
+                                                **{f"gradient.m.{k}": v for k, v in mp.items()}})  # fmt: skip
+    sel, w = pick_starts(mp, settings.chunk)
+    Y, W = jnp.asarray(np.log(10.0) * zp[sel]), jnp.asarray(w)
+    state = init(Y)
+    end = None if run.clock.ends is None else run.finish_by("gradient", front_size(mp))
+    ys, es, cs, shown, n = [], [], [], -np.inf, run.gradient_steps
+    for k in range(n + 1):  # call k evaluates the points of step k (call 0: the starts)
+        (_, (E, C, bad)), g = step(Y, W)
+        if k:
+            ys.append(np.asarray(Y)), es.append(np.where(bad, np.nan, E)), cs.append(np.asarray(C))
+        if k == n or (k and end is not None and sharding.first(time.perf_counter() > end)):
+            n = k
+            break
+        Y, state = update(Y, state, g)
+        if time.perf_counter() - shown > 1.0:
+            shown = time.perf_counter()
+            log(f"front: gradient step {k + 1}  {len(sel)} points  "
+                f"{time.perf_counter() - run.t0:7.1f} s")  # fmt: skip
+    run.gradient_steps = n
+    if not ys:
+        return idx, zp, mp
+    zg, eg, cg = np.concatenate(ys) / np.log(10.0), np.concatenate(es), np.concatenate(cs)
+    e, c = axes(mp)
+    joins = np.flatnonzero(nondominated(np.concatenate([e, eg]), np.concatenate([c, cg]))[len(e) :])
+    log(f"front: gradient steps: {n} of {len(sel)} points, {len(joins)} of their {len(zg)} points join the front")
+    if not len(joins):
+        return idx, zp, mp
+    mg = run.evaluate(run.plain, zg[joins], log=lambda _: None)
+    return np.concatenate([idx, np.full(len(joins), -2)]), np.concatenate([zp, zg[joins]]), _join(mp, mg)
 
 
 def _rounds_on(run: _Run, problem, z, m, r0, n, sigma, seed, deadline, what, save_at, horizon):
@@ -720,7 +842,7 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     work = Plan(drawn=run.n_cand, evaluated=run.evaluated, probe=bool(run.probe), cma_generations=generations,
                 local_rounds=run.rounds, local_horizon=run.horizon.get("local", 1), plain_rounds=run.polish,
-                plain_horizon=run.horizon.get("plain", 1))  # fmt: skip
+                plain_horizon=run.horizon.get("plain", 1), gradient_steps=run.gradient_steps)  # fmt: skip
     n_global, n_cma = run.n_global, run.n_cma
     grid = grid_size(run.n_cand, settings.grid_share, len(run.space.params))
     stages = {"candidates": n_global, "grid_per_axis": grid,
@@ -729,9 +851,10 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
               "plain_evaluations": len(zp) if run.surrogate else 0, "wall_time_s": time.perf_counter() - run.t0,
               "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
               "from_local": int(np.sum(idx[keep] >= n_cma)),
-              "from_plain_rounds": int(np.sum(idx[keep] < 0)),
+              "from_plain_rounds": int(np.sum(idx[keep] == -1)),
+              "gradient_steps": run.gradient_steps, "from_gradient": int(np.sum(idx[keep] == -2)),
               "replay": {"seed": settings.seed, "points": settings.points, "chunk": settings.chunk,
-                         **work._asdict()}}  # fmt: skip
+                         "gradient_rate": settings.gradient_rate, **work._asdict()}}  # fmt: skip
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
 
 
@@ -742,13 +865,14 @@ def replay_settings(stages: dict[str, Any]) -> Settings:
     and device count). A ``ValueError`` names what is missing from a front written before
     the work was recorded."""
     rec = stages.get("replay") if isinstance(stages, dict) else None
-    if not isinstance(rec, dict) or set(Plan._fields) - set(rec):
+    if not isinstance(rec, dict) or set(Plan._fields) - set(Plan._field_defaults) - set(rec):
         raise ValueError("stages.replay: this front.json does not record its work (written by a fosmc_jax before "
                          "--replay existed): it cannot be replayed")  # fmt: skip
-    plan = Plan(**{k: bool(rec[k]) if k == "probe" else int(rec[k]) for k in Plan._fields})
+    plan = Plan(**{k: bool(rec[k]) if k == "probe" else int(rec[k]) for k in Plan._fields if k in rec})
     return Settings(points=int(rec["points"]), chunk=int(rec["chunk"]), seed=int(rec["seed"]),
                     candidates=plan.drawn, steps=plan.local_rounds, cma=plan.cma_generations,
-                    polish=plan.plain_rounds, plan=plan)  # fmt: skip
+                    polish=plan.plain_rounds, gradient=plan.gradient_steps,
+                    gradient_rate=float(rec.get("gradient_rate", Settings.gradient_rate)), plan=plan)  # fmt: skip
 
 
 def _same_simulation(a: tuner.Problem, b: tuner.Problem) -> bool:
