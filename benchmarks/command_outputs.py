@@ -11,7 +11,8 @@ on the paper's setup, tuning/configs/example.toml, realistic_arm.toml and the sm
 ``bounds --json`` on the paper's setup and realistic_arm; ``certify --json`` on the paper's
 setup and arm_ideal_set2; ``tune --steps 3`` on arm_set2; ``front --candidates 64 --steps 2`` on
 example.toml and ``select`` on its front; ``export`` of realistic_arm; ``identify`` (R, Kt) on
-the synthetic log of realistic_arm (:func:`fosmc_jax.identification_log`, no bootstrap);
+the synthetic log of realistic_arm (:func:`fosmc_jax.identification_log` of this checkout's
+package, whichever tree runs; no bootstrap);
 ``reproduce`` (the paper's figures and tables). Each command runs ``python -m fosmc_jax`` in a
 fresh process with the tree first on ``PYTHONPATH``. ``manifest.json`` holds a SHA-256 per
 output (the output folder's name replaced in every file): of the bytes for figures and C files,
@@ -89,7 +90,8 @@ def run(tree: Path, out: Path) -> None:
     log_script = (f"import jax; jax.config.update('jax_enable_x64', True); import fosmc_jax; "
                   f"fosmc_jax.identification_log('{CONFIGS}/realistic_arm.toml', "
                   f"{str(out / LOG)!r})")  # fmt: skip
-    subprocess.run([sys.executable, "-c", log_script], cwd=tree, env=env, check=True)
+    # identify's log from this checkout's package whatever the tree: the same input for both trees
+    subprocess.run([sys.executable, "-c", log_script], cwd=ROOT, env={**env, "PYTHONPATH": str(ROOT)}, check=True)
     times = {}
     for name, argv, stdout in COMMANDS:
         argv = [a.replace("{out}", str(out)) for a in argv]
