@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
 import re
 import shlex
@@ -46,7 +45,6 @@ import reference_front as rf  # noqa: E402
 from reference_front import log  # noqa: E402
 
 from fosmc_jax import search as fs  # noqa: E402
-from fosmc_jax._simulator.cache import MIN_COMPILE_SECONDS, cache_dir  # noqa: E402
 from fosmc_jax.io import jsonable, write_text  # noqa: E402
 
 BAND = rf.BANDS[0]
@@ -67,8 +65,7 @@ def one_run(config: str, method: str, pop: int | None, seed: int, budget: float,
     folder.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, str(HERE / "reference_front.py"), "build", "--config", config, "--method", method,
            "--budget", f"{budget:g}", "--seed", str(seed), *(["--popsize", str(pop)] if pop else []), "--out", str(folder)]  # fmt: skip
-    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(cache_dir() / "xla"),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=str(MIN_COMPILE_SECONDS))  # fmt: skip
+    env = rf.cache_env()
     load0, t0 = rf.load_text(), time.perf_counter()
     with open(folder / "build.log", "w") as out:
         rc = subprocess.run(cmd, env=env, stdout=out, stderr=subprocess.STDOUT).returncode

@@ -89,6 +89,19 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
+def cache_env() -> dict[str, str]:
+    """The environment for a child process that shares the package's persistent compilation
+    cache (``fosmc_jax.use_compilation_cache``'s folder and compile-time threshold), as the CLI
+    uses it: every method of a study then runs from the same warm caches."""
+    folder = fosmc_jax.use_compilation_cache()
+    if folder is None:
+        return dict(os.environ)
+    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
+    return dict(
+        os.environ, JAX_COMPILATION_CACHE_DIR=str(folder), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=str(threshold)
+    )
+
+
 def load_text() -> str:
     """The 1-, 5- and 15-minute load averages, as ``uptime`` gives them."""
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
