@@ -98,8 +98,12 @@ def report(data: dict, out: pathlib.Path) -> None:
             med = lambda k, rs=rs: float(np.median([r[k] for r in rs]))
             steps = ", ".join(str(r["gradient_steps"]) for r in rs) if rs[0]["gradient_steps"] is not None else "-"
             grad = ", ".join(str(r["from_gradient"]) for r in rs) if rs[0]["from_gradient"] is not None else "-"
-            name = {"front": "front (no gradient steps)"}.get(variant, variant.replace("g", "front --gradient-share ", 1)
-                                                                  if variant.startswith("g") else f"pymoo NSGA-II, population {variant.split(':')[1]}")  # fmt: skip
+            if variant == "front":
+                name = "front (no gradient steps)"
+            elif variant.startswith("g"):
+                name = f"front --gradient-share {variant[1:]}"
+            else:
+                name = f"pymoo NSGA-II, population {variant.split(':')[1]}"
             eps = ", ".join(f"{r['epsilon_0.1_10']:.4f}" for r in rs)
             walls = ", ".join(f"{r['wall_s']:.0f}" for r in rs if r["wall_s"])
             loads = ", ".join(str(r["load_start_end"][0]).split()[0] for r in rs if r["load_start_end"])
