@@ -32,6 +32,8 @@ from ._search.front import (
     point_of,
     replay_settings,
     sample_candidates,
+    scalarized,
+    to_factors,
 )
 from ._search.front import Plan as FrontPlan
 from ._search.front import Settings as FrontSettings
@@ -118,6 +120,8 @@ __all__ = [
     "point_of",
     "replay_settings",
     "sample_candidates",
+    "scalarized",
+    "to_factors",
     # choosing a front point (fosmc_jax._search.select)
     "controller_toml",
     "select",

@@ -7,9 +7,10 @@ method json: its points' parameters and plain metrics) on a config, for ``--budg
 
 - K points along the front (:func:`fosmc_jax.search.pick_starts`: spread evenly by rank, with the
   front's slope w_k = -d log E / d log C there);
-- all K at once, Adam steps on f_k(u) = log E(u) + w_k log C(u), E and C the means over rollouts
-  and joints of ``rms_error`` and ``chattering_hf`` on the config's plain problem (the front's
-  axes), u tune's internal coordinates (log delta, log gamma, log -poles); one ``jax.vmap`` of the
+- all K at once, Adam steps on f_k(y) = log E + w_k log C (:func:`fosmc_jax.search.scalarized`,
+  the stage ``fosmc front --gradient-share`` runs: E and C the means over rollouts and joints of
+  ``rms_error`` and ``chattering_hf`` on the config's plain problem, y = z ln 10 with z the log10
+  factors of the config's parameters, :func:`fosmc_jax.search.to_factors`); one ``jax.vmap`` of the
   value and gradient per step (the generated adjoint folds the K candidates into its lanes); a
   candidate with a diverged rollout scores 1e3 with no gradient;
 - every point the steps reach (evaluated by the next call: the value's by-products E, C) joins the
@@ -59,42 +60,30 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 log = reference_front.log
 
 
-def scalarized(problem):
-    """f(u, w) -> (log E + w log C, (E, C, diverged)) of one candidate on ``problem``."""
-
-    def f(u, w):
-        r = problem.simulate(fs.to_physical(u, problem.base, None), split=True)
-        E, C = jnp.mean(r.metrics.rms_error), jnp.mean(r.metrics.chattering_hf)
-        bad = jnp.any(r.diverged) | ~jnp.isfinite(E) | ~jnp.isfinite(C)
-        value = jnp.where(bad, jax.lax.stop_gradient(1e3), jnp.log(E) + w * jnp.log(C))
-        return value, (E, C, bad)
-
-    return f
-
-
-def polish(problem, params, weights, budget: float, lr: float, box=None) -> dict:
-    """Adam on the K scalarizations from ``params`` (K sets, a leading axis) until ``budget``
-    seconds have passed (compilation included); every evaluated candidate's E and C. ``box``:
-    (lo, hi) in u, the steps kept inside."""
+def polish(problem, p0, z, weights, budget: float, lr: float, box=None) -> dict:
+    """Adam on the K scalarizations (:func:`fosmc_jax.search.scalarized`) from the log factors
+    ``z`` (K, dim) of p0 until ``budget`` seconds have passed (compilation included); every
+    evaluated candidate's E and C. ``box``: (lo, hi) of z, the steps kept inside."""
     t0 = time.perf_counter()
-    U = jax.vmap(lambda p: fs.to_internal(p, problem.base, None))(jax.tree.map(jnp.asarray, params))
-    W = jnp.asarray(weights)
-    step = jax.jit(jax.vmap(jax.value_and_grad(scalarized(problem), has_aux=True)))
+    Y, W = jnp.asarray(np.log(10.0) * z), jnp.asarray(weights)
+    step = jax.jit(jax.vmap(jax.value_and_grad(fs.scalarized(problem, p0), has_aux=True)))
     opt = optax.chain(optax.clip_by_global_norm(1.0), optax.adam(lr))
-    state = jax.vmap(opt.init)(U)
-    clip = (lambda u: u) if box is None else (lambda u: jax.tree.map(jnp.clip, u, *box))
-    update = jax.jit(
-        jax.vmap(lambda u, s, g: (lambda d: (clip(optax.apply_updates(u, d[0])), d[1]))(opt.update(g, s, u)))
-    )
+    state = jax.vmap(opt.init)(Y)
+    lo, hi = (-np.inf, np.inf) if box is None else (np.log(10.0) * b for b in box)
+
+    @jax.jit
+    def update(Y, state, g):
+        d, state = jax.vmap(opt.update)(jnp.where(jnp.isfinite(g), g, 0.0), state, Y)
+        return jnp.clip(Y + d, lo, hi), state
+
     E, C, bad, steps, first = [], [], [], 0, None
     while True:
-        (_, (e, c, b)), g = step(U, W)
-        g = jax.tree.map(lambda x: jnp.where(jnp.isfinite(x), x, 0.0), g)
+        (_, (e, c, b)), g = step(Y, W)
         E.append(np.asarray(e)), C.append(np.asarray(c)), bad.append(np.asarray(b))
         first = first or time.perf_counter() - t0
         if time.perf_counter() - t0 > budget:
             break
-        U, state = update(U, state, g)
+        Y, state = update(Y, state, g)
         steps += 1
     # the first call re-evaluates the start points: only what the steps reached counts
     E, C, bad = (np.concatenate(x[1:]) if len(x) > 1 else np.zeros(0) for x in (E, C, bad))
@@ -108,16 +97,9 @@ def run_one(cfg, plain, p0, path: str, reference: dict, budget: float, k: int, l
     m = {a: np.array([p["metrics"][a] for p in points]) for a in fs.AXES}
     e0, c0 = np.mean(m["rms_error"], -1), np.mean(m["chattering_hf"], -1)
     idx, w = fs.pick_starts(dict(m, diverged=np.zeros(len(points))), k)
-    start = reference_front.params_of([points[i] for i in idx], p0)
+    z = fs.to_factors(p0, reference_front.params_of([points[i] for i in idx], p0))
     load0 = reference_front.load_text()
-    bounds = None
-    if box:  # the front's box of log10 factors of p0, in u: u(p0) + ln 10 [lo, hi]
-        lo, hi = fs.bounds(fs.space_of(p0))
-        u0 = fs.to_internal(p0, plain.base, None)
-        per = lambda b: type(u0)(*(x + np.log(10.0) * b[3 * i : 3 * i + 3].reshape((3,) + (1,) * (np.ndim(x) - 1))
-                                   for i, x in enumerate(u0)))  # fmt: skip
-        bounds = (per(lo), per(hi))
-    r = polish(plain, start, w, budget, lr, bounds)
+    r = polish(plain, p0, z, w, budget, lr, fs.bounds(fs.space_of(p0)) if box else None)
     e, c = np.concatenate([e0, r["E"]]), np.concatenate([c0, r["C"]])
     keep = fs.nondominated(e, c)
     before = reference_front.score((e0, c0), reference)

@@ -145,6 +145,15 @@ def from_factors(p0: tuner.Params, z: np.ndarray) -> tuner.Params:
     return type(p0)(*(scale(x, z[:, 3 * i : 3 * i + 3]) for i, x in enumerate(p0)))
 
 
+def to_factors(p0: tuner.Params, params: tuner.Params) -> np.ndarray:
+    """The log10 factors z (n, 3 k) of parameter sets ``params`` (leading axis n) of p0's kind
+    relative to p0: :func:`from_factors`' inverse (a parameter with several entries per joint,
+    the FOSMC's poles, is read from its first)."""
+    first = lambda x, n: np.asarray(x, float).reshape(n, 3, -1)[:, :, 0]
+    n = len(np.asarray(params[0]))
+    return np.concatenate([np.log10(first(x, n) / first(x0, 1)) for x, x0 in zip(params, p0)], axis=1)
+
+
 def grid_factors(g: int, space: tuner.Space = _FOSMC) -> np.ndarray:
     """The g^k log factors (g^k, 3 k) of a grid of common factors (the same for every joint)
     over the k parameters of ``space``: g values per parameter, evenly spaced over its range,
