@@ -392,3 +392,9 @@ def test_gradient_steps_join_the_front_resume_and_replay(tmp_path):
     for other in (resumed, replayed):
         assert other["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
         assert [pt["params"] for pt in other["points"]] == [pt["params"] for pt in res["points"]]
+
+
+def test_to_factors_inverts_from_factors():
+    p0 = tuner.Tunable(np.array([1000.0, 550.0, 250.0]), np.array([2.0, 3.0, 4.0]), -np.arange(1.0, 10.0).reshape(3, 3))
+    z = search_front.global_factors(32, seed=3)
+    np.testing.assert_allclose(search_front.to_factors(p0, search_front.from_factors(p0, z)), z, atol=1e-13)
