@@ -218,6 +218,22 @@ def test_local_round_perturbs_only_non_dominated_points_within_the_box():
     assert {int(np.flatnonzero((z == c).all(1))[0]) for c in children} == {0, 3}
 
 
+def _killed_and_resumed(train, plain, p0, settings, checkpoint, line: str) -> dict:
+    """A front search killed (an exception) at its first log line starting with ``line``, then
+    resumed from its checkpoint: the resumed run's result."""
+
+    class Crash(Exception):
+        pass
+
+    def crash(msg):
+        if msg.startswith(line):
+            raise Crash
+
+    with pytest.raises(Crash):
+        search_front.front_search(train, plain, p0, settings, checkpoint=checkpoint, log=crash)
+    return search_front.front_search(train, plain, p0, settings, checkpoint=checkpoint, resume=True, log=lambda _: None)
+
+
 @pytest.mark.slow  # a second front study with its own compilations (~8 s), run three times
 def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
     """The training front's points re-evaluated, then plain rounds from them: every point
@@ -238,18 +254,7 @@ def test_with_a_training_surrogate_the_front_holds_plain_metrics_only(tmp_path):
         )
         assert not np.allclose(tuner.evaluate(train, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"], rtol=1e-3)
 
-    class Crash(Exception):
-        pass
-
-    def crash(msg):
-        if msg.startswith("front: plain round 2/"):
-            raise Crash
-
-    with pytest.raises(Crash):
-        search_front.front_search(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
-    resumed = search_front.front_search(
-        train, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None
-    )
+    resumed = _killed_and_resumed(train, plain, p0, settings, tmp_path / "c.npz", "front: plain round 2/")
     assert resumed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
     for a, b in zip(resumed["points"], res["points"], strict=True):
         np.testing.assert_allclose(a["metrics"]["rms_error"], b["metrics"]["rms_error"], rtol=1e-12)
@@ -377,18 +382,7 @@ def test_gradient_steps_join_the_front_resume_and_replay(tmp_path):
         np.testing.assert_allclose(tuner.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"],
                                    rtol=1e-9)  # fmt: skip
 
-    class Crash(Exception):
-        pass
-
-    def crash(msg):
-        if msg.startswith("front: gradient step 1 "):
-            raise Crash
-
-    with pytest.raises(Crash):
-        search_front.front_search(plain, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=crash)
-    resumed = search_front.front_search(
-        plain, plain, p0, settings, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None
-    )
+    resumed = _killed_and_resumed(plain, plain, p0, settings, tmp_path / "c.npz", "front: gradient step 1 ")
     replayed = search_front.front_search(plain, plain, p0, search_front.replay_settings(st), log=lambda _: None)
     for other in (resumed, replayed):
         assert other["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
