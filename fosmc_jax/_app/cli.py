@@ -508,9 +508,9 @@ def parser() -> argparse.ArgumentParser:
     )
     f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
     f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")
-    f.add_argument("--gradient-share", type=float, default=0.0, metavar="X",
+    f.add_argument("--gradient-share", type=float, default=0.25, metavar="X",
                    help="share of the search time spent last on gradient steps refining the front's points "
-                   "(with a budget; default 0: none)")  # fmt: skip
+                   "(with a budget; default 0.25; 0: none)")  # fmt: skip
     f.add_argument(
         "--compare",
         action="append",

@@ -37,7 +37,7 @@ def run_front(
     candidates: int | None = None,
     steps: int | None = None,
     seed: int = 0,
-    gradient_share: float = 0.0,
+    gradient_share: float = 0.25,
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
@@ -59,7 +59,7 @@ def run_front(
     the local rounds, default from the budget; ``seed``: of the search's draws;
     ``gradient_share``: with sizes from the budget, the share of the search time spent at the end
     on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
-    0: none). ``out``: folder for ``front.json``,
+    0: none; default 0.25). ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
