@@ -163,7 +163,7 @@ def test_the_circle_check_finds_a_circle():
 #: rate, evaluation and compiled gradient), so no public switch is owed.
 WHITE_BOX = {"tuning/front_ablation.py",
              "benchmarks/idle_terms_cost.py", "benchmarks/generated_gradient.py", "benchmarks/kernel_noise.py",
-             "tuning/tune_vs_cma.py"}  # fmt: skip
+             "tuning/tune_vs_cma.py", "tuning/front_gradient.py"}  # fmt: skip
 
 
 @pytest.mark.parametrize(

@@ -1,9 +1,8 @@
 """``fosmc front --gradient-share`` against the front without gradient steps and against pymoo's
 NSGA-II, at equal wall time, over seeds.
 
-Each run is a fresh process: ``fosmc front --gradient-share G`` (the CLI) for G > 0, and
-``tuning/reference_front.py build`` for the front without gradient steps (``--method front``: the
-CLI too) and for NSGA-II (``--method nsga2 --popsize P``: :func:`fosmc_jax.search.nsga2` through
+Each run is a fresh process: ``fosmc front --gradient-share G`` (the CLI; the share 0: the front
+without gradient steps), and ``tuning/reference_front.py build`` for NSGA-II (``--method nsga2 --popsize P``: :func:`fosmc_jax.search.nsga2` through
 the package's evaluator), every one with the same budget, JAX's persistent compilation cache in
 ``$FOSMC_JAX_CACHE``/xla (warm caches for every method alike; compilation inside every budget),
 round-robin over seeds (seed 0 of every config and variant, then seed 1, ...) so that the shared
@@ -14,6 +13,13 @@ reference points with chattering_hf in 0.1-10 V and 0.5-10 V, the hypervolume).
     .venv/bin/python tuning/front_gradient.py --configs realistic_arm unseen_arm --shares 0 0.25 0.4 \\
         --peers nsga2:64 --seeds 0 1 2 --budget 105 --runs /tmp/front_gradient --out tuning/results/front_gradient
     .venv/bin/python tuning/front_gradient.py --report-only --out tuning/results/front_gradient
+
+``--boxes kind wide`` runs every variant in the kinds' own box and in another (:data:`BOXES`;
+the run's process re-registers the FOSMC kind with it, ``fosmc_jax.search.register``: white-box,
+the registry's kinds are not public):
+
+    .venv/bin/python tuning/front_gradient.py --shares 0.25 --peers nsga2:64 --boxes kind wide \
+        --budget 60 --runs /tmp/front_box --out tuning/results/front_box_60s
 
 A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes).
 Writes OUT.json (per run: config, variant, seed, scores, wall time, load) and OUT.md (the median
@@ -41,6 +47,33 @@ from fosmc_jax.io import jsonable, write_text  # noqa: E402
 log = reference_front.log
 
 
+#: Other boxes of log factors than the kinds' own (``--boxes``): a run in one re-registers the FOSMC
+#: kind with it in its own process (:func:`_in_box`), the way a user's script would.
+BOXES = {"wide": {"delta": (-3.0, 3.0), "gamma": (-2.5, 1.0), "poles": (0.0, 3.0)}}
+
+
+def _in_box(box: str, argv: list[str]) -> int:
+    """Run ``argv`` (``fosmc ...`` or ``reference_front.py ...``) in this process with the FOSMC
+    kind's box replaced by ``BOXES[box]``."""
+    import runpy
+
+    import fosmc_jax.search as fs
+    from fosmc_jax._controllers import KINDS
+
+    kind = KINDS["fosmc"]
+    params = tuple(p._replace(box=BOXES[box][p.name]) for p in kind.space.params)
+    fs.register(kind._replace(space=kind.space._replace(params=params)))
+    if argv[0] == "fosmc":
+        sys.argv = ["fosmc", *argv[1:]]
+        try:
+            runpy.run_module("fosmc_jax", run_name="__main__")
+        except SystemExit as e:
+            return int(e.code or 0)
+        return 0
+    reference_front.main(argv[1:])
+    return 0
+
+
 def _variant_files(runs: pathlib.Path, config: str, variant: str, seed: int) -> tuple[pathlib.Path, pathlib.Path]:
     """A run's folder and the file scored in it: ``g<G>`` the CLI's front.json, ``front`` and
     ``nsga2:<P>`` a ``build`` method json."""
@@ -54,14 +87,19 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path)
     wall = None
     if not result.exists():
         folder.mkdir(parents=True, exist_ok=True)
-        if variant.startswith("g"):
+        name, _, box = variant.partition("@")
+        if name.startswith("g") or name == "front":  # "front": the CLI without gradient steps
+            share = "0" if name == "front" else name[1:]
             cmd = [str(ROOT / ".venv/bin/fosmc"), "front", "--config", path, "--budget", f"{budget:g}", "--seed",
-                   str(seed), "--gradient-share", variant[1:], "--out", str(folder), "--force"]  # fmt: skip
+                   str(seed), "--gradient-share", share, "--out", str(folder), "--force"]  # fmt: skip
         else:
-            method, _, pop = variant.partition(":")
+            method, _, pop = name.partition(":")
             cmd = [sys.executable, str(HERE / "reference_front.py"), "build", "--config", path, "--method", method,
                    "--budget", f"{budget:g}", "--seed", str(seed), "--out", str(folder),
                    *(["--popsize", pop] if pop else [])]  # fmt: skip
+        if box:  # the same command, run by this script in the box
+            inner = ["fosmc", *cmd[1:]] if cmd[1] == "front" else ["reference_front.py", *cmd[2:]]
+            cmd = [sys.executable, __file__, "--in-box", box, "--", *inner]
         env = reference_front.cache_env()
         load0, t0 = reference_front.load_text(), time.perf_counter()
         with open(folder / "run.log", "w") as out:
@@ -98,12 +136,14 @@ def report(data: dict, out: pathlib.Path) -> None:
             med = lambda k, rs=rs: float(np.median([r[k] for r in rs]))
             steps = ", ".join(str(r["gradient_steps"]) for r in rs) if rs[0]["gradient_steps"] is not None else "-"
             grad = ", ".join(str(r["from_gradient"]) for r in rs) if rs[0]["from_gradient"] is not None else "-"
-            if variant == "front":
+            base, _, box = variant.partition("@")
+            if base == "front":
                 name = "front (no gradient steps)"
-            elif variant.startswith("g"):
-                name = f"front --gradient-share {variant[1:]}"
+            elif base.startswith("g"):
+                name = f"front --gradient-share {base[1:]}"
             else:
-                name = f"pymoo NSGA-II, population {variant.split(':')[1]}"
+                name = f"pymoo NSGA-II, population {base.split(':')[1]}"
+            name += f", box {box} ({', '.join(f'{k} 10^{list(v)}' for k, v in BOXES[box].items())})" if box else ""
             eps = ", ".join(f"{r['epsilon_0.1_10']:.4f}" for r in rs)
             walls = ", ".join(f"{r['wall_s']:.0f}" for r in rs if r["wall_s"])
             loads = ", ".join(str(r["load_start_end"][0]).split()[0] for r in rs if r["load_start_end"])
@@ -126,12 +166,24 @@ def main() -> int:
     ap.add_argument("--out", default=str(HERE / "results" / "front_gradient"))
     ap.add_argument("--findings")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument(
+        "--boxes",
+        nargs="+",
+        default=["kind"],
+        choices=["kind", *BOXES],
+        help="the boxes each variant runs in (kind: the kinds' own)",
+    )
+    ap.add_argument("--in-box", choices=list(BOXES), help=argparse.SUPPRESS)  # a run's own process (run)
+    ap.add_argument("argv", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.in_box:
+        return _in_box(args.in_box, args.argv)
     out = pathlib.Path(args.out).resolve()
     if args.report_only:
         data = json.loads(out.with_suffix(".json").read_text())
     else:
         variants = [("front" if g == 0 else f"g{g:g}") for g in args.shares] + list(args.peers)
+        variants = [v + ("" if box == "kind" else f"@{box}") for v in variants for box in args.boxes]
         rows = []
         for seed in args.seeds:
             for config in args.configs:
