@@ -2,8 +2,8 @@
 
 A front is found in three or four stages, within a wall-time budget, over log10 factors z
 that scale the start's parameters per joint (:func:`from_factors`) within the box of the controller
-kind's :class:`fosmc_jax._search.tune.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 1.5],
-gamma x 10^[-0.5, 0.5], poles x 10^[0, 2]; for SMC z (6,) scales k x
+kind's :class:`fosmc_jax._search.tune.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 3],
+gamma x 10^[-2.5, 1], poles x 10^[0, 3]; for SMC z (6,) scales k x
 10^[-2, 2], phi x 10^[-3, 2]; for super-twisting z (6,) scales k1 x 10^[-2, 2], k2 x 10^[-2, 3].
 
 1. global: the start, a log grid of factors common to the joints (g per axis, g^k points for
