@@ -14,12 +14,14 @@ reference points with chattering_hf in 0.1-10 V and 0.5-10 V, the hypervolume).
         --peers nsga2:64 --seeds 0 1 2 --budget 105 --runs /tmp/front_gradient --out tuning/results/front_gradient
     .venv/bin/python tuning/front_gradient.py --report-only --out tuning/results/front_gradient
 
-``--boxes kind wide`` runs every variant in the kinds' own box and in another (:data:`BOXES`;
-the run's process re-registers the FOSMC kind with it, ``fosmc_jax.search.register``: white-box,
-the registry's kinds are not public):
+``--boxes narrow kind`` runs every variant in another box (:data:`BOXES`; the run's process
+re-registers the FOSMC kind with it, ``fosmc_jax.search.register``: white-box, the registry's kinds
+are not public) and in the kinds' own:
 
-    .venv/bin/python tuning/front_gradient.py --shares 0.25 --peers nsga2:64 --boxes kind wide \
+    .venv/bin/python tuning/front_gradient.py --shares 0.25 --peers nsga2:64 nsga2:256 --boxes narrow kind \
         --budget 60 --runs /tmp/front_box --out tuning/results/front_box_60s
+
+(``front_box_60s`` was run as ``--boxes kind wide`` when the kind's box was the narrow one.)
 
 A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes).
 Writes OUT.json (per run: config, variant, seed, scores, wall time, load) and OUT.md (the median
@@ -49,7 +51,10 @@ log = reference_front.log
 
 #: Other boxes of log factors than the kinds' own (``--boxes``): a run in one re-registers the FOSMC
 #: kind with it in its own process (:func:`_in_box`), the way a user's script would.
-BOXES = {"wide": {"delta": (-3.0, 3.0), "gamma": (-2.5, 1.0), "poles": (0.0, 3.0)}}
+BOXES = {
+    "wide": {"delta": (-3.0, 3.0), "gamma": (-2.5, 1.0), "poles": (0.0, 3.0)},  # the kind's since d9f7323
+    "narrow": {"delta": (-3.0, 1.5), "gamma": (-0.5, 0.5), "poles": (0.0, 2.0)},  # the kind's before
+}
 
 
 def _in_box(box: str, argv: list[str]) -> int:
