@@ -163,7 +163,7 @@ def report(data: dict, out: pathlib.Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", nargs="+", default=["realistic_arm", "unseen_arm"])
-    ap.add_argument("--shares", nargs="+", type=float, default=[0.0, 0.25, 0.4], help="0: the front without them")
+    ap.add_argument("--shares", nargs="*", type=float, default=[0.0, 0.25, 0.4], help="0: the front without them")
     ap.add_argument("--peers", nargs="*", default=["nsga2:64"], help="NSGA-II populations as nsga2:P")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--budget", type=float, default=105.0)
