@@ -258,10 +258,10 @@ RULES = {
     },
 }
 
-#: The front's boxes: delta x 10^[-3, 3], gamma x 10^[-2.5, 1], poles x 10^[0, 3]; in the narrower
-#: 10^[-3, 1.5], [-0.5, 0.5], [0, 2] every method's front on the realistic digital loops lay on its
-#: faces (docs/tuning.md "The box"). Its parameters and gains are the core [controller] keys
-#: (delta, gamma, poles, switching, law).
+#: The front's boxes: delta x 10^[-3, 3], gamma x 10^[-2.5, 1], poles x 10^[0, 3], wide enough for
+#: the realistic digital loops' fronts, whose low-chattering ends want a weak switching term
+#: (docs/tuning.md "The box"). Its parameters and gains are the core [controller] keys (delta,
+#: gamma, poles, switching, law).
 KIND = Kind(
     Space("fosmc", Tunable, (Param("delta", "delta", 1, (-3.0, 3.0)), Param("gamma", "gamma", 1, (-2.5, 1.0)),
                              Param("poles", "poles", -1, (0.0, 3.0)))),
