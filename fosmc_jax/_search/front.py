@@ -124,7 +124,7 @@ class Settings(NamedTuple):
     # gradient steps at the end: the front's points refined by Adam on the weighted log objective
     # at the front's slope there, on the plain problem, ``chunk`` points at once (:func:`_gradient`);
     # steps (0: from the budget, gradient_share of the search time; given sizes: none); 0.25 beat
-    # 0 at 60 s and 105 s and 0.4 at 60 s (docs/tuning.md "Gradients in the front")
+    # 0 at 60 s and 105 s; 0.4 pays from about 100 s (docs/tuning.md "Gradients in the front")
     gradient: int = 0
     gradient_share: float = 0.25
     gradient_rate: float = 0.01  # Adam's rate in log coordinates (fosmc tune's on a rough loop)
