@@ -93,10 +93,11 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path)
     if not result.exists():
         folder.mkdir(parents=True, exist_ok=True)
         name, _, box = variant.partition("@")
-        if name.startswith("g") or name == "front":  # "front": the CLI without gradient steps
-            share = "0" if name == "front" else name[1:]
+        if name.startswith(("g", "ng")) or name == "front":  # "front": the CLI without gradient steps
+            share = "0" if name == "front" else name.lstrip("n")[1:]
+            search = ["--search", "nsga2" if name.startswith("ng") else "staged"]
             cmd = [str(ROOT / ".venv/bin/fosmc"), "front", "--config", path, "--budget", f"{budget:g}", "--seed",
-                   str(seed), "--gradient-share", share, "--out", str(folder), "--force"]  # fmt: skip
+                   str(seed), "--gradient-share", share, *search, "--out", str(folder), "--force"]  # fmt: skip
         else:
             method, _, pop = name.partition(":")
             cmd = [sys.executable, str(HERE / "reference_front.py"), "build", "--config", path, "--method", method,
@@ -146,6 +147,8 @@ def report(data: dict, out: pathlib.Path) -> None:
                 name = "front (no gradient steps)"
             elif base.startswith("g"):
                 name = f"front --gradient-share {base[1:]}"
+            elif base.startswith("ng"):
+                name = f"front --search nsga2 --gradient-share {base[2:]}"
             else:
                 name = f"pymoo NSGA-II, population {base.split(':')[1]}"
             name += f", box {box} ({', '.join(f'{k} 10^{list(v)}' for k, v in BOXES[box].items())})" if box else ""
@@ -164,6 +167,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", nargs="+", default=["realistic_arm", "unseen_arm"])
     ap.add_argument("--shares", nargs="*", type=float, default=[0.0, 0.25, 0.4], help="0: the front without them")
+    ap.add_argument("--nsga2-shares", nargs="*", type=float, default=[],
+                    help="also the front on NSGA-II (--search nsga2) with these gradient shares")  # fmt: skip
     ap.add_argument("--peers", nargs="*", default=["nsga2:64"], help="NSGA-II populations as nsga2:P")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--budget", type=float, default=105.0)
@@ -187,7 +192,8 @@ def main() -> int:
     if args.report_only:
         data = json.loads(out.with_suffix(".json").read_text())
     else:
-        variants = [("front" if g == 0 else f"g{g:g}") for g in args.shares] + list(args.peers)
+        variants = [("front" if g == 0 else f"g{g:g}") for g in args.shares] + [f"ng{g:g}" for g in args.nsga2_shares]
+        variants += list(args.peers)
         variants = [v + ("" if box == "kind" else f"@{box}") for v in variants for box in args.boxes]
         rows = []
         for seed in args.seeds:

@@ -283,7 +283,8 @@ def cmd_front(args) -> int:
     start = process_start()
     result = commands.run_front(args.config, out=args.out, points=args.points, budget=args.budget,
                                 candidates=args.candidates, steps=args.steps, seed=args.seed,
-                                gradient_share=args.gradient_share, compare=tuple(args.compare), force=args.force,
+                                gradient_share=args.gradient_share, search=args.search, population=args.population,
+                                generations=args.generations, compare=tuple(args.compare), force=args.force,
                                 resume=args.resume, replay=args.replay, started=start, log=_log,
                                 **_processes(args))  # fmt: skip
     if not sharding.leads():
@@ -507,6 +508,11 @@ def parser() -> argparse.ArgumentParser:
         "--candidates", type=int, help="global stage size: start, log grid, per-joint draws (default: from the budget)"
     )
     f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
+    f.add_argument("--search", choices=("nsga2", "staged"),
+                   help="the derivative-free search: pymoo's NSGA-II, or global stage, CMA-ES and local rounds "
+                   "(default: staged with --candidates or --steps, else staged)")  # fmt: skip
+    f.add_argument("--population", type=int, default=256, help="NSGA-II's population (default 256)")
+    f.add_argument("--generations", type=int, help="NSGA-II's generations (default: from the budget)")
     f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")
     f.add_argument("--gradient-share", type=float, default=0.25, metavar="X",
                    help="share of the search time spent last on gradient steps refining the front's points "

@@ -38,6 +38,9 @@ def run_front(
     steps: int | None = None,
     seed: int = 0,
     gradient_share: float = 0.25,
+    search: str | None = None,
+    population: int = 256,
+    generations: int | None = None,
     compare: tuple[str | Path, ...] | list[str | Path] = (),
     force: bool = False,
     resume: bool = False,
@@ -59,7 +62,10 @@ def run_front(
     the local rounds, default from the budget; ``seed``: of the search's draws;
     ``gradient_share``: with sizes from the budget, the share of the search time spent at the end
     on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
-    0: none; default 0.25). ``out``: folder for ``front.json``,
+    0: none; default 0.25). ``search``: the derivative-free search, "nsga2" (pymoo's NSGA-II of
+    ``population``, ``generations`` from the budget unless given) or "staged" (global stage,
+    CMA-ES, local rounds: ``candidates``, ``steps``); None: "staged" where ``candidates`` or
+    ``steps`` are given, else :data:`SEARCH`. ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
@@ -93,9 +99,11 @@ def run_front(
                                   lead)  # fmt: skip
         if not (_is_real(gradient_share) and 0 <= gradient_share < 1):
             raise ConfigError(f"--gradient-share: expected a number in [0, 1), got {gradient_share}")
+        search = _checked_search(search, population, generations, candidates, steps, replay)
         files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
         agree(digest({"command": "front", "config": cfg.as_dict(), "out": out, "points": points, "budget": budget,
                       "candidates": candidates, "steps": steps, "seed": seed, "gradient_share": gradient_share,
+                      "search": search, "population": population, "generations": generations,
                       "compare": list(compare),
                       "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
     if lead:
@@ -103,10 +111,39 @@ def run_front(
     if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
     settings = search_front.Settings(points=points or 8, budget=budget, candidates=candidates or 0,
-                                     steps=steps or 0, seed=seed, gradient_share=gradient_share)  # fmt: skip
+                                     steps=steps or 0, seed=seed, gradient_share=gradient_share, search=search,
+                                     population=population, generations=generations or 0)  # fmt: skip
     if replay is not None:
         settings = study.replayed(replay)[1]._replace(budget=budget)
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
+
+
+#: ``fosmc front``'s derivative-free search where neither ``--search`` nor the staged search's sizes are given.
+SEARCH = "staged"
+SEARCHES = ("nsga2", "staged")
+
+
+def _checked_search(search, population, generations, candidates, steps, replay) -> str:
+    """The search a front runs (``run_front``'s ``search``), its sizes checked (one-line
+    :class:`ConfigError` s)."""
+    staged_sizes = [n for n, v in (("--candidates", candidates), ("--steps", steps)) if v is not None]
+    given = [n for n, v in (("--search", search), ("--generations", generations)) if v is not None]
+    if replay is not None and given:
+        raise ConfigError(f"--replay: takes the search and sizes from its front.json: leave out {', '.join(given)}")
+    if search is None:
+        search = "staged" if staged_sizes else SEARCH
+    if search not in SEARCHES:
+        raise ConfigError(f"--search: expected one of {', '.join(SEARCHES)}, got {search!r}")
+    if search == "nsga2" and staged_sizes:
+        raise ConfigError(f"{', '.join(staged_sizes)}: sizes of the staged search; NSGA-II's is --generations")
+    if search == "staged" and generations is not None:
+        raise ConfigError("--generations: NSGA-II's size (--search nsga2); the staged search's are --candidates, "
+                          "--steps")  # fmt: skip
+    if generations is not None and not (_is_integer(generations) and generations >= 1):
+        raise ConfigError(f"--generations: expected a positive integer, got {generations}")
+    if not (_is_integer(population) and population >= 4):
+        raise ConfigError(f"--population: expected an integer of 4 or more, got {population}")
+    return search
 
 
 def _checked_front(config, out, points, budget, candidates, steps, seed, compare, force, resume, replay,

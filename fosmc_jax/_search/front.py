@@ -94,9 +94,15 @@ class Plan(NamedTuple):
     plain_rounds: int
     plain_horizon: int
     gradient_steps: int = 0
+    nsga2_generations: int = 0
 
 
 class Settings(NamedTuple):
+    # the derivative-free search before the plain and gradient stages: "staged" (global, CMA-ES,
+    # local rounds) or "nsga2" (pymoo's NSGA-II, :func:`_nsga2`)
+    search: str = "staged"
+    population: int = 256  # NSGA-II's population
+    generations: int = 0  # NSGA-II's generations; 0: from the budget
     points: int = 8  # parents per local round, drawn from the current front
     budget: float = 300.0  # s, wall time of the whole run (held-out evaluation and references included)
     candidates: int = 0  # global stage size; 0: from the budget
@@ -179,7 +185,7 @@ def grid_size(n: int, grid_share: float, k: int = 3) -> int:
     """Values per axis of the grid over k parameters in :func:`global_factors` of size n (0
     below n = 16)."""
     g = int((grid_share * n) ** (1 / k) + 1e-9) if n >= 16 else 0
-    return g if 1 + g**k <= n else g - 1
+    return g if 1 + g**k <= n or not g else g - 1
 
 
 def local_factors(z: np.ndarray, m: dict, n: int, points: int, sigma: float, seed: int,
@@ -408,6 +414,47 @@ def cma_stage(problem: tuner.Problem | Evaluator, p0: tuner.Params, z: np.ndarra
     return z, m, generations
 
 
+#: Added to both objectives of a candidate with a diverged rollout (NSGA-II), as the weighted
+#: objectives of the CMA-ES stage and baseline add 1e3; a candidate whose every rollout
+#: diverged (NaN metrics) scores this alone.
+PENALTY = 1e3
+
+
+def objectives(m: dict[str, np.ndarray]) -> np.ndarray:
+    """The two objectives (n, 2) of NSGA-II from the metrics of :func:`evaluate_many`: log10 of
+    mean ``rms_error`` and mean ``chattering_hf``, + :data:`PENALTY` for a candidate with a
+    diverged rollout, :data:`PENALTY` where not finite."""
+    f = np.log10(np.stack([np.mean(m[k], axis=-1) for k in AXES], -1))
+    f = f + np.where(m["diverged"] > 0, PENALTY, 0.0)[:, None]
+    return np.where(np.isfinite(f), f, PENALTY)
+
+
+def nsga2_algorithm(space: tuner.Space, population: int, seed: int):
+    """pymoo's NSGA-II with its defaults (uniform initial population, SBX crossover, polynomial
+    mutation, rank and crowding survival) over the box of ``space``, set up for its ask/tell
+    interface (:func:`nsga2_tell`); its random stream is its own (a pickle holds its whole
+    state)."""
+    from pymoo.algorithms.moo.nsga2 import NSGA2  # here, not at the top: importing pymoo takes about 1 s
+    from pymoo.core.problem import Problem
+    from pymoo.core.termination import NoTermination
+
+    lo, hi = space.bounds()
+    algorithm = NSGA2(pop_size=population)
+    box = Problem(n_var=space.dim, n_obj=2, xl=lo, xu=hi)
+    algorithm.setup(box, termination=NoTermination(), seed=seed, verbose=False)
+    return algorithm
+
+
+def nsga2_tell(algorithm, population, m: dict[str, np.ndarray]) -> None:
+    """Tell pymoo's ``algorithm`` the metrics m of the ``population`` it asked for (their
+    :func:`objectives`)."""
+    from pymoo.core.evaluator import Evaluator as Told
+    from pymoo.problems.static import StaticProblem
+
+    Told().eval(StaticProblem(algorithm.problem, F=objectives(m)), population)
+    algorithm.tell(infills=population)
+
+
 class _Clock:
     """Stage deadlines of a run whose sizes come from the budget, as offsets (s) from its start
     (so that a resumed run keeps them: its start is set back by the time already spent); with
@@ -446,12 +493,16 @@ class _Run:
         ckpt: dict[str, np.ndarray] = {}
         if resume and checkpoint is not None and checkpoint.exists():
             state, ckpt = tuner._load(checkpoint)
+            if state.get("search", "staged") != settings.search:  # the other search's stages and state
+                raise ValueError(f"the checkpoint {checkpoint} is of the {state.get('search', 'staged')} search, "
+                                 f"not of {settings.search}: resume with that search, or start afresh")  # fmt: skip
             where = {
                 "global": f"{len(ckpt['z'])} global candidates",
                 "cma": f"CMA-ES generation {state.get('cma_round')}",
                 "local": f"local round {state.get('round')}",
                 "polish": f"plain round {state.get('polish_round')}",
                 "gradient": "the start of the gradient steps",
+                "nsga2": f"NSGA-II generation {state.get('nsga2_round')}",
             }
             log(f"front: resumed from {checkpoint} at {where[state['stage']]}")  # fmt: skip
         self.state, self.ckpt = state, ckpt
@@ -459,12 +510,15 @@ class _Run:
         self.train, self.plain = evaluator(train), evaluator(plain)  # each compiled once for the whole run
         self.surrogate = not _same_simulation(self.train.problem, self.plain.problem)
         plan = self.plan = settings.plan
-        self.timed = plan is None and not (settings.candidates and settings.steps)
+        sized = settings.generations if settings.search == "nsga2" else settings.candidates and settings.steps
+        self.timed = plan is None and not sized
         self.n_cand = state.get("candidates", plan.drawn if plan else settings.candidates)
         self.rounds = state.get("steps", plan.local_rounds if plan else settings.steps)
         self.polish = state.get("polish", plan.plain_rounds if plan else settings.polish if self.surrogate else 0)
         self.generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
         self.gradient_steps = state.get("gradient_steps", plan.gradient_steps if plan else settings.gradient)
+        self.nsga2_generations = state.get("nsga2_generations",
+                                           plan.nsga2_generations if plan else settings.generations)  # fmt: skip
         self.horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
         self.probe = state.get("probe", plan.probe if plan else self.timed)
         self.costs = state.get("costs", {})  # s per chunk of the training and plain evaluations (the budget's plan)
@@ -484,11 +538,13 @@ class _Run:
 
     def save(self, stage: str, z: np.ndarray, m: dict, extra: dict | None = None, arrays: dict | None = None) -> None:
         if self.checkpoint is not None:
-            header = {"stage": stage, "elapsed": self.clock.elapsed(), "ends": self.clock.ends,
+            header = {"stage": stage, "search": self.settings.search, "elapsed": self.clock.elapsed(),
+                      "ends": self.clock.ends,
                       "candidates": self.n_cand, "global_end": self.n_global, "cma_end": self.n_cma,
                       "steps": self.rounds, "polish": self.polish, "keys": list(m),
                       "cma_generations": self.generations, "horizon": self.horizon, "probe": self.probe,
-                      "costs": self.costs, "gradient_steps": self.gradient_steps, **(extra or {})}  # fmt: skip
+                      "costs": self.costs, "gradient_steps": self.gradient_steps,
+                      "nsga2_generations": self.nsga2_generations, **(extra or {})}  # fmt: skip
             stored = {"z": z, **{f"m.{k}": v for k, v in m.items()}, **(arrays or {})}  # the evaluations so far
             if stage == "global" and self.m0:  # the probe's, which join the global stage at its end
                 stored.update({"probe.z": self.z0, **{f"probe.m.{k}": v for k, v in self.m0.items()}})
@@ -537,15 +593,20 @@ def front_search(
     10 s); ``resume`` continues from it where it was written (a fresh run otherwise).
 
     The stages, each over the run's state (:class:`_Run`): :func:`_probe_and_plan`,
-    :func:`_global`, :func:`_cma`, :func:`_local`, :func:`_plain`, :func:`_gradient`, :func:`_result`."""
+    :func:`_global`, :func:`_cma`, :func:`_local` (``settings.search`` "staged") or :func:`_nsga2`
+    ("nsga2"), :func:`_plain`, :func:`_gradient`, :func:`_result`."""
     run = _Run(train, plain, p0, settings, checkpoint, resume, reserve_per_point, log, time.perf_counter())
     _probe_and_plan(run, deadline)
-    if run.stage == "global":
-        _global(run)
-    if run.stage == "cma":
-        _cma(run)
-    if run.stage == "local":
-        _local(run)
+    if settings.search == "nsga2":
+        if run.stage in ("global", "nsga2"):
+            _nsga2(run)
+    else:
+        if run.stage == "global":
+            _global(run)
+        if run.stage == "cma":
+            _cma(run)
+        if run.stage == "local":
+            _local(run)
     n_train = len(run.z)
     # the points of (zp, mp) among the training evaluations (-1: a plain round's, -2: a gradient step's)
     idx, zp, mp = np.arange(n_train), run.z, run.m
@@ -598,25 +659,33 @@ def _probe_and_plan(run: _Run, deadline: float | None) -> None:
     now = min(elapsed, end)
     final = 300 * (run.reserve_per_point + plain_point_s)
     search = max(0.0, end - now - final)
-    ends = {"global": now + settings.global_share * search}
-    ends["cma"] = ends["global"] + (settings.cma_share * search if not settings.cma else 0.0)
+    staged = settings.search == "staged"  # NSGA-II has the global and CMA-ES stages' time too
+    shares = (settings.global_share, settings.cma_share) if staged else (0.0, 0.0)
+    ends = {"global": now + shares[0] * search}
+    ends["cma"] = ends["global"] + (shares[1] * search if not settings.cma else 0.0)
     ends["local"] = now + (1 - (settings.polish_share if run.surrogate else 0.0)) * search
     ends["plain"] = ends["end"] = end  # less the final evaluations of the front found (see finish_by)
     if settings.gradient_share and not settings.gradient:
         # the gradient steps take the search's last share from the local and plain rounds' time
-        rest = max(1e-9, 1 - settings.global_share - settings.cma_share)
+        rest = max(1e-9, 1 - sum(shares))
         tail = min(settings.gradient_share, rest) * search
         ends["local"] = ends["cma"] + (ends["local"] - ends["cma"]) * (1 - tail / (rest * search + 1e-12))
         ends["plain"] = now + search - tail
         ends["gradient"] = end
         run.gradient_steps = 10**9
     run.clock = _Clock(run.clock.start, ends)
-    run.n_cand = run.n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
-    run.generations = run.generations or 10**9
-    run.rounds, run.polish = run.rounds or 10**9, run.polish or (10**9 if run.surrogate else 0)
+    if staged:
+        run.n_cand = run.n_cand or max(1, int(settings.global_share * search / costs["train"])) * settings.chunk
+        run.generations = run.generations or 10**9
+        run.rounds = run.rounds or 10**9
+        stages = f"{run.n_cand} global candidates, then CMA-ES, local rounds"
+    else:
+        run.nsga2_generations = run.nsga2_generations or 10**9
+        stages = f"NSGA-II generations of {settings.population}"
+    run.polish = run.polish or (10**9 if run.surrogate else 0)
     run.log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
-            f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {run.n_cand} global candidates, then "
-            f"CMA-ES, local rounds{' and plain rounds' if run.surrogate else ''}"
+            f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {stages}"
+            f"{' and plain rounds' if run.surrogate else ''}"
             + (f", gradient steps ({costs['gradient']:.3f} s each)" if "gradient" in costs else "")
             + " until their shares of it are spent")  # fmt: skip
     if search < MIN_SEARCH_S:  # the budget before the search (the caller's share too) and after it
@@ -679,6 +748,57 @@ def _local(run: _Run) -> None:
     save_local = lambda r, z_, m_: run.save("local", z_, m_, {"round": r, **at})
     run.z, run.m, run.rounds = _rounds_on(run, run.train, run.z, run.m, r0, run.rounds, run.settings.sigma,
                                           run.settings.seed * 1_000_003, local_end, "local", save_local, h)  # fmt: skip
+
+
+def _nsga2(run: _Run) -> None:
+    """The NSGA-II stage (``settings.search`` "nsga2", in place of the global, CMA-ES and local
+    stages): pymoo's NSGA-II (:func:`nsga2_algorithm`, population ``settings.population``, the
+    run's seed) on :func:`objectives` of the training metrics, one generation evaluated per
+    ask, generations until the stage's time is spent (or as many as given or recorded); the
+    probe's chunk and every candidate join the evaluations. The algorithm's state is pickled
+    into the checkpoint every ``checkpoint_every`` generations (with a budget, at most every
+    10 s) and at the stage's end: a resumed run asks for the same generations as an
+    uninterrupted one."""
+    settings, log = run.settings, run.log
+    lo, hi = run.space.bounds()
+    if run.stage == "nsga2" and "nsga2.state" in run.ckpt:
+        g0, algorithm = run.state["nsga2_round"], pickle.loads(bytes(run.ckpt["nsga2.state"]))
+    else:
+        g0, algorithm = 0, nsga2_algorithm(run.space, settings.population, settings.seed)
+        run.z, run.m = run.z0, dict(run.m0)  # the probe's chunk
+        run.n_global = run.n_cma = len(run.z)
+    run.stage = "nsga2"
+    fz = run.z[nondominated(*axes(run.m))] if run.m else run.z
+    n = run.nsga2_generations
+    end = None if run.clock.ends is None else (
+        (lambda k: run.clock.end("local")) if run.surrogate or run.gradient_steps
+        else (lambda k: run.finish_by("end", k)))  # fmt: skip
+    save = lambda g: run.save("nsga2", run.z, run.m, {"nsga2_round": g},
+                              {"nsga2.state": np.frombuffer(pickle.dumps(algorithm), np.uint8)})  # fmt: skip
+    t0 = shown = saved = time.perf_counter()
+    front_n = len(fz)
+    for g in range(g0, n):
+        if g and end is not None and sharding.first(time.perf_counter() > end(front_n)):
+            log(f"front: NSGA-II stopped after {g} generations: the stage's time is spent")
+            n = g
+            break
+        asked = algorithm.ask()
+        X = np.clip(asked.get("X"), lo, hi)
+        mg = run.evaluate(run.train, X, log=lambda _: None)
+        nsga2_tell(algorithm, asked, mg)
+        run.z, run.m = np.concatenate([run.z, X]), _join(run.m, mg)
+        if end is None or time.perf_counter() - shown > 1.0:
+            shown, front_n = time.perf_counter(), front_size(run.m)
+            total = f"/{n}" if end is None else f" ({max(0.0, end(front_n) - shown):.1f} s left)"
+            log(f"front: NSGA-II generation {g + 1}{total}  {len(run.z)} evaluations  {front_n} non-dominated  "
+                f"{time.perf_counter() - t0:7.1f} s")  # fmt: skip
+        every = settings.checkpoint_every
+        if every and (g + 1) % every == 0 and (end is None or time.perf_counter() - saved > 10):
+            save(g + 1)
+            saved = time.perf_counter()
+    run.nsga2_generations = n
+    save(n)
+    run.stage = "searched"
 
 
 def _plain(run: _Run) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -852,7 +972,8 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
     points = [point_of(jax.tree.map(lambda x, i=i: x[i], params), mp, j) for i, j in enumerate(keep)]
     work = Plan(drawn=run.n_cand, evaluated=run.evaluated, probe=bool(run.probe), cma_generations=generations,
                 local_rounds=run.rounds, local_horizon=run.horizon.get("local", 1), plain_rounds=run.polish,
-                plain_horizon=run.horizon.get("plain", 1), gradient_steps=run.gradient_steps)  # fmt: skip
+                plain_horizon=run.horizon.get("plain", 1), gradient_steps=run.gradient_steps,
+                nsga2_generations=run.nsga2_generations if settings.search == "nsga2" else 0)  # fmt: skip
     n_global, n_cma = run.n_global, run.n_cma
     grid = grid_size(run.n_cand, settings.grid_share, len(run.space.params))
     stages = {"candidates": n_global, "grid_per_axis": grid,
@@ -860,10 +981,13 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
               "local_rounds": run.rounds, "plain_rounds": run.polish, "evaluations": n_train,
               "plain_evaluations": len(zp) if run.surrogate else 0, "wall_time_s": time.perf_counter() - run.t0,
               "from_cma": int(np.sum((idx[keep] >= n_global) & (idx[keep] < n_cma))),
-              "from_local": int(np.sum(idx[keep] >= n_cma)),
+              # the points of the last derivative-free stage: the local rounds' or NSGA-II's
+              "from_local" if settings.search == "staged" else "from_nsga2": int(np.sum(idx[keep] >= n_cma)),
+              "search": settings.search, "nsga2_generations": work.nsga2_generations,
               "from_plain_rounds": int(np.sum(idx[keep] == -1)),
               "gradient_steps": run.gradient_steps, "from_gradient": int(np.sum(idx[keep] == -2)),
               "replay": {"seed": settings.seed, "points": settings.points, "chunk": settings.chunk,
+                         "search": settings.search, "population": settings.population,
                          "gradient_rate": settings.gradient_rate, **work._asdict()}}  # fmt: skip
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
 
@@ -880,6 +1004,8 @@ def replay_settings(stages: dict[str, Any]) -> Settings:
                          "--replay existed): it cannot be replayed")  # fmt: skip
     plan = Plan(**{k: bool(rec[k]) if k == "probe" else int(rec[k]) for k in Plan._fields if k in rec})
     return Settings(points=int(rec["points"]), chunk=int(rec["chunk"]), seed=int(rec["seed"]),
+                    search=str(rec.get("search", "staged")), population=int(rec.get("population", Settings.population)),
+                    generations=plan.nsga2_generations,
                     candidates=plan.drawn, steps=plan.local_rounds, cma=plan.cma_generations,
                     polish=plan.plain_rounds, gradient=plan.gradient_steps,
                     gradient_rate=float(rec.get("gradient_rate", Settings.gradient_rate)), plan=plan)  # fmt: skip

@@ -18,14 +18,20 @@ from typing import Any
 import numpy as np
 
 from . import tune as tuner
-from .front import DIM, bounds, evaluate_many, evaluator, from_factors, grid_factors, nondominated
+from .front import (
+    DIM,
+    bounds,
+    evaluate_many,
+    evaluator,
+    from_factors,
+    grid_factors,
+    nondominated,
+    nsga2_algorithm,
+    nsga2_tell,
+    objectives,
+)
 
 __all__ = ["DIM", "bounds", "cma_es", "cma_front", "from_factors", "log_grid", "nsga2", "optuna_nsga2", "random_search"]
-
-#: Added to both objectives of a candidate with a diverged rollout (NSGA-II), as the weighted
-#: objective of :func:`cma_front` adds 1e3; a candidate whose every rollout diverged (NaN
-#: metrics) scores this alone.
-PENALTY = 1e3
 
 
 def _joined(zs: list[np.ndarray], ms: list[dict]) -> dict[str, Any]:
@@ -109,15 +115,6 @@ def cma_front(problem: tuner.Problem, p0: tuner.Params, weights, budget: float, 
     return _joined(zs, ms)
 
 
-def objectives(m: dict[str, np.ndarray]) -> np.ndarray:
-    """The two objectives (n, 2) of NSGA-II from the metrics of :func:`evaluate_many`: log10 of
-    mean ``rms_error`` and mean ``chattering_hf``, + :data:`PENALTY` for a candidate with a
-    diverged rollout, :data:`PENALTY` where not finite."""
-    f = np.log10(np.stack([np.mean(m[k], axis=-1) for k in ("rms_error", "chattering_hf")], -1))
-    f = f + np.where(m["diverged"] > 0, PENALTY, 0.0)[:, None]
-    return np.where(np.isfinite(f), f, PENALTY)
-
-
 def _archive(front: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     """The non-dominated (mean rms_error, mean chattering_hf) pairs (k, 2) of ``front`` and the
     candidates of metrics m without a diverged rollout: the progress line's count, kept
@@ -154,26 +151,15 @@ def nsga2(problem: tuner.Problem, p0: tuner.Params, budget: float, popsize: int 
     kind, through pymoo's ask/tell interface: each generation of ``popsize`` evaluated in one
     :func:`evaluate_many` call, generations (one at least) until the wall-time ``budget`` (s)
     is spent. Returns every candidate evaluated and their metrics."""
-    from pymoo.algorithms.moo.nsga2 import NSGA2  # optional (fosmc_jax[peers]), imported here
-    from pymoo.core.evaluator import Evaluator
-    from pymoo.core.problem import Problem
-    from pymoo.core.termination import NoTermination
-    from pymoo.problems.static import StaticProblem
-
     space = tuner.space_of(p0)
     lo, hi = space.bounds()
-    box = Problem(n_var=space.dim, n_obj=2, xl=lo, xu=hi)
-    algorithm = NSGA2(pop_size=popsize)
-    algorithm.setup(box, termination=NoTermination(), seed=seed, verbose=False)
+    algorithm = nsga2_algorithm(space, popsize, seed)  # optional (fosmc_jax[peers]): pymoo
 
     def ask():
         pop = algorithm.ask()
         return np.clip(pop.get("X"), lo, hi), pop
 
-    def tell(pop, m):
-        Evaluator().eval(StaticProblem(box, F=objectives(m)), pop)
-        algorithm.tell(infills=pop)
-
+    tell = lambda pop, m: nsga2_tell(algorithm, pop, m)
     return _generations(problem, p0, budget, popsize, ask, tell, "nsga2 (pymoo)", log)
 
 
