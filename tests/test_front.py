@@ -100,7 +100,9 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, kill_at):
 @pytest.mark.parametrize(
     "args, key",
     [(["--budget", "0"], "--budget"), (["--points", "0"], "--points"), (["--steps", "-1"], "--steps"),
-     (["--compare", "/nonexistent.json"], "--compare")],
+     (["--compare", "/nonexistent.json"], "--compare"), (["--search", "nsga2", "--steps", "2"], "--steps"),
+     (["--search", "staged", "--generations", "2"], "--generations"), (["--generations", "0"], "--generations"),
+     (["--population", "2"], "--population")],
 )  # fmt: skip
 def test_bad_front_arguments_are_refused(tmp_path, capsys, args, key):
     out = tmp_path / "out"

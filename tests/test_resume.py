@@ -119,6 +119,58 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
     assert before + after == work  # no finished unit of work done twice
 
 
+#: NSGA-II's given sizes (``--search nsga2``): 3 generations of 16 (two chunks each), then 2 plain rounds.
+NSGA2 = search_front.Settings(search="nsga2", population=16, generations=3, points=3, chunk=8, polish=2,
+                              checkpoint_every=1)  # fmt: skip
+
+
+@pytest.mark.parametrize("k, stage", [(2, "nsga2"), pytest.param(4, "polish", marks=pytest.mark.slow)])
+def test_an_nsga2_front_stopped_after_a_checkpoint_resumes_bit_for_bit(problems, tmp_path, monkeypatch, k, stage):
+    """Stopped after its second generation (pymoo's algorithm pickled whole) or after the plain
+    evaluation: resumed, it asks for the same generations, ends at the same front and redoes no
+    finished chunk."""
+    front, work = _run(problems, NSGA2, log=lambda _: None)
+    st = front["stages"]
+    assert st["search"] == "nsga2" and st["nsga2_generations"] == 3 and st["evaluations"] == 3 * 16
+    assert st["from_nsga2"] + st["from_plain_rounds"] == len(front["points"]) and st["from_nsga2"] > 0
+    save, saved = tuner._save, []
+
+    def crash_after_k(path, header, arrays):
+        save(path, header, arrays)
+        saved.append(header["stage"])
+        if len(saved) == k:
+            raise Crash
+
+    monkeypatch.setattr(tuner, "_save", crash_after_k)
+    train, plain, _ = problems
+    with pytest.raises(Crash):
+        _run(problems, NSGA2, checkpoint=tmp_path / "c.npz", log=lambda _: None)
+    before = train.calls + plain.calls
+    assert saved[-1] == stage
+    monkeypatch.setattr(tuner, "_save", save)
+    lines = []
+    resumed, after = _run(problems, NSGA2, checkpoint=tmp_path / "c.npz", resume=True, log=lines.append)
+    assert lines[0].startswith(f"front: resumed from {tmp_path / 'c.npz'} at ")
+    assert _strip(resumed) == _strip(front)  # bit for bit
+    assert before + after == work  # no finished unit of work done twice
+    with pytest.raises(ValueError, match="is of the nsga2 search, not of staged: resume with that search"):
+        _run(problems, SIZES, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None)
+
+
+def test_a_budgeted_nsga2_front_replays_bit_for_bit(problems):
+    """NSGA-II's generations from the budget, then gradient steps (their share of it): the work
+    is recorded and its replay, without a clock, ends at the same front."""
+    lines = []
+    settings = search_front.Settings(search="nsga2", population=16, points=3, chunk=8, budget=3.0)
+    budgeted, _ = _run(problems, settings, log=lines.append)
+    rec = budgeted["stages"]["replay"]
+    assert rec["search"] == "nsga2" and rec["population"] == 16 and rec["nsga2_generations"] >= 1
+    assert rec["local_rounds"] == rec["cma_generations"] == 0 and rec["gradient_steps"] >= 1
+    replayed, _ = _run(problems, search_front.replay_settings(budgeted["stages"]), log=lines.append)
+    assert _strip(replayed) == _strip(budgeted)
+    assert not [line for line in lines if "s left)" in line and "(-" in line]
+
+
 @pytest.mark.slow  # a budgeted run and its replay (6-20 s): the default tier keeps its 4 minutes
 def test_a_budgeted_front_replays_bit_for_bit(problems):
     lines = []

@@ -768,7 +768,6 @@ def _nsga2(run: _Run) -> None:
         run.z, run.m = run.z0, dict(run.m0)  # the probe's chunk
         run.n_global = run.n_cma = len(run.z)
     run.stage = "nsga2"
-    fz = run.z[nondominated(*axes(run.m))] if run.m else run.z
     n = run.nsga2_generations
     end = None if run.clock.ends is None else (
         (lambda k: run.clock.end("local")) if run.surrogate or run.gradient_steps
@@ -776,7 +775,7 @@ def _nsga2(run: _Run) -> None:
     save = lambda g: run.save("nsga2", run.z, run.m, {"nsga2_round": g},
                               {"nsga2.state": np.frombuffer(pickle.dumps(algorithm), np.uint8)})  # fmt: skip
     t0 = shown = saved = time.perf_counter()
-    front_n = len(fz)
+    front_n, saved_at = front_size(run.m) if run.m else 0, g0
     for g in range(g0, n):
         if g and end is not None and sharding.first(time.perf_counter() > end(front_n)):
             log(f"front: NSGA-II stopped after {g} generations: the stage's time is spent")
@@ -795,9 +794,10 @@ def _nsga2(run: _Run) -> None:
         every = settings.checkpoint_every
         if every and (g + 1) % every == 0 and (end is None or time.perf_counter() - saved > 10):
             save(g + 1)
-            saved = time.perf_counter()
+            saved, saved_at = time.perf_counter(), g + 1
     run.nsga2_generations = n
-    save(n)
+    if saved_at != n:
+        save(n)
     run.stage = "searched"
 
 
