@@ -17,7 +17,7 @@ TINY = {
     "plant": {"uncertainty": "sample", "samples": 3},
     "sim": {"t_final": 0.3, "dt": 2e-3, "integrator": "euler"},
 }
-SETTINGS = search_front.Settings(points=3, candidates=16, steps=3, chunk=8, checkpoint_every=1)
+SETTINGS = search_front.Settings(search="staged", points=3, candidates=16, steps=3, chunk=8, checkpoint_every=1)
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +182,7 @@ def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
 
     plain, train, p0 = _config.tuning_problems(_config.resolve({**TINY, "tune": {"train_dt": 4e-3}}))
     search_front.evaluate_many(train, search_front.sample_candidates(p0, 8, 0), 8, log=lambda _: None)
-    settings = search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
+    settings = search_front.Settings(search="staged", points=3, chunk=8, budget=3.0, checkpoint_every=1)
     r = search_front.front_search(train, plain, p0, settings, checkpoint=tmp_path / "c.npz", log=lambda _: None)
     st = r["stages"]
     assert st["candidates"] % 8 == 0 and st["candidates"] >= 16  # the global stage and the probe's chunk
@@ -301,7 +301,11 @@ def test_rounds_from_the_budget_stop_when_it_is_spent():
     chunk made them look cheap (here: a budget already spent), and stages say how many ran."""
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))
     r = search_front.front_search(
-        train, plain, p0, search_front.Settings(points=3, candidates=16, chunk=8, budget=0.0), log=lambda _: None
+        train,
+        plain,
+        p0,
+        search_front.Settings(search="staged", points=3, candidates=16, chunk=8, budget=0.0),
+        log=lambda _: None,
     )
     assert r["stages"]["local_rounds"] == 0 and r["stages"]["evaluations"] == 16 + 8  # the given 16, the probe's 8
     assert r["stages"]["cma_generations"] == 0  # a spent budget leaves no stage a negative size
@@ -321,10 +325,11 @@ def test_held_out_batch_has_the_payloads_and_seeds_training_did_not_see():
 
 @pytest.mark.parametrize("peer", ["nsga2", "optuna_nsga2"])
 def test_peers_evaluate_whole_generations_within_the_box(peer):
-    """pymoo's and optuna's NSGA-II (the optional extra ``peers``; skipped without it): whole
+    """pymoo's and optuna's NSGA-II (optuna: the optional extra ``peers``; skipped without it): whole
     generations of ``popsize`` candidates, inside the kind's box, at least one generation even
     with a spent budget, metrics for every candidate."""
-    pytest.importorskip("pymoo" if peer == "nsga2" else "optuna")
+    if peer == "optuna_nsga2":
+        pytest.importorskip("optuna")
     from fosmc_jax._search import peers
 
     plain, train, p0 = _config.tuning_problems(_config.resolve(TINY))

@@ -39,7 +39,8 @@ integrator = "euler"
 train_dt = 4e-3
 """
 #: Given sizes with every stage: 4 chunks of global candidates, 2 CMA-ES generations, 3 local and 2 plain rounds.
-SIZES = search_front.Settings(points=3, candidates=32, steps=3, chunk=8, cma=2, polish=2, checkpoint_every=1)
+SIZES = search_front.Settings(search="staged", points=3, candidates=32, steps=3, chunk=8, cma=2, polish=2,
+                              checkpoint_every=1)  # fmt: skip
 
 
 class Crash(Exception):
@@ -175,7 +176,9 @@ def test_a_budgeted_nsga2_front_replays_bit_for_bit(problems):
 def test_a_budgeted_front_replays_bit_for_bit(problems):
     lines = []
     budgeted, _ = _run(
-        problems, search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1), log=lines.append
+        problems,
+        search_front.Settings(search="staged", points=3, chunk=8, budget=3.0, checkpoint_every=1),
+        log=lines.append,
     )
     rec = budgeted["stages"]["replay"]
     assert rec["probe"] and rec["evaluated"] + 8 == budgeted["stages"]["candidates"]
@@ -191,7 +194,7 @@ def test_a_budgeted_front_replays_bit_for_bit(problems):
 def test_a_resumed_budgeted_front_replays_to_its_front(problems, tmp_path, monkeypatch):
     """Stopped at the end of its CMA-ES stage (the stage boundaries are checkpointed whatever
     the time since the last), resumed: its recorded work, replayed, gives its front."""
-    settings = search_front.Settings(points=3, chunk=8, budget=3.0, checkpoint_every=1)
+    settings = search_front.Settings(search="staged", points=3, chunk=8, budget=3.0, checkpoint_every=1)
     save = tuner._save
 
     def crash_at_local(path, header, arrays):
@@ -212,7 +215,7 @@ def test_a_resumed_budgeted_front_replays_to_its_front(problems, tmp_path, monke
 
 def test_a_budget_compilation_alone_exceeds_says_so_in_one_line(problems):
     lines = []
-    r, _ = _run(problems, search_front.Settings(points=3, chunk=8, budget=0.0), log=lines.append)
+    r, _ = _run(problems, search_front.Settings(search="staged", points=3, chunk=8, budget=0.0), log=lines.append)
     short = [line for line in lines if "warning: --budget" in line]
     assert len(short) == 1 and "s of search after" in short[0]
     serve = int(short[0].split("a budget of ")[1].split(" s")[0])

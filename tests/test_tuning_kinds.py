@@ -87,7 +87,11 @@ def front(request, tmp_path_factory):
     cfg = _config.load(path)
     plain, train, p0 = _config.tuning_problems(cfg)
     res = front_module.front_search(
-        train, plain, p0, front_module.Settings(points=3, candidates=16, steps=2, chunk=8), log=lambda _: None
+        train,
+        plain,
+        p0,
+        front_module.Settings(search="staged", points=3, candidates=16, steps=2, chunk=8),
+        log=lambda _: None,
     )
     (tmp / "front.json").write_text(json.dumps({**res, "config": cfg.as_dict()}))
     return kind, path, tmp / "front.json", res, (train, p0, cfg)

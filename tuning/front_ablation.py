@@ -1,6 +1,7 @@
 """Which lever of ``fosmc front`` bought what, in seconds and in epsilon: one lever removed at a time.
 
-The baseline is ``fosmc front --config C --budget 60`` as a newcomer runs it (a fresh process,
+The baseline is ``fosmc front --config C --budget 60 --search staged`` as a newcomer ran it before
+NSGA-II became the default search (a fresh process,
 empty compilation and kernel caches: :func:`budget_guide.one_run`); each variant removes one of
 the levers of issue 22 (and two others) at the same budget, scored like the budget guide
 (additive epsilon in log10 of both axes against the config's reference front over its points
@@ -136,6 +137,7 @@ def plan(variant: str, seed: int, config: str, base: pathlib.Path, runs: list[di
         kw["env_extra"] = {"JAX_NUM_CPU_DEVICES": "1"}
     else:
         raise SystemExit(f"unknown variant {variant}")
+    kw["extra"] = ("--search", "staged", *kw.get("extra", ()))  # its levers are the staged search's
     return kw
 
 

@@ -5,7 +5,7 @@ For one config, each method gets the same wall time on the same machine, one aft
 included; every method pays its own compilation): ``fosmc front`` (:func:`fosmc_jax.config.study`),
 CMA-ES (pycma) on the weighted log objective at four slopes of the front, uniform random search
 and a log grid over the same search space (:mod:`fosmc_jax.search`), and with ``--peers`` NSGA-II,
-pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: ``pip install -e .[peers]``; each generation of
+pymoo's and optuna's (``nsga2``, ``optuna_nsga2``: optuna from ``pip install -e .[peers]``; each generation of
 ``--popsize`` in one batched call). Every method's non-dominated set is compared in (mean
 ``rms_error``, mean ``chattering_hf``): the hypervolume of log10 of the two metrics against a
 reference point (beyond the worst of Table 1's sets and SGN), how many of the

@@ -510,7 +510,7 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--steps", type=int, help="local rounds around the non-dominated set (default: from the budget)")
     f.add_argument("--search", choices=("nsga2", "staged"),
                    help="the derivative-free search: pymoo's NSGA-II, or global stage, CMA-ES and local rounds "
-                   "(default: staged with --candidates or --steps, else staged)")  # fmt: skip
+                   "(default: staged with --candidates or --steps, else nsga2)")  # fmt: skip
     f.add_argument("--population", type=int, default=256, help="NSGA-II's population (default 256)")
     f.add_argument("--generations", type=int, help="NSGA-II's generations (default: from the budget)")
     f.add_argument("--seed", type=int, default=0, help="seed of the search's draws (default 0)")

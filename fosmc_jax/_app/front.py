@@ -65,7 +65,7 @@ def run_front(
     0: none; default 0.25). ``search``: the derivative-free search, "nsga2" (pymoo's NSGA-II of
     ``population``, ``generations`` from the budget unless given) or "staged" (global stage,
     CMA-ES, local rounds: ``candidates``, ``steps``); None: "staged" where ``candidates`` or
-    ``steps`` are given, else :data:`SEARCH`. ``out``: folder for ``front.json``,
+    ``steps`` are given, else "nsga2". ``out``: folder for ``front.json``,
     ``front.png`` (with the ``compare`` files' points drawn beside) and the checkpoint (None:
     nothing written); ``resume`` continues from its checkpoint. The budget counts from
     ``started`` (a ``time.perf_counter()`` value; the CLI passes its process's start; None:
@@ -118,22 +118,19 @@ def run_front(
     return study.study(cfg, settings, out=out, resume=resume, compare=tuple(compare), started=started, log=log)
 
 
-#: ``fosmc front``'s derivative-free search where neither ``--search`` nor the staged search's sizes are given.
-SEARCH = "staged"
-SEARCHES = ("nsga2", "staged")
-
-
 def _checked_search(search, population, generations, candidates, steps, replay) -> str:
     """The search a front runs (``run_front``'s ``search``), its sizes checked (one-line
     :class:`ConfigError` s)."""
+    from .._search import front as search_front
+
     staged_sizes = [n for n, v in (("--candidates", candidates), ("--steps", steps)) if v is not None]
     given = [n for n, v in (("--search", search), ("--generations", generations)) if v is not None]
     if replay is not None and given:
         raise ConfigError(f"--replay: takes the search and sizes from its front.json: leave out {', '.join(given)}")
-    if search is None:
-        search = "staged" if staged_sizes else SEARCH
-    if search not in SEARCHES:
-        raise ConfigError(f"--search: expected one of {', '.join(SEARCHES)}, got {search!r}")
+    if search is None:  # the staged search's sizes choose it
+        search = "staged" if staged_sizes else search_front.Settings._field_defaults["search"]
+    if search not in search_front.SEARCHES:
+        raise ConfigError(f"--search: expected one of {', '.join(search_front.SEARCHES)}, got {search!r}")
     if search == "nsga2" and staged_sizes:
         raise ConfigError(f"{', '.join(staged_sizes)}: sizes of the staged search; NSGA-II's is --generations")
     if search == "staged" and generations is not None:

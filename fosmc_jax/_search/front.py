@@ -78,6 +78,10 @@ _FOSMC = tuner.SPACES["fosmc"]
 DIM = _FOSMC.dim
 
 
+#: The derivative-free searches of a front (``Settings.search``).
+SEARCHES = ("nsga2", "staged")
+
+
 class Plan(NamedTuple):
     """The work of a front run, all that its sizes from the budget decided (front.json's
     ``stages.replay``, with the seed and sizes): global candidates ``drawn`` (the size
@@ -98,9 +102,10 @@ class Plan(NamedTuple):
 
 
 class Settings(NamedTuple):
-    # the derivative-free search before the plain and gradient stages: "staged" (global, CMA-ES,
-    # local rounds) or "nsga2" (pymoo's NSGA-II, :func:`_nsga2`)
-    search: str = "staged"
+    # the derivative-free search before the plain and gradient stages: "nsga2" (pymoo's NSGA-II,
+    # :func:`_nsga2`), or "staged" (global stage, CMA-ES, local rounds: candidates, steps, cma);
+    # NSGA-II, given the staged search's time, beat it at 60 s (docs/tuning.md "The search")
+    search: str = "nsga2"
     population: int = 256  # NSGA-II's population
     generations: int = 0  # NSGA-II's generations; 0: from the budget
     points: int = 8  # parents per local round, drawn from the current front
@@ -595,6 +600,12 @@ def front_search(
     The stages, each over the run's state (:class:`_Run`): :func:`_probe_and_plan`,
     :func:`_global`, :func:`_cma`, :func:`_local` (``settings.search`` "staged") or :func:`_nsga2`
     ("nsga2"), :func:`_plain`, :func:`_gradient`, :func:`_result`."""
+    if settings.search not in SEARCHES:
+        raise ValueError(f"search: expected one of {', '.join(SEARCHES)}, got {settings.search!r}")
+    staged_sizes = [k for k in ("candidates", "steps", "cma") if getattr(settings, k)]
+    if settings.search == "nsga2" and staged_sizes:
+        raise ValueError(f"{', '.join(staged_sizes)}: sizes of the staged search (search='staged'); NSGA-II's is "
+                         "generations")  # fmt: skip
     run = _Run(train, plain, p0, settings, checkpoint, resume, reserve_per_point, log, time.perf_counter())
     _probe_and_plan(run, deadline)
     if settings.search == "nsga2":

@@ -1,6 +1,6 @@
 """Derivative-free baselines for the front, at a wall-time budget: a log grid, random search,
 CMA-ES (pycma, the reference implementation) and NSGA-II, pymoo's (:func:`nsga2`) and
-optuna's (:func:`optuna_nsga2`; both optional: ``pip install fosmc_jax[peers]``).
+optuna's (:func:`optuna_nsga2`; optional: ``pip install fosmc_jax[peers]``).
 
 They search the same space as :mod:`fosmc_jax._search.front` (the parameters of p0's controller kind,
 e.g. the FOSMC's delta, gamma and poles, as per-joint log factors of a start p0 in the kind's
@@ -153,7 +153,7 @@ def nsga2(problem: tuner.Problem, p0: tuner.Params, budget: float, popsize: int 
     is spent. Returns every candidate evaluated and their metrics."""
     space = tuner.space_of(p0)
     lo, hi = space.bounds()
-    algorithm = nsga2_algorithm(space, popsize, seed)  # optional (fosmc_jax[peers]): pymoo
+    algorithm = nsga2_algorithm(space, popsize, seed)
 
     def ask():
         pop = algorithm.ask()
