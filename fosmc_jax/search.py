@@ -1,5 +1,5 @@
 """Search and tuning, the layer behind ``fosmc tune`` and ``fosmc front``, for research
-scripts: tuning problems and objectives, the gradient tuner, the front's staged search and its
+scripts: tuning problems and objectives, the gradient tuner, the front's search (NSGA-II or staged) and its
 pieces, the choice of one point of a front (:func:`select`, ``fosmc select``), the peers it is
 compared with (CMA-ES, NSGA-II), and the Pareto indicators a front is judged by. The problems
 come from a config: :func:`fosmc_jax.config.tuning_problems`.

@@ -1,6 +1,13 @@
 """Pareto fronts of tracking error against chattering (``fosmc front``).
 
-A front is found in three or four stages, within a wall-time budget, over log10 factors z
+A front is found within a wall-time budget by a derivative-free search on the training
+problem, then (with a training surrogate) rounds on the plain problem, then gradient steps. The
+search is pymoo's NSGA-II by default (``Settings.search`` "nsga2", :func:`_nsga2`: generations
+of ``population`` over the box below until the search's time is spent), or the staged search
+("staged"), in three stages (1-3 below). Given the staged search's time, NSGA-II found the
+better front at 60 s on realistic_arm and unseen_arm, three seeds each (docs/tuning.md "The search").
+
+The staged search and the plain rounds, over log10 factors z
 that scale the start's parameters per joint (:func:`from_factors`) within the box of the controller
 kind's :class:`fosmc_jax._search.tune.Space`: for the FOSMC z (9,) scales delta x 10^[-3, 3],
 gamma x 10^[-2.5, 1], poles x 10^[0, 3]; for SMC z (6,) scales k x
@@ -41,7 +48,7 @@ machine's speed and load: the same seed gives another front when the stages get 
 chunks done.
 
 The checkpoint is written after every ``checkpoint_every`` units of work (chunks of the global
-stage, CMA-ES generations, whose runs' state is pickled whole, local or plain rounds; with a
+stage, CMA-ES or NSGA-II generations, whose algorithms' state is pickled whole, local or plain rounds; with a
 budget at most every 10 s); a resumed run continues from it, so it ends where an
 uninterrupted run of the same recorded work ends. The deadlines are stored as offsets from the
 run's start, and a resumed run sets its start back by the time already spent, so it ends when
