@@ -141,8 +141,8 @@ class Settings(NamedTuple):
     polish_sigma: tuple[float, float] = (0.01, 0.003)  # the plain rounds' step, first and last
     # gradient steps at the end: the front's points refined by Adam on the weighted log objective
     # at the front's slope there, on the plain problem, ``chunk`` points at once (:func:`_gradient`);
-    # steps (0: from the budget, gradient_share of the search time; given sizes: none); 0.25 beat
-    # 0 at 60 s and 105 s; 0.4 pays from about 100 s (docs/tuning.md "Gradients in the front")
+    # steps (0: from the budget, gradient_share of the search time; given sizes: none); after
+    # NSGA-II, 0.25 beat 0 at 300 s and lost to it at 60 s (docs/tuning.md "The search")
     gradient: int = 0
     gradient_share: float = 0.25
     gradient_rate: float = 0.01  # Adam's rate in log coordinates (fosmc tune's on a rough loop)
