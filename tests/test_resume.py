@@ -96,8 +96,14 @@ SLOW_STOPS = [(4, "global"), (5, "cma"), (9, "local"), (12, "polish"), (13, "pol
                                       *(pytest.param(*c, marks=pytest.mark.slow) for c in SLOW_STOPS)])  # fmt: skip
 def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front(problems, whole, tmp_path,
                                                                                  monkeypatch, k, stage):  # fmt: skip
+    _stop_and_resume(problems, SIZES, whole, tmp_path / "checkpoint.npz", monkeypatch, k, stage)
+
+
+def _stop_and_resume(problems, settings, whole, checkpoint, monkeypatch, k, stage):
+    """Stop a front of ``settings`` after its k-th checkpoint (written in ``stage``), resume it:
+    it ends bit for bit at the uninterrupted front ``whole`` (its result and units of work)
+    without doing a finished unit of work twice."""
     front, work = whole
-    checkpoint = tmp_path / "checkpoint.npz"
     save, saved = tuner._save, []
 
     def crash_after_k(path, header, arrays):
@@ -109,12 +115,12 @@ def test_a_front_stopped_after_any_checkpoint_resumes_to_the_uninterrupted_front
     monkeypatch.setattr(tuner, "_save", crash_after_k)
     train, plain, _ = problems
     with pytest.raises(Crash):
-        _run(problems, SIZES, checkpoint=checkpoint, log=lambda _: None)
+        _run(problems, settings, checkpoint=checkpoint, log=lambda _: None)
     before = train.calls + plain.calls
     assert saved[-1] == stage
     monkeypatch.setattr(tuner, "_save", save)
     lines = []
-    resumed, after = _run(problems, SIZES, checkpoint=checkpoint, resume=True, log=lines.append)
+    resumed, after = _run(problems, settings, checkpoint=checkpoint, resume=True, log=lines.append)
     assert lines[0].startswith(f"front: resumed from {checkpoint} at ")
     assert _strip(resumed) == _strip(front)  # bit for bit
     assert before + after == work  # no finished unit of work done twice
@@ -130,30 +136,11 @@ def test_an_nsga2_front_stopped_after_a_checkpoint_resumes_bit_for_bit(problems,
     """Stopped after its second generation (pymoo's algorithm pickled whole) or after the plain
     evaluation: resumed, it asks for the same generations, ends at the same front and redoes no
     finished chunk."""
-    front, work = _run(problems, NSGA2, log=lambda _: None)
-    st = front["stages"]
+    whole = _run(problems, NSGA2, log=lambda _: None)
+    st = whole[0]["stages"]
     assert st["search"] == "nsga2" and st["nsga2_generations"] == 3 and st["evaluations"] == 3 * 16
-    assert st["from_nsga2"] + st["from_plain_rounds"] == len(front["points"]) and st["from_nsga2"] > 0
-    save, saved = tuner._save, []
-
-    def crash_after_k(path, header, arrays):
-        save(path, header, arrays)
-        saved.append(header["stage"])
-        if len(saved) == k:
-            raise Crash
-
-    monkeypatch.setattr(tuner, "_save", crash_after_k)
-    train, plain, _ = problems
-    with pytest.raises(Crash):
-        _run(problems, NSGA2, checkpoint=tmp_path / "c.npz", log=lambda _: None)
-    before = train.calls + plain.calls
-    assert saved[-1] == stage
-    monkeypatch.setattr(tuner, "_save", save)
-    lines = []
-    resumed, after = _run(problems, NSGA2, checkpoint=tmp_path / "c.npz", resume=True, log=lines.append)
-    assert lines[0].startswith(f"front: resumed from {tmp_path / 'c.npz'} at ")
-    assert _strip(resumed) == _strip(front)  # bit for bit
-    assert before + after == work  # no finished unit of work done twice
+    assert st["from_nsga2"] + st["from_plain_rounds"] == len(whole[0]["points"]) and st["from_nsga2"] > 0
+    _stop_and_resume(problems, NSGA2, whole, tmp_path / "c.npz", monkeypatch, k, stage)
     with pytest.raises(ValueError, match="is of the nsga2 search, not of staged: resume with that search"):
         _run(problems, SIZES, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None)
 
