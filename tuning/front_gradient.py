@@ -23,6 +23,12 @@ are not public) and in the kinds' own:
 
 (``front_box_60s`` was run as ``--boxes kind wide`` when the kind's box was the narrow one.)
 
+``--nsga2-shares 0 0.25`` adds the front on NSGA-II (``fosmc front --search nsga2 --gradient-share G``;
+``--shares`` is the staged search's):
+
+    .venv/bin/python tuning/front_gradient.py --shares 0.25 --nsga2-shares 0 0.25 --peers nsga2:256 \
+        --budget 60 --runs /tmp/front_nsga2_60 --out tuning/results/front_nsga2_60s
+
 A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes).
 Writes OUT.json (per run: config, variant, seed, scores, wall time, load) and OUT.md (the median
 per config and variant); ``--findings FILE``: a markdown text the report keeps.

@@ -562,6 +562,16 @@ class _Run:
                 stored.update({"probe.z": self.z0, **{f"probe.m.{k}": v for k, v in self.m0.items()}})
             tuner._save(self.checkpoint, header, stored)
 
+    def search_end(self) -> Callable[[int], float] | None:
+        """The training search's deadline (local rounds or NSGA-II) for a front of n points: the
+        local stage's end where plain rounds or gradient steps follow, else the run's end less
+        the final evaluations (None: no clock)."""
+        if self.clock.ends is None:
+            return None
+        if self.surrogate or self.gradient_steps:
+            return lambda n: self.clock.end("local")
+        return lambda n: self.finish_by("end", n)
+
     def finish_by(self, stage: str, n_points: int) -> float | None:
         """The deadline of the last stage: the run's end less the final evaluations of its front."""
         end = self.clock.end(stage)
@@ -758,9 +768,7 @@ def _cma(run: _Run) -> None:
 def _local(run: _Run) -> None:
     """The local rounds on the training problem, around its front."""
     r0 = run.state.get("round", 0) if run.state.get("stage") == "local" else 0
-    local_end = None if run.clock.ends is None else (
-        (lambda n: run.clock.end("local")) if run.surrogate or run.gradient_steps
-        else (lambda n: run.finish_by("end", n)))  # fmt: skip
+    local_end = run.search_end()
     h = run.rounds_horizon("local", run.rounds, None if local_end is None else local_end(front_size(run.m)))
     at = {"global_evaluated": run.evaluated}
     save_local = lambda r, z_, m_: run.save("local", z_, m_, {"round": r, **at})
@@ -787,9 +795,7 @@ def _nsga2(run: _Run) -> None:
         run.n_global = run.n_cma = len(run.z)
     run.stage = "nsga2"
     n = run.nsga2_generations
-    end = None if run.clock.ends is None else (
-        (lambda k: run.clock.end("local")) if run.surrogate or run.gradient_steps
-        else (lambda k: run.finish_by("end", k)))  # fmt: skip
+    end = run.search_end()
     save = lambda g: run.save("nsga2", run.z, run.m, {"nsga2_round": g},
                               {"nsga2.state": np.frombuffer(pickle.dumps(algorithm), np.uint8)})  # fmt: skip
     t0 = shown = saved = time.perf_counter()
