@@ -256,8 +256,6 @@ def test_tune_gradient_is_finite_sane_and_its_steps_lower_the_loss(path):
 #: Committed configs whose first five Adam steps from tune's start were seen not to lower the loss.
 NO_DESCENT = {
     "arm_sign_dt": "the sign law: only gamma acts, and the loss is rough in it",
-    "realistic_arm_uncertain": "the realistic digital loop with sampled arms: no descent in five steps at 1 s "
-    "(at 4 s, 60 s of Adam lower it by 5: tuning/results/tune_vs_cma_window.md)",
 }
 
 

@@ -1,8 +1,8 @@
 """Held-out arms against training arms on a front tuned over sampled arms (issue 25).
 
-For each config, ``fosmc front --budget B`` tunes over its sampled arms x payloads and
-evaluates every front point on the held-out batch (fresh sampled arms, the next
-``[arm.uncertainty] seed``, and payloads at 0.1, 0.3, ..., 0.9 of ``arm.payload_range``);
+For each config, ``fosmc front --budget B`` tunes over its sampled arms (corners of the
+ranges) x payloads and evaluates every front point on the held-out batch (other corners, the
+next ``[arm.uncertainty] seed``, and payloads at 0.1, 0.3, ..., 0.9 of ``arm.payload_range``);
 this script reads both and reports, per front, the held-out mean rms_error as a ratio to the
 training one, point by point, and the same ratio of chattering_hf (the comparison is at the
 same chattering where that ratio is near 1). Writes ``tuning/results/held_out_arms.md`` and
