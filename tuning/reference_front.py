@@ -141,7 +141,8 @@ def axes(points: list[dict]) -> tuple[np.ndarray, np.ndarray]:
 
 def points_of(path: str | pathlib.Path) -> dict[str, list[dict]]:
     """The points of a file by label: a front.json's (label: its folder), a frontier_<name>.json's
-    (one label per method) or a method's json of ``build`` (its method); each point {params,
+    (one label per method) or a method's json of ``build`` (its method; ``method (folder)`` where
+    ``build --out`` put it in a folder of its own, as the references' seeds); each point {params,
     metrics, diverged}."""
     path = pathlib.Path(path)
     data = json.loads(path.read_text())
@@ -149,7 +150,8 @@ def points_of(path: str | pathlib.Path) -> dict[str, list[dict]]:
         name = path.stem.removeprefix("frontier_")
         return {f"{name}: {label}": m["points"] for label, m in data["methods"].items()}
     if "method" in data:  # a method's json of build
-        return {data["method"]: data["points"]}
+        own = path.resolve().parent.parent == OUT  # <OUT>/<config>/<method>.json
+        return {data["method"] if own else f"{data['method']} ({path.parent.name})": data["points"]}
     if "final" in data:  # a fosmc tune result.json: its one point
         return {f"{path.parent.name} (tune)": [data["final"]]}
     return {path.parent.name: data["points"]}
