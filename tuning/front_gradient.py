@@ -29,7 +29,9 @@ are not public) and in the kinds' own:
     .venv/bin/python tuning/front_gradient.py --shares 0.25 --nsga2-shares 0 0.25 --peers nsga2:256 \
         --budget 60 --runs /tmp/front_nsga2_60 --out tuning/results/front_nsga2_60s
 
-A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes).
+A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes);
+``--score-only`` re-scores the runs in ``--runs`` (against a rebuilt reference) and stops at a
+missing one instead of running it.
 Writes OUT.json (per run: config, variant, seed, scores, wall time, load) and OUT.md (the median
 per config and variant); ``--findings FILE``: a markdown text the report keeps.
 """
@@ -95,10 +97,12 @@ def _variant_files(runs: pathlib.Path, config: str, variant: str, seed: int) -> 
     return folder, folder / ("nsga2.json" if variant.startswith("nsga2") else "front.json")
 
 
-def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path) -> dict:
+def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path, score_only: bool = False) -> dict:
     folder, result = _variant_files(runs, config, variant, seed)
     path = f"tuning/configs/{config}.toml"
     wall = None
+    if not result.exists() and score_only:
+        raise SystemExit(f"front_gradient: --score-only: no run {result} (leave out its variant or seed)")
     if not result.exists():
         folder.mkdir(parents=True, exist_ok=True)
         name, _, box = variant.partition("@")
@@ -185,6 +189,7 @@ def main() -> int:
     ap.add_argument("--out", default=str(HERE / "results" / "front_gradient"))
     ap.add_argument("--findings")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--score-only", action="store_true", help="score the runs in --runs; run none")
     ap.add_argument(
         "--boxes",
         nargs="+",
@@ -209,7 +214,7 @@ def main() -> int:
             for config in args.configs:
                 for variant in variants:
                     log(f"{config} {variant} seed {seed}: load {reference_front.load_text()}")
-                    rows.append(run(config, variant, seed, args.budget, pathlib.Path(args.runs)))
+                    rows.append(run(config, variant, seed, args.budget, pathlib.Path(args.runs), args.score_only))
                     log(f"  epsilon {rows[-1]['epsilon_0.1_10']:.4f} / {rows[-1]['epsilon_0.5_10']:.4f}, "
                         f"HV {rows[-1]['hypervolume']:.3f}")  # fmt: skip
         command = " ".join([".venv/bin/python", "tuning/front_gradient.py", *sys.argv[1:]])

@@ -10,6 +10,12 @@ same chattering where that ratio is near 1). Writes ``tuning/results/held_out_ar
 
     .venv/bin/python tuning/held_out_arms.py                # both configs, --budget 120
     .venv/bin/python tuning/held_out_arms.py --budget 60 --configs small_arm
+
+``--fronts`` reads front.json files already made (by ``fosmc front``, which evaluates the held-out
+batch beside the training one) instead of running fronts; ``--stem`` names the report:
+
+    .venv/bin/python tuning/held_out_arms.py --stem held_out_arms_robust \
+        --fronts tuning/results/reference/arm_ideal_robust/front900_s{0,1,2}/front.json
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import argparse
 import json
 import os
 import pathlib
+import sys
 
 import jax
 
@@ -28,7 +35,8 @@ import numpy as np  # noqa: E402
 import fosmc_jax as fj  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent
-CONFIGS = {"small_arm": "small_arm", "realistic_arm_uncertain": str(ROOT / "configs/realistic_arm_uncertain.toml")}
+CONFIGS = {"small_arm": "small_arm", "realistic_arm_uncertain": str(ROOT / "configs/realistic_arm_uncertain.toml"),
+           "arm_ideal_robust": str(ROOT / "configs/arm_ideal_robust.toml")}  # fmt: skip
 
 
 def ratios(front: dict) -> dict:
@@ -53,15 +61,21 @@ def best_error(front: dict, level: float) -> float:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--budget", type=float, default=120.0)
-    ap.add_argument("--configs", nargs="*", default=list(CONFIGS), choices=list(CONFIGS))
+    ap.add_argument("--configs", nargs="*", default=["small_arm", "realistic_arm_uncertain"], choices=list(CONFIGS))
+    ap.add_argument("--fronts", nargs="*", default=[], metavar="FRONT_JSON", help="report on these instead of running")
+    ap.add_argument("--stem", default="held_out_arms", help="the report's name in --out")
     ap.add_argument("--out", default=str(ROOT / "results"))
     args = ap.parse_args(argv)
     out = pathlib.Path(args.out)
     rows, levels, data = [], [], {}
-    for name in args.configs:
-        print(f"held_out_arms: {name}, fosmc front --budget {args.budget:g} ...", flush=True)
-        front = fj.run_front(CONFIGS[name], out=out / "held_out_arms" / name, budget=args.budget, force=True,
-                             log=lambda s: print(s, flush=True) if not s.startswith("point") else None)  # fmt: skip
+    made = {f"{pathlib.Path(f).parent.parent.name}/{pathlib.Path(f).parent.name}": f for f in args.fronts}
+    for name in made or args.configs:
+        if made:
+            front = json.loads(pathlib.Path(made[name]).read_text())
+        else:
+            print(f"held_out_arms: {name}, fosmc front --budget {args.budget:g} ...", flush=True)
+            front = fj.run_front(CONFIGS[name], out=out / "held_out_arms" / name, budget=args.budget, force=True,
+                                 log=lambda s: print(s, flush=True) if not s.startswith("point") else None)  # fmt: skip
         r = ratios(front)
         e, c = r["rms_error"], r["chattering_hf"]
         within = float(np.mean(np.abs(e - 1) <= 0.25))
@@ -73,10 +87,11 @@ def main(argv=None) -> None:
         rows.append(f"| {name} | {len(e)} | {np.nanmin(e):.3f} / {np.nanmedian(e):.3f} / {np.nanmax(e):.3f} | "
                     f"{np.nanmin(c):.3f} / {np.nanmedian(c):.3f} / {np.nanmax(c):.3f} | {100 * within:.0f}% |")  # fmt: skip
     load = os.getloadavg()[0]
+    command = " ".join([".venv/bin/python tuning/held_out_arms.py", *(argv if argv is not None else sys.argv[1:])])
     text = "\n".join([
         "# Held-out arms against training arms",
         "",
-        f"`.venv/bin/python tuning/held_out_arms.py --budget {args.budget:g}` (load average {load:.1f} at the end, "
+        f"`{command}` (load average {load:.1f} at the end, "
         f"{os.cpu_count()} cores). Per front point: the held-out batch's mean over rollouts divided by the training "
         "batch's; min / median / max over the front's points.",
         "",
@@ -92,8 +107,8 @@ def main(argv=None) -> None:
         *levels,
         "",
     ])  # fmt: skip
-    (out / "held_out_arms.md").write_text(text)
-    (out / "held_out_arms.json").write_text(json.dumps(data, indent=1))
+    (out / f"{args.stem}.md").write_text(text)
+    (out / f"{args.stem}.json").write_text(json.dumps(data, indent=1))
     print(text)
 
 
