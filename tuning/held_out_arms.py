@@ -33,6 +33,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
+from fosmc_jax.io import write_text  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent
 CONFIGS = {"small_arm": "small_arm", "realistic_arm_uncertain": str(ROOT / "configs/realistic_arm_uncertain.toml"),
@@ -107,8 +108,8 @@ def main(argv=None) -> None:
         *levels,
         "",
     ])  # fmt: skip
-    (out / f"{args.stem}.md").write_text(text)
-    (out / f"{args.stem}.json").write_text(json.dumps(data, indent=1))
+    write_text(out / f"{args.stem}.md", text)
+    write_text(out / f"{args.stem}.json", json.dumps(data, indent=1))
     print(text)
 
 
