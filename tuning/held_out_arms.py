@@ -69,7 +69,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     out = pathlib.Path(args.out)
     rows, levels, data = [], [], {}
-    made = {f"{pathlib.Path(f).parent.parent.name}/{pathlib.Path(f).parent.name}": f for f in args.fronts}
+    made = {str(pathlib.Path(f).parent): f for f in args.fronts}  # a front by its folder
     for name in made or args.configs:
         if made:
             front = json.loads(pathlib.Path(made[name]).read_text())
