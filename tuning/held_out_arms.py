@@ -14,8 +14,8 @@ same chattering where that ratio is near 1). Writes ``tuning/results/held_out_ar
 ``--fronts`` reads front.json files already made (by ``fosmc front``, which evaluates the held-out
 batch beside the training one) instead of running fronts; ``--stem`` names the report:
 
-    .venv/bin/python tuning/held_out_arms.py --stem held_out_arms_robust \
-        --fronts tuning/results/reference/arm_ideal_robust/front900_s{0,1,2}/front.json
+    .venv/bin/python tuning/held_out_arms.py --stem held_out_arms_realistic_robust \
+        --fronts tuning/results/reference/realistic_arm_robust/front900_s{0,1,2}/front/front.json
 """
 
 from __future__ import annotations
