@@ -134,6 +134,7 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path,
     stages = data.get("stages", {})
     return {"config": config, "variant": variant, "seed": seed, "budget_s": budget, "file": str(result),
             "points": len(pts), "gradient_steps": stages.get("gradient_steps"), "from_gradient": stages.get("from_gradient"),
+            "evaluations": stages.get("evaluations", data.get("evaluations")),  # a front's: on its training problem
             "wall_s": meta.get("wall_s", data.get("wall_s")), "load_start_end": meta.get("load_start_end", data.get("load_start_end")),
             **scores}  # fmt: skip
 
@@ -148,8 +149,8 @@ def report(data: dict, out: pathlib.Path) -> None:
     for config in dict.fromkeys(r["config"] for r in rows):
         mine = [r for r in rows if r["config"] == config]
         lines += [f"## {config} (reference HV {mine[0]['reference_hypervolume']:.3f})", "",
-                  "| variant | epsilon 0.1-10 V per seed | median | epsilon 0.5-10 V median | HV median | gradient steps | points from gradient steps | wall s | load (1-min, start) |",
-                  "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+                  "| variant | epsilon 0.1-10 V per seed | median | epsilon 0.5-10 V median | HV median | gradient steps | points from gradient steps | evaluations | wall s | load (1-min, start) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for variant in dict.fromkeys(r["variant"] for r in mine):
             rs = sorted((r for r in mine if r["variant"] == variant), key=lambda r: r["seed"])
             med = lambda k, rs=rs: float(np.median([r[k] for r in rs]))
@@ -167,9 +168,10 @@ def report(data: dict, out: pathlib.Path) -> None:
             name += f", box {box} ({', '.join(f'{k} 10^{list(v)}' for k, v in BOXES[box].items())})" if box else ""
             eps = ", ".join(f"{r['epsilon_0.1_10']:.4f}" for r in rs)
             walls = ", ".join(f"{r['wall_s']:.0f}" for r in rs if r["wall_s"])
+            evals = ", ".join(str(r.get("evaluations") or "-") for r in rs)
             loads = ", ".join(str(r["load_start_end"][0]).split()[0] for r in rs if r["load_start_end"])
             lines.append(f"| {name} | {eps} | **{med('epsilon_0.1_10'):.4f}** | {med('epsilon_0.5_10'):.4f} | "
-                         f"{med('hypervolume'):.3f} | {steps} | {grad} | {walls} | {loads} |")  # fmt: skip
+                         f"{med('hypervolume'):.3f} | {steps} | {grad} | {evals} | {walls} | {loads} |")  # fmt: skip
         lines.append("")
     if data.get("findings"):
         lines += ["## Findings", "", data["findings"]]
