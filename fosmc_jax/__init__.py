@@ -56,6 +56,7 @@ from ._plants.arm import (
     arm_box,
     arm_sweep,
     third_order_rows,
+    tracking_voltage,
     without_idle_terms,
 )
 from ._plants.base import Plant
@@ -97,6 +98,7 @@ __all__ = [
     "stable_step",
     "summarize",
     "third_order_rows",
+    "tracking_voltage",
     "without_idle_terms",
     "config",
     "io",

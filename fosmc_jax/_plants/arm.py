@@ -519,16 +519,9 @@ class Arm(NamedTuple):
     def init(self, X0: Array) -> ArmState:
         """State with [theta, theta', theta''] = ``X0`` (9,) at t = 0: the currents are solved
         from Kt i = M theta'' + C theta' + G + F theta' + Fc tanh(theta'/v_coulomb) - tau_ext(0)."""
-        theta, dtheta, (a1, a2, a3) = tuple(X0[0::3]), tuple(X0[1::3]), tuple(X0[2::3])
+        theta, dtheta, ddtheta = tuple(X0[0::3]), tuple(X0[1::3]), tuple(X0[2::3])
         p = cast_params(self.params, X0.dtype)
-        (m11, m12, m13, m22, m23, m33), n = _terms(p, self.payload, theta, dtheta)
-        torque = (
-            m11 * a1 + m12 * a2 + m13 * a3 + n[0],
-            m12 * a1 + m22 * a2 + m23 * a3 + n[1],
-            m13 * a1 + m23 * a2 + m33 * a3 + n[2],
-        )
-        d = _external(p, jnp.zeros((), X0.dtype))
-        torque = torque if d is None else tuple(torque[j] - d[j] for j in range(3))
+        torque = _motor_torque(p, self.payload, theta, dtheta, ddtheta, jnp.zeros((), X0.dtype))
         return ArmState(theta, dtheta, tuple(t / p.Kt[j] for j, t in enumerate(torque)))
 
     def accelerations(self, state: ArmState, t: Array = 0.0) -> Array:
@@ -554,6 +547,40 @@ class Arm(NamedTuple):
         p = cast_params(self.params, state.theta[0].dtype)
         di = tuple((U[j] - p.R[j] * state.current[j] - p.Kb[j] * state.dtheta[j]) / p.L[j] for j in range(3))
         return ArmState(state.dtheta, ddtheta, di)
+
+
+def tracking_voltage(arm: Arm, derivatives: Array, t: Array = 0.0) -> Array:
+    """The motor voltages U (3,), V, under which ``arm`` follows a reference exactly at time
+    ``t`` (s); ``derivatives`` is the reference's (4, 3) output there (theta_d and its first three
+    derivatives, :mod:`fosmc_jax._plants.reference`). With the torque the motion needs,
+    tau = M theta_d'' + C theta_d' + G + F theta_d' + Fc tanh(theta_d'/v_c) - tau_ext(t), the
+    current i = tau / Kt and the motor's equation give U = L i' + R i + Kb theta_d', with i' the
+    derivative of tau along the reference (its fourth row: theta_d''') over Kt.
+
+    A controller that tracks closely puts out about this voltage, so its total variation over a
+    run is a floor under the ``chattering`` metric that no tuning passes (``tuning/tracking_floor.py``)."""
+    p = cast_params(arm.params, derivatives.dtype)
+    x = tuple(tuple(derivatives[k]) for k in range(3))  # theta_d, theta_d', theta_d'': three scalars each
+    dx = tuple(tuple(derivatives[k]) for k in range(1, 4))
+    t = jnp.asarray(t, derivatives.dtype)
+    torque = lambda x, t: jnp.stack(_motor_torque(p, arm.payload, *x, t))
+    tau, dtau = jax.jvp(torque, (x, t), (dx, jnp.ones_like(t)))
+    return p.L * dtau / p.Kt + p.R * tau / p.Kt + p.Kb * derivatives[1]
+
+
+def _motor_torque(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple, ddtheta: tuple, t: Array) -> tuple:
+    """The motors' torques (three scalars) that give the arm the accelerations ``ddtheta`` at
+    (``theta``, ``dtheta``) and time ``t``: M theta'' + C theta' + G + F theta' + Fc tanh(theta'/v_c)
+    - tau_ext(t); ``p`` cast."""
+    (m11, m12, m13, m22, m23, m33), n = _terms(p, payload, theta, dtheta)
+    a1, a2, a3 = ddtheta
+    torque = (
+        m11 * a1 + m12 * a2 + m13 * a3 + n[0],
+        m12 * a1 + m22 * a2 + m23 * a3 + n[1],
+        m13 * a1 + m23 * a2 + m33 * a3 + n[2],
+    )
+    d = _external(p, t)
+    return torque if d is None else tuple(torque[j] - d[j] for j in range(3))
 
 
 def _terms(p: ArmParams, payload: Array, theta: tuple, dtheta: tuple) -> tuple[tuple, tuple]:
