@@ -43,7 +43,7 @@ def test_front_is_nondominated_sorted_and_written(study):
     assert nondominated(e, c).all()
     for p in pts:
         assert set(p["params"]) == {"delta", "gamma", "poles"} and len(p["metrics"]["rms_error"]) == 3
-        assert len(p["held_out"]["rms_error"]) == 3
+        assert len(p["held_out"]["rms_error"]) == 3 and p["held_out_diverged"] == 0
     assert {"Table 1 set 1", "Table 1 set 2", "Table 1 set 3", "SGN"} <= set(res["references"])
     on_disk = json.loads((out / "front.json").read_text())
     assert len(on_disk["points"]) == len(pts) and (out / "front.png").stat().st_size > 10_000

@@ -21,27 +21,55 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 FRONT = Path(__file__).resolve().parents[1] / "tuning" / "results" / "front_budget_300" / "front.json"
 
 
-def means() -> tuple[np.ndarray, np.ndarray, dict]:
+def means(held_out: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
     """Mean rms_error and chattering_hf of every point of FRONT (over the joints of the stored
-    per-joint means over rollouts), and the file."""
+    per-joint means over rollouts), with ``held_out`` the larger of the training and held-out
+    ones (the file's points all have held-out metrics, none a diverged rollout), and the file."""
     data = json.loads(FRONT.read_text())
-    e = np.array([np.mean(p["metrics"]["rms_error"]) for p in data["points"]])
-    c = np.array([np.mean(p["metrics"]["chattering_hf"]) for p in data["points"]])
+    mean = lambda key, k: np.array([np.mean(p[key][k]) for p in data["points"]])
+    e, c = mean("metrics", "rms_error"), mean("metrics", "chattering_hf")
+    if held_out:
+        e, c = np.maximum(e, mean("held_out", "rms_error")), np.maximum(c, mean("held_out", "chattering_hf"))
     return e, c, data
 
 
 @pytest.mark.parametrize("q", [0.0, 0.1, 0.5, 0.9, 1.0])
-def test_the_point_meets_the_bound_and_none_that_does_beats_it(q):
-    e, c, data = means()
+@pytest.mark.parametrize("held_out", [True, False])
+def test_the_point_meets_the_bound_and_none_that_does_beats_it(q, held_out):
+    e, c, data = means(held_out)
     for bounded, other, key in ((e, c, "max_error"), (c, e, "max_chattering")):
         bound = float(np.quantile(bounded, q))
-        r = fs.select(FRONT, **{key: bound})
+        r = fs.select(FRONT, **{key: bound}, **({} if held_out else {"held_out": False}))
         i = r["index"]
         assert bounded[i] <= bound
         meets = np.flatnonzero(bounded <= bound)
         assert other[i] == other[meets].min() and i == meets[other[meets] == other[i]].min()  # ties: lowest index
         assert r["params"] == data["points"][i]["params"] and r["metrics"] == data["points"][i]["metrics"]
         assert r["mean"] == pytest.approx({"rms_error": e[i], "chattering_hf": c[i]}, rel=1e-12)
+        assert r["judged_on"] == ("training and held-out" if held_out else "training")
+
+
+def test_the_held_out_batch_changes_the_pick():
+    """FRONT's held-out chattering is up to 1.5x its training one: at some bound the pick differs,
+    and a point whose held-out rollout diverged, or a front without held-out metrics, is judged
+    as documented."""
+    bounds = np.quantile(means(False)[1], np.linspace(0.05, 0.95, 19))
+    picks = [(fs.select(FRONT, max_chattering=b)["index"], fs.select(FRONT, max_chattering=b, held_out=False)["index"])
+             for b in bounds]  # fmt: skip
+    assert any(a != b for a, b in picks)
+    good = {"params": {"delta": [1.0] * 3}, "metrics": {"rms_error": [2.0] * 3, "chattering_hf": [1.0] * 3},
+            "held_out": {"rms_error": [2.0] * 3, "chattering_hf": [1.0] * 3}}  # fmt: skip
+    fragile = {"params": {"delta": [2.0] * 3}, "metrics": {"rms_error": [1.0] * 3, "chattering_hf": [1.0] * 3},
+               "held_out": {"rms_error": [1.0] * 3, "chattering_hf": [1.0] * 3}, "held_out_diverged": 1}  # fmt: skip
+    front = {"axes": ["rms_error", "chattering_hf"], "points": [good, fragile]}
+    assert fs.select(front, max_chattering=1.0)["index"] == 0
+    assert fs.select(front, max_chattering=1.0, held_out=False)["index"] == 1
+    lost = dict(fragile, held_out_diverged=0, held_out={"rms_error": [1.0, None, 1.0], "chattering_hf": [1.0] * 3})
+    assert fs.select({"points": [good, lost]}, max_chattering=1.0)["index"] == 0  # every held-out rollout diverged
+    bare = {"points": [{k: v for k, v in p.items() if k != "held_out"} for p in (good, fragile)]}
+    assert fs.select(bare, max_chattering=1.0)["judged_on"] == "training"
+    with pytest.raises(ValueError, match="no held-out metrics for every point"):
+        fs.select(bare, max_chattering=1.0, held_out=True)
 
 
 def test_a_loaded_front_selects_as_its_file():
@@ -65,8 +93,16 @@ def test_ties_go_to_the_lowest_index():
         ({"max_chattering": 0.0}, "max_chattering: expected a positive finite number"),
         ({"max_error": float("inf")}, "positive finite"),
         ({"max_error": float("nan")}, "positive finite"),
-        ({"max_error": 1e-9}, r"no point of .* has mean rms_error <= 1e-09 rad; the least is .* rad \(point \d+\)"),
-        ({"max_chattering": 1e-9}, r"mean chattering_hf <= 1e-09 V; the least is .* V \(point 0\)"),
+        (
+            {"max_error": 1e-9},
+            r"no point of .* has mean rms_error <= 1e-09 rad \(training and held-out\); the least "
+            r"is .* rad \(point \d+\)",
+        ),
+        (
+            {"max_chattering": 1e-9},
+            r"mean chattering_hf <= 1e-09 V \(training and held-out\); the least is .* V "
+            r"\(point \d+\)",
+        ),
     ],
 )
 def test_bad_bounds_are_one_line_errors(kwargs, match):
@@ -109,8 +145,15 @@ def test_the_command_prints_the_point_and_its_toml(capsys):
     r = fs.select(FRONT, max_error=0.5)
     assert main(["select", "--front", str(FRONT), "--max-error", "0.5"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith(f"point {r['index']}: the least mean chattering_hf with mean rms_error <= 0.5 rad\n")
-    assert f"mean rms_error      {r['mean']['rms_error']:.4e} rad" in out
+    assert out.startswith(
+        f"point {r['index']}: the least mean chattering_hf with mean rms_error <= 0.5 rad "
+        "(judged on training and held-out)\n"
+    )
+    assert f"mean rms_error      {r['mean']['rms_error']:.4e} rad  (training " in out
+    assert main(["select", "--front", str(FRONT), "--max-error", "0.5", "--training-only"]) == 0
+    r = fs.select(FRONT, max_error=0.5, held_out=False)
+    out = capsys.readouterr().out
+    assert f"(judged on training)\n  mean rms_error      {r['mean']['rms_error']:.4e} rad\n" in out
     toml = out[out.index("\n[controller]") :]
     assert toml.strip() == fs.controller_toml(r["params"])
     assert tomllib.loads(out[out.index("# point") :])["controller"]["delta"] == r["params"]["delta"]

@@ -325,7 +325,8 @@ def cmd_select(args) -> int:
     from .._search.select import controller_toml, select
 
     try:
-        r = select(args.front, max_error=args.max_error, max_chattering=args.max_chattering)
+        r = select(args.front, max_error=args.max_error, max_chattering=args.max_chattering,
+                   held_out=False if args.training_only else None)  # fmt: skip
         toml = controller_toml(r["params"])
     except ValueError as e:
         raise problems.ConfigError(str(e)) from None
@@ -334,9 +335,15 @@ def cmd_select(args) -> int:
         return 0
     bounded, bound = (AXES[0], args.max_error) if args.max_error is not None else (AXES[1], args.max_chattering)
     other = AXES[1 - AXES.index(bounded)]
-    print(f"point {r['index']}: the least mean {other} with mean {bounded} <= {bound:g} {UNITS[bounded]}")
+    print(f"point {r['index']}: the least mean {other} with mean {bounded} <= {bound:g} {UNITS[bounded]} "
+          f"(judged on {r['judged_on']})")  # fmt: skip
     for k in AXES:
-        print(f"  mean {k:<14} {r['mean'][k]:.4e} {UNITS[k]}")
+        held = (
+            f"  (training {r['training_mean'][k]:.4e}, held-out {r['held_out_mean'][k]:.4e})"
+            if "held_out_mean" in r
+            else ""
+        )
+        print(f"  mean {k:<14} {r['mean'][k]:.4e} {UNITS[k]}{held}")
     print(f"# point {r['index']} of {args.front}, for the config's [controller] table:\n{toml}")
     return 0
 
@@ -536,6 +543,9 @@ def parser() -> argparse.ArgumentParser:
                        help="the least mean chattering_hf among the points of mean rms_error <= E (rad)")  # fmt: skip
     bound.add_argument("--max-chattering", type=float, metavar="C",
                        help="the least mean rms_error among the points of mean chattering_hf <= C (V)")  # fmt: skip
+    e.add_argument("--training-only", action="store_true",
+                   help="judge the points on the training batch alone (default: on the larger of the training "
+                   "and held-out means, where the front has held-out metrics)")  # fmt: skip
     e.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     e.set_defaults(func=cmd_select)
     t = sub.add_parser("tune", help="gradient-based tuning of the controller kind's parameters (optax)")

@@ -74,7 +74,7 @@ def run_front(
     and device count (``config``, ``points``, ``candidates``, ``steps`` not given).
 
     Returns what ``front.json`` holds: ``{"fosmc_jax": {"version", "metrics_version"},
-    "axes", "points": [{params, metrics, held_out, diverged}], "stages", "references",
+    "axes", "points": [{params, metrics, held_out, held_out_diverged, diverged}], "stages", "references",
     "held_out_batch", "config"}``, ``params`` by the kind's names, ``references`` the paper's
     FOSMC (Table 1's sets, SGN) whatever the kind. With ``candidates`` and ``steps`` given the
     result is deterministic except ``stages.wall_time_s``. On a batch of one plant

@@ -129,7 +129,8 @@ def study(cfg: problems.Config, settings: Settings, *, out: Path | None = None, 
                         for k, x in zip(p0._fields, p0)))  # fmt: skip
     mh = held(params, settings.chunk, log=log, what="held-out evaluation")
     for i, pt in enumerate(result["points"]):
-        pt["held_out"] = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)["metrics"]
+        held_point = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)
+        pt["held_out"], pt["held_out_diverged"] = held_point["metrics"], held_point["diverged"]
     result["references"] = refs
     result["held_out_batch"] = front.held_out_batch
     result["config"] = cfg.as_dict()
