@@ -13,8 +13,10 @@ Per pick: its mean rms_error on training, held-out, third batch and corners (rad
 batch and the corners the worst rollout's rms_error (mean over joints) over its training mean and
 the rollouts above twice it. Writes ``tuning/results/<stem>.md`` and ``.json``.
 
-    .venv/bin/fosmc front --config tuning/configs/realistic_arm_robust.toml --budget 300 --out /tmp/robust_front
-    .venv/bin/python tuning/select_held_out.py --front /tmp/robust_front/front.json
+    .venv/bin/python tuning/select_held_out.py --front tuning/results/select_held_out_realistic_robust/front.json
+
+(that front: ``.venv/bin/fosmc front --config tuning/configs/realistic_arm_robust.toml --budget 300
+--seed 0 --out DIR``).
 """
 
 from __future__ import annotations
