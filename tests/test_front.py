@@ -24,7 +24,10 @@ SETTINGS = search_front.Settings(search="staged", points=3, candidates=16, steps
 def study(tmp_path_factory):
     out = tmp_path_factory.mktemp("front")
     cfg = _config.resolve(TINY)
-    return out, front_study.study(cfg, SETTINGS, out=out, log=lambda _: None)
+    lines = []
+    result = front_study.study(cfg, SETTINGS, out=out, log=lines.append)
+    result["log"] = lines
+    return out, result
 
 
 def test_nondominated_by_hand():
@@ -44,6 +47,10 @@ def test_front_is_nondominated_sorted_and_written(study):
     for p in pts:
         assert set(p["params"]) == {"delta", "gamma", "poles"} and len(p["metrics"]["rms_error"]) == 3
         assert len(p["held_out"]["rms_error"]) == 3 and p["held_out_diverged"] == 0
+    ratio = [np.mean(p["held_out"]["rms_error"]) / np.mean(p["metrics"]["rms_error"]) for p in pts]
+    holds = sum(abs(r - 1) <= 0.25 for r in ratio)
+    assert f"front: held out: {holds} of {len(pts)} points within 25% of their training rms_error, the worst " \
+           f"{max(ratio):.3g}x (point {int(np.argmax(ratio))})" in "\n".join(res["log"])  # fmt: skip
     assert {"Table 1 set 1", "Table 1 set 2", "Table 1 set 3", "SGN"} <= set(res["references"])
     on_disk = json.loads((out / "front.json").read_text())
     assert len(on_disk["points"]) == len(pts) and (out / "front.png").stat().st_size > 10_000

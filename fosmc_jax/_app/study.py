@@ -23,6 +23,26 @@ from .._search import tune as tuner
 from .._search.front import Evaluator, Settings, front_search, point_of, replay_settings
 from .._simulator import sharding
 
+#: A front point holds on the held-out batch where its mean rms_error there is within this share
+#: of its training one (tuning/held_out_arms.py's measure).
+HOLDS = 0.25
+
+
+def held_out_summary(points: list[dict]) -> str:
+    """One line on how the front's points hold on the held-out batch: how many are within
+    :data:`HOLDS` of their training mean rms_error, and the worst ratio (a point with a diverged
+    held-out rollout counts as not holding)."""
+    mean = lambda m: float(np.mean([np.nan if x is None else x for x in m["rms_error"]]))
+    ratio = np.array([mean(p["held_out"]) / mean(p["metrics"]) for p in points])
+    ratio[[p.get("held_out_diverged", 0) > 0 for p in points]] = np.nan
+    holds = int(np.sum(np.abs(ratio - 1) <= HOLDS))
+    worst = int(np.nanargmax(ratio)) if np.isfinite(ratio).any() else None
+    diverged = int(np.sum(np.isnan(ratio)))
+    return (f"front: held out: {holds} of {len(points)} points within {100 * HOLDS:.0f}% of their training rms_error"
+            + (f", the worst {ratio[worst]:.3g}x (point {worst})" if worst is not None else "")
+            + (f", {diverged} with a diverged held-out rollout" if diverged else "")
+            + " (fosmc select judges a point on the larger of both)")  # fmt: skip
+
 
 def references(front: problems.FrontProblems, chunk: int, plain: Evaluator) -> dict[str, dict]:
     """Plain mean metrics of the paper's FOSMC, whatever the config's kind: Table 1's three
@@ -131,6 +151,7 @@ def study(cfg: problems.Config, settings: Settings, *, out: Path | None = None, 
     for i, pt in enumerate(result["points"]):
         held_point = point_of(jax.tree.map(lambda x, i=i: x[i], params), mh, i)
         pt["held_out"], pt["held_out_diverged"] = held_point["metrics"], held_point["diverged"]
+    log(held_out_summary(result["points"]))
     result["references"] = refs
     result["held_out_batch"] = front.held_out_batch
     result["config"] = cfg.as_dict()
