@@ -403,6 +403,28 @@ def test_gradient_steps_join_the_front_resume_and_replay(tmp_path):
         assert [pt["params"] for pt in other["points"]] == [pt["params"] for pt in res["points"]]
 
 
+@pytest.mark.slow  # a front on a training surrogate with gradient steps on it, then replayed (~30 s)
+def test_gradient_steps_on_the_training_surrogate_add_plain_points_and_replay():
+    """``gradient_on = "train"``: the steps descend the surrogate, the points they add hold
+    their plain metrics (they re-simulate to them), the record says where the steps ran, and
+    the recorded work replays to the same front."""
+    cfg = _config.resolve(dict(TINY, tune={"train_t_final": 0.1}))
+    plain, train, p0 = _config.tuning_problems(cfg)
+    settings = SETTINGS._replace(polish=2, gradient=4, gradient_rate=0.05, gradient_on="train")
+    res = search_front.front_search(train, plain, p0, settings, log=lambda _: None)
+    st = res["stages"]
+    assert st["gradient_steps"] == 4 and st["replay"]["gradient_on"] == "train" and st["from_gradient"] > 0
+    for pt in res["points"]:
+        p = tuner.Tunable(*(np.asarray(pt["params"][k]) for k in tuner.PARAM_NAMES))
+        np.testing.assert_allclose(tuner.evaluate(plain, p)["metrics"]["rms_error"], pt["metrics"]["rms_error"],
+                                   rtol=1e-9)  # fmt: skip
+    replayed = search_front.front_search(train, plain, p0, search_front.replay_settings(st), log=lambda _: None)
+    assert replayed["stages"] | {"wall_time_s": 0} == st | {"wall_time_s": 0}
+    assert [pt["params"] for pt in replayed["points"]] == [pt["params"] for pt in res["points"]]
+    with pytest.raises(ValueError, match="gradient_on: expected one of plain, train"):
+        search_front.front_search(train, plain, p0, settings._replace(gradient_on="both"), log=lambda _: None)
+
+
 def test_to_factors_inverts_from_factors():
     p0 = tuner.Tunable(np.array([1000.0, 550.0, 250.0]), np.array([2.0, 3.0, 4.0]), -np.arange(1.0, 10.0).reshape(3, 3))
     z = search_front.global_factors(32, seed=3)

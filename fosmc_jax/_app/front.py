@@ -38,6 +38,7 @@ def run_front(
     steps: int | None = None,
     seed: int = 0,
     gradient_share: float = 0.25,
+    gradient_on: str = "plain",
     search: str | None = None,
     population: int = 256,
     generations: int | None = None,
@@ -62,7 +63,9 @@ def run_front(
     the local rounds, default from the budget; ``seed``: of the search's draws;
     ``gradient_share``: with sizes from the budget, the share of the search time spent at the end
     on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
-    0: none; default 0.25). ``search``: the derivative-free search, "nsga2" (pymoo's NSGA-II of
+    0: none; default 0.25); ``gradient_on``: the problem they descend, "plain" or "train" (with a
+    training surrogate its cheaper gradient, the points reached evaluated on the plain problem).
+    ``search``: the derivative-free search, "nsga2" (pymoo's NSGA-II of
     ``population``, ``generations`` from the budget unless given) or "staged" (global stage,
     CMA-ES, local rounds: ``candidates``, ``steps``); None: "staged" where ``candidates`` or
     ``steps`` are given, else "nsga2". ``out``: folder for ``front.json``,
@@ -99,11 +102,16 @@ def run_front(
                                   lead)  # fmt: skip
         if not (_is_real(gradient_share) and 0 <= gradient_share < 1):
             raise ConfigError(f"--gradient-share: expected a number in [0, 1), got {gradient_share}")
+        if gradient_on not in search_front.GRADIENT_ON:
+            raise ConfigError(
+                f"--gradient-on: expected one of {', '.join(search_front.GRADIENT_ON)}, got {gradient_on!r}"
+            )
         search = _checked_search(search, population, generations, candidates, steps, replay)
         files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
         agree(digest({"command": "front", "config": cfg.as_dict(), "out": out, "points": points, "budget": budget,
                       "candidates": candidates, "steps": steps, "seed": seed, "gradient_share": gradient_share,
-                      "search": search, "population": population, "generations": generations,
+                      "gradient_on": gradient_on, "search": search, "population": population,
+                      "generations": generations,
                       "compare": list(compare),
                       "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
     if lead:
@@ -111,7 +119,8 @@ def run_front(
     if out is not None and lead:
         out.mkdir(parents=True, exist_ok=True)
     settings = search_front.Settings(points=points or 8, budget=budget, candidates=candidates or 0,
-                                     steps=steps or 0, seed=seed, gradient_share=gradient_share, search=search,
+                                     steps=steps or 0, seed=seed, gradient_share=gradient_share,
+                                     gradient_on=gradient_on, search=search,
                                      population=population, generations=generations or 0)  # fmt: skip
     if replay is not None:
         settings = study.replayed(replay)[1]._replace(budget=budget)

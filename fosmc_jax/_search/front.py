@@ -87,6 +87,10 @@ DIM = _FOSMC.dim
 
 #: The derivative-free searches of a front (``Settings.search``).
 SEARCHES = ("nsga2", "staged")
+#: The problems the gradient steps may descend (``Settings.gradient_on``).
+GRADIENT_ON = ("plain", "train")
+#: With ``gradient_on = "train"``: the chunks of the steps' points evaluated on the plain problem.
+GRADIENT_PLAIN_CHUNKS = 4
 
 
 class Plan(NamedTuple):
@@ -146,6 +150,10 @@ class Settings(NamedTuple):
     gradient: int = 0
     gradient_share: float = 0.25
     gradient_rate: float = 0.01  # Adam's rate in log coordinates (fosmc tune's on a rough loop)
+    # the problem the gradient steps descend: "plain", or "train" (with a training surrogate:
+    # its cheaper gradient, the points the steps reach that are non-dominated among themselves
+    # then evaluated on the plain problem; without one the two are the same)
+    gradient_on: str = "plain"
     plan: Plan | None = None  # the work to redo (a replay, replay_settings): no clock, sizes and rounds as recorded
 
 
@@ -619,6 +627,8 @@ def front_search(
     ("nsga2"), :func:`_plain`, :func:`_gradient`, :func:`_result`."""
     if settings.search not in SEARCHES:
         raise ValueError(f"search: expected one of {', '.join(SEARCHES)}, got {settings.search!r}")
+    if settings.gradient_on not in GRADIENT_ON:
+        raise ValueError(f"gradient_on: expected one of {', '.join(GRADIENT_ON)}, got {settings.gradient_on!r}")
     staged_sizes = [k for k in ("candidates", "steps", "cma") if getattr(settings, k)]
     if settings.search == "nsga2" and staged_sizes:
         raise ValueError(f"{', '.join(staged_sizes)}: sizes of the staged search (search='staged'); NSGA-II's is "
@@ -873,7 +883,8 @@ def scalarized(problem: tuner.Problem, p0: tuner.Params) -> Callable:
 
 def _gradient_program(run: _Run) -> tuple[Callable, Callable, Callable]:
     """The gradient stage's compiled functions, built once per run: ``step(Y, W)`` (the values,
-    means and gradients of :func:`scalarized` for a batch of candidates), ``update(Y, state,
+    means and gradients of :func:`scalarized` on the problem of ``settings.gradient_on`` for a
+    batch of candidates), ``update(Y, state,
     g)`` (Adam's step; a non-finite gradient's entries make no step) and ``init(Y)`` (Adam's
     states). The steps are not kept in the box the derivative-free stages sample: it is where
     they look, not a limit on the controller (the log factors keep every parameter's sign), and
@@ -887,7 +898,8 @@ def _gradient_program(run: _Run) -> tuple[Callable, Callable, Callable]:
             d, state = jax.vmap(opt.update)(g, state, Y)
             return Y + d, state
 
-        step = jax.jit(jax.vmap(jax.value_and_grad(scalarized(run.plain.problem, run.p0), has_aux=True)))
+        problem = run.train.problem if run.settings.gradient_on == "train" else run.plain.problem
+        step = jax.jit(jax.vmap(jax.value_and_grad(scalarized(problem, run.p0), has_aux=True)))
         run.gradient_program = step, update, jax.jit(jax.vmap(opt.init))
     return run.gradient_program
 
@@ -899,7 +911,11 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     (leaving the box where the descent leads), all at once: one ``vmap`` of the value and
     gradient per step (the generated adjoint folds the candidates into its lanes). The points
     the steps reach that join the front (by the steps' own means) are evaluated by the plain
-    evaluator and added (index -2). A run killed during the stage resumes at its start."""
+    evaluator and added (index -2). With ``gradient_on = "train"`` and a training surrogate the
+    steps descend the training problem, and the points they reach that are non-dominated among
+    themselves (at most :data:`GRADIENT_PLAIN_CHUNKS` chunks of them, spread by chattering) are
+    evaluated on the plain problem and join by those metrics. A run killed during the stage
+    resumes at its start."""
     settings, log = run.settings, run.log
     step, update, init = _gradient_program(run)
     if run.stage != "gradient":
@@ -910,7 +926,10 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     sel, w = pick_starts(mp, settings.chunk)
     Y, W = jnp.asarray(np.log(10.0) * zp[sel]), jnp.asarray(w)
     state = init(Y)
+    on_train = settings.gradient_on == "train" and run.surrogate
     end = None if run.clock.ends is None else run.finish_by("gradient", front_size(mp))
+    if on_train and end is not None:  # the plain evaluation of what the steps reach, after them
+        end -= GRADIENT_PLAIN_CHUNKS * run.costs.get("plain", 0.0)
     ys, es, cs, shown, n = [], [], [], -np.inf, run.gradient_steps
     for k in range(n + 1):  # call k evaluates the points of step k (call 0: the starts)
         (_, (E, C, bad)), g = step(Y, W)
@@ -928,12 +947,23 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     if not ys:
         return idx, zp, mp
     zg, eg, cg = np.concatenate(ys) / np.log(10.0), np.concatenate(es), np.concatenate(cs)
+    if on_train:  # the steps' own non-dominated points, evaluated on the plain problem
+        own = np.flatnonzero(nondominated(eg, cg))
+        own = own[np.argsort(cg[own], kind="stable")]
+        cap = GRADIENT_PLAIN_CHUNKS * settings.chunk
+        if len(own) > cap:
+            own = own[np.round(np.linspace(0, len(own) - 1, cap)).astype(int)]
+        zg, mg = zg[own], run.evaluate(run.plain, zg[own], log=lambda _: None)
+        eg, cg = axes(mg)
     e, c = axes(mp)
     joins = np.flatnonzero(nondominated(np.concatenate([e, eg]), np.concatenate([c, cg]))[len(e) :])
     log(f"front: gradient steps: {n} of {len(sel)} points, {len(joins)} of their {len(zg)} points join the front")
     if not len(joins):
         return idx, zp, mp
-    mg = run.evaluate(run.plain, zg[joins], log=lambda _: None)
+    if on_train:
+        mg = {k: v[joins] for k, v in mg.items()}
+    else:
+        mg = run.evaluate(run.plain, zg[joins], log=lambda _: None)
     return np.concatenate([idx, np.full(len(joins), -2)]), np.concatenate([zp, zg[joins]]), _join(mp, mg)
 
 
@@ -1012,7 +1042,8 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
               "gradient_steps": run.gradient_steps, "from_gradient": int(np.sum(idx[keep] == -2)),
               "replay": {"seed": settings.seed, "points": settings.points, "chunk": settings.chunk,
                          "search": settings.search, "population": settings.population,
-                         "gradient_rate": settings.gradient_rate, **work._asdict()}}  # fmt: skip
+                         "gradient_rate": settings.gradient_rate, "gradient_on": settings.gradient_on,
+                         **work._asdict()}}  # fmt: skip
     return stamped({"axes": list(AXES), "points": points, "stages": stages})
 
 
@@ -1032,7 +1063,8 @@ def replay_settings(stages: dict[str, Any]) -> Settings:
                     generations=plan.nsga2_generations,
                     candidates=plan.drawn, steps=plan.local_rounds, cma=plan.cma_generations,
                     polish=plan.plain_rounds, gradient=plan.gradient_steps,
-                    gradient_rate=float(rec.get("gradient_rate", Settings.gradient_rate)), plan=plan)  # fmt: skip
+                    gradient_rate=float(rec.get("gradient_rate", Settings.gradient_rate)),
+                    gradient_on=str(rec.get("gradient_on", Settings.gradient_on)), plan=plan)  # fmt: skip
 
 
 def _same_simulation(a: tuner.Problem, b: tuner.Problem) -> bool:
