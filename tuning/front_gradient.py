@@ -24,7 +24,8 @@ are not public) and in the kinds' own:
 (``front_box_60s`` was run as ``--boxes kind wide`` when the kind's box was the narrow one.)
 
 ``--nsga2-shares 0 0.25`` adds the front on NSGA-II (``fosmc front --search nsga2 --gradient-share G``;
-``--shares`` is the staged search's):
+``--shares`` is the staged search's); ``--train-shares 0.25`` the same with the gradient steps on
+the training surrogate (``--gradient-on train``):
 
     .venv/bin/python tuning/front_gradient.py --shares 0.25 --nsga2-shares 0 0.25 --peers nsga2:256 \
         --budget 60 --runs /tmp/front_nsga2_60 --out tuning/results/front_nsga2_60s
@@ -106,11 +107,12 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path,
     if not result.exists():
         folder.mkdir(parents=True, exist_ok=True)
         name, _, box = variant.partition("@")
-        if name.startswith(("g", "ng")) or name == "front":  # "front": the CLI without gradient steps
-            share = "0" if name == "front" else name.lstrip("n")[1:]
-            search = ["--search", "nsga2" if name.startswith("ng") else "staged"]
+        if name.startswith(("g", "ng", "tg")) or name == "front":  # "front": the CLI without gradient steps
+            share = "0" if name == "front" else name.lstrip("nt")[1:]
+            search = ["--search", "nsga2" if name.startswith(("ng", "tg")) else "staged"]
+            on = ["--gradient-on", "train"] if name.startswith("tg") else []
             cmd = [str(ROOT / ".venv/bin/fosmc"), "front", "--config", path, "--budget", f"{budget:g}", "--seed",
-                   str(seed), "--gradient-share", share, *search, "--out", str(folder), "--force"]  # fmt: skip
+                   str(seed), "--gradient-share", share, *search, *on, "--out", str(folder), "--force"]  # fmt: skip
         else:
             method, _, pop = name.partition(":")
             cmd = [sys.executable, str(HERE / "reference_front.py"), "build", "--config", path, "--method", method,
@@ -163,6 +165,8 @@ def report(data: dict, out: pathlib.Path) -> None:
                 name = f"front --gradient-share {base[1:]}"
             elif base.startswith("ng"):
                 name = f"front --search nsga2 --gradient-share {base[2:]}"
+            elif base.startswith("tg"):
+                name = f"front --search nsga2 --gradient-share {base[2:]} --gradient-on train"
             else:
                 name = f"pymoo NSGA-II, population {base.split(':')[1]}"
             name += f", box {box} ({', '.join(f'{k} 10^{list(v)}' for k, v in BOXES[box].items())})" if box else ""
@@ -184,6 +188,8 @@ def main() -> int:
     ap.add_argument("--shares", nargs="*", type=float, default=[0.0, 0.25, 0.4], help="0: the front without them")
     ap.add_argument("--nsga2-shares", nargs="*", type=float, default=[],
                     help="also the front on NSGA-II (--search nsga2) with these gradient shares")  # fmt: skip
+    ap.add_argument("--train-shares", nargs="*", type=float, default=[],
+                    help="also the front on NSGA-II with gradient steps on the training surrogate (--gradient-on train)")  # fmt: skip
     ap.add_argument("--peers", nargs="*", default=["nsga2:64"], help="NSGA-II populations as nsga2:P")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--budget", type=float, default=105.0)
@@ -209,6 +215,7 @@ def main() -> int:
         data = json.loads(out.with_suffix(".json").read_text())
     else:
         variants = [("front" if g == 0 else f"g{g:g}") for g in args.shares] + [f"ng{g:g}" for g in args.nsga2_shares]
+        variants += [f"tg{g:g}" for g in args.train_shares]
         variants += list(args.peers)
         variants = [v + ("" if box == "kind" else f"@{box}") for v in variants for box in args.boxes]
         rows = []
