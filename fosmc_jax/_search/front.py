@@ -954,7 +954,8 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
         if len(own) > cap:
             own = own[np.round(np.linspace(0, len(own) - 1, cap)).astype(int)]
         zg, mg = zg[own], run.evaluate(run.plain, zg[own], log=lambda _: None)
-        eg, cg = axes(mg)
+        bad = np.asarray(mg["diverged"]) > 0  # never joins, even where every one of them diverged
+        eg, cg = (np.where(bad, np.nan, x) for x in axes(mg))
     e, c = axes(mp)
     joins = np.flatnonzero(nondominated(np.concatenate([e, eg]), np.concatenate([c, cg]))[len(e) :])
     log(f"front: gradient steps: {n} of {len(sel)} points, {len(joins)} of their {len(zg)} points join the front")
