@@ -44,12 +44,8 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from fosmc_jax import METRIC_NAMES  # noqa: E402
 from fosmc_jax import config as fconfig  # noqa: E402
-from fosmc_jax._problems.build import plain_problem  # noqa: E402
-from fosmc_jax._problems.draws import arm_samples  # noqa: E402
-from fosmc_jax._problems.front_problems import held_out_config  # noqa: E402
-from fosmc_jax._problems.resolve import replace  # noqa: E402
-from fosmc_jax._simulator.metrics import METRIC_NAMES, mean_over_survivors  # noqa: E402
 from fosmc_jax.io import write_text  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent
@@ -63,15 +59,15 @@ WITHIN = 0.25  # a point "holds" where |ratio - 1| <= WITHIN
 
 def batch_configs(cfg):
     """The four configs (a)-(d): (b) and (c) are the held-out config with one factor put back."""
-    held = held_out_config(cfg)
-    payloads = replace(held, arm={"uncertainty": {"seed": cfg.arm.uncertainty.seed}})
-    arms = replace(held, plant={"payloads": list(cfg.plant.payloads)})
+    held = fconfig.held_out_config(cfg)
+    payloads = fconfig.replace(held, arm={"uncertainty": {"seed": cfg.arm.uncertainty.seed}})
+    arms = fconfig.replace(held, plant={"payloads": list(cfg.plant.payloads)})
     return {"a": cfg, "b": payloads, "c": arms, "d": held}
 
 
 def factors_of(cfg) -> np.ndarray:
     """The sampled arms' relative factors (arms, 9): F, Kt, Kb of joints 1-3, each drawn / nominal."""
-    drawn, nominal = arm_samples(cfg), cfg.arm.params
+    drawn, nominal = fconfig.arm_samples(cfg), cfg.arm.params
     return np.concatenate([drawn[k] / np.asarray(getattr(nominal, k), float) for k in FACTORS], axis=1)
 
 
@@ -99,9 +95,16 @@ def per_rollout(problem, params: dict, chunk: int, label: str) -> dict[str, np.n
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
+def survivors(x: np.ndarray, diverged: np.ndarray) -> np.ndarray:
+    """Per joint (3,): the mean of ``x`` (rollouts, 3) over the rollouts that did not diverge
+    (NaN where every one did), as front.json's metrics are."""
+    kept = x[~np.asarray(diverged, bool)]
+    return kept.mean(axis=0) if len(kept) else np.full(x.shape[1:], np.nan)
+
+
 def survivors_mean(x: np.ndarray, diverged: np.ndarray) -> np.ndarray:
-    """Per point: mean over the surviving rollouts (:func:`mean_over_survivors`) and the joints."""
-    return np.array([np.mean(mean_over_survivors(xi, di)) for xi, di in zip(x, diverged)])
+    """Per point: mean over the surviving rollouts (:func:`survivors`) and the joints."""
+    return np.array([np.mean(survivors(xi, di)) for xi, di in zip(x, diverged)])
 
 
 def select(points: list, band: tuple[float, float], max_points: int | None) -> np.ndarray:
@@ -141,8 +144,8 @@ def corner_check(cfg, params: dict, train_rms: np.ndarray, chunk: int) -> dict:
     """Every corner of the +-20% box (``sampling = "vertices"``, all 2^9 corners) at the training
     payloads: per point its worst rollout ratio and the rollouts above 2x; over the failing
     rollouts, the share at each factor's low corner and at the heaviest payload."""
-    vcfg = replace(cfg, arm={"uncertainty": {"sampling": "vertices", "samples": 0}})
-    problem = plain_problem(vcfg)
+    vcfg = fconfig.replace(cfg, arm={"uncertainty": {"sampling": "vertices", "samples": 0}})
+    problem = fconfig.build(vcfg)
     f = factors_of(vcfg)
     pays = np.asarray(vcfg.plant.payloads, float)
     f_roll, p_roll = np.repeat(f, len(pays), axis=0), np.tile(pays, len(f))
@@ -161,7 +164,7 @@ def arm_edits(held, train_cfg, arm: int, params: dict, train_rms: np.ndarray) ->
     """The fresh arm ``arm`` of the held-out batch at its payloads, as drawn and edited: each drawn
     factor outside the training draws' range clipped into it (alone, then all nine at once), and
     each of the nine put back to nominal alone; per edit, per point the worst rollout ratio."""
-    problem = plain_problem(held)
+    problem = fconfig.build(held)
     n_pay = len(held.plant.payloads)
     rows = np.arange(arm * n_pay, (arm + 1) * n_pay)
     plants = jax.tree.map(lambda x: x[rows], problem.plants)
@@ -237,7 +240,7 @@ def main(argv=None) -> None:
 
     cfg = fconfig.load(args.config)
     configs = batch_configs(cfg)
-    assert configs["d"] == held_out_config(cfg)
+    assert configs["d"] == fconfig.held_out_config(cfg)
     reference = json.loads(pathlib.Path(args.reference).read_text())
     points = reference["points"]
     idx = select(points, tuple(args.band), args.max_points)
@@ -259,7 +262,7 @@ def main(argv=None) -> None:
 
     results = {}
     for b, c in configs.items():
-        problem = plain_problem(c)
+        problem = fconfig.build(c)
         assert problem.rollouts == len(layout[b][0]), (problem.rollouts, len(layout[b][0]))
         print(f"held_out_split: ({b}) {BATCHES[b]}: payloads {list(c.plant.payloads)}, arm seed "
               f"{c.arm.uncertainty.seed}, {problem.rollouts} rollouts", flush=True)  # fmt: skip
@@ -268,7 +271,7 @@ def main(argv=None) -> None:
     # (a) against the stored training metrics
     rel = {}
     for k in METRIC_NAMES:
-        mine = np.stack([mean_over_survivors(x, d) for x, d in zip(results["a"][k], results["a"]["diverged"])])
+        mine = np.stack([survivors(x, d) for x, d in zip(results["a"][k], results["a"]["diverged"])])
         scale = np.maximum(np.abs(stored[k]), 1e-12)
         rel[k] = float(np.max(np.where(np.abs(stored[k]) > 0, np.abs(mine - stored[k]) / scale, np.abs(mine))))
     worst_rel = max(rel.values())

@@ -35,8 +35,6 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax._problems.build import plain_problem  # noqa: E402
-from fosmc_jax._problems.resolve import replace  # noqa: E402
 from fosmc_jax.io import write_text  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -76,11 +74,12 @@ def main(argv=None) -> None:
     train = {i: mean(p, "metrics") for i, p in zip(idx, pts)}
     held = {i: mean(p, "held_out") for i, p in zip(idx, pts)}
     seed = cfg.arm.uncertainty.seed
+    replace = fj.config.replace
     batches = {"third": replace(cfg, plant={"payloads": THIRD_PAYLOADS}, arm={"uncertainty": {"seed": seed + 2}}),
                "corners": replace(cfg, arm={"uncertainty": {"sampling": "vertices", "samples": 0}})}  # fmt: skip
     evals = {}
     for name, bcfg in batches.items():
-        problem = plain_problem(bcfg)
+        problem = fj.config.build(bcfg)
         res = per_rollout(problem, params, args.chunk, f"{name} ({problem.rollouts} rollouts)")
         rms = np.where(res["diverged"], np.nan, res["rms_error"].mean(2))  # (points, rollouts)
         ratio = rms / np.asarray([train[i] for i in idx])[:, None]

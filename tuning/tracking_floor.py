@@ -32,7 +32,6 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
-from fosmc_jax._problems.build import n_steps, sample_steps  # noqa: E402
 from fosmc_jax.io import write_text  # noqa: E402
 
 ROOT = pathlib.Path(__file__).resolve().parent
@@ -46,7 +45,7 @@ def floor(config: str) -> dict:
     if cfg.plant.kind != "arm":
         raise SystemExit(f"tracking_floor: {config}: plant.kind is {cfg.plant.kind!r}, not 'arm'")
     problem = fj.build(cfg)
-    m, n = sample_steps(cfg), n_steps(cfg)
+    m, n = fj.config.sample_steps(cfg), problem.options["n_steps"]
     t = jnp.arange(0, n + 1, m) * problem.dt  # the controller's samples over the run
     voltage = jax.vmap(lambda arm: jax.vmap(lambda s: fj.tracking_voltage(arm, problem.reference(s), s))(t))
     U = np.asarray(jax.jit(voltage)(problem.plants))  # (arms, samples, 3)
