@@ -94,6 +94,7 @@ def test_tracking_voltage_against_the_autodiff_dynamics():
     relative), against the closed form differentiated by jvp, to 1e-7 relative."""
     arm = Arm(jax.tree.map(jnp.asarray, _LOADED), jnp.asarray(4.0))
 
+    @jax.jit  # one compilation, not the autodiff oracle's many ops one by one
     def current(t):
         q, dq, ddq, _ = _SMOOTH(t)
         tau = (mass_matrix(_LOADED, arm.payload, q) @ ddq + coriolis_matrix(_LOADED, arm.payload, q, dq) @ dq
@@ -101,6 +102,7 @@ def test_tracking_voltage_against_the_autodiff_dynamics():
                - external_torque(_LOADED, t))  # fmt: skip
         return tau / _LOADED.Kt
 
+    voltage = jax.jit(lambda t: tracking_voltage(arm, _SMOOTH(t), t))
     h = 1e-5
     for t in np.linspace(0.0, 1.5, 7):
         oracle = (
@@ -108,10 +110,11 @@ def test_tracking_voltage_against_the_autodiff_dynamics():
             + _LOADED.R * current(t)
             + _LOADED.Kb * _SMOOTH(t)[1]
         )
-        got = tracking_voltage(arm, _SMOOTH(jnp.asarray(t)), t)
+        got = voltage(jnp.asarray(t))
         np.testing.assert_allclose(got, oracle, rtol=1e-7, atol=1e-9 * np.max(np.abs(oracle)))
 
 
+@pytest.mark.slow  # RK4 over 0.5 s compiled at three step sizes: ~12 s
 def test_tracking_voltage_drives_the_arm_along_its_reference():
     """Open loop: the arm started on the reference (:meth:`Arm.init`) and driven by the tracking
     voltage, integrated by RK4 with the closed-form forward dynamics, follows the reference for
