@@ -145,15 +145,19 @@ def test_an_nsga2_front_stopped_after_a_checkpoint_resumes_bit_for_bit(problems,
         _run(problems, SIZES, checkpoint=tmp_path / "c.npz", resume=True, log=lambda _: None)
 
 
-def test_a_budgeted_nsga2_front_replays_bit_for_bit(problems):
+# on the training surrogate, the plain evaluation of the steps' points is sized by the clock too
+@pytest.mark.parametrize("gradient_on", ["plain", pytest.param("train", marks=pytest.mark.slow)])
+def test_a_budgeted_nsga2_front_replays_bit_for_bit(problems, gradient_on):
     """NSGA-II's generations from the budget, then gradient steps (their share of it): the work
     is recorded and its replay, without a clock, ends at the same front."""
     lines = []
-    settings = search_front.Settings(search="nsga2", population=16, points=3, chunk=8, budget=3.0)
+    settings = search_front.Settings(search="nsga2", population=16, points=3, chunk=8, budget=3.0,
+                                     gradient_on=gradient_on)  # fmt: skip
     budgeted, _ = _run(problems, settings, log=lines.append)
     rec = budgeted["stages"]["replay"]
     assert rec["search"] == "nsga2" and rec["population"] == 16 and rec["nsga2_generations"] >= 1
     assert rec["local_rounds"] == rec["cma_generations"] == 0 and rec["gradient_steps"] >= 1
+    assert rec["gradient_on"] == gradient_on and (rec["gradient_plain"] >= 1) == (gradient_on == "train")
     replayed, _ = _run(problems, search_front.replay_settings(budgeted["stages"]), log=lines.append)
     assert _strip(replayed) == _strip(budgeted)
     assert not [line for line in lines if "s left)" in line and "(-" in line]

@@ -89,8 +89,14 @@ DIM = _FOSMC.dim
 SEARCHES = ("nsga2", "staged")
 #: The problems the gradient steps may descend (``Settings.gradient_on``).
 GRADIENT_ON = ("plain", "train")
-#: With ``gradient_on = "train"``: the chunks of the steps' points evaluated on the plain problem.
+#: With ``gradient_on = "train"``: the chunks of the steps' points evaluated on the plain problem
+#: in a run without a clock (sized steps).
 GRADIENT_PLAIN_CHUNKS = 4
+#: With ``gradient_on = "train"`` and a clock: the most of the gradient stage's time that the
+#: plain evaluation of the steps' points may take (the steps stop that much before the end, or
+#: less where fewer points are to evaluate). 4 chunks bound every 300 s run (58-64 of 64 joined,
+#: tuning/results/front_300s_gradient_on.md).
+GRADIENT_PLAIN_SHARE = 0.5
 
 
 class Plan(NamedTuple):
@@ -98,7 +104,8 @@ class Plan(NamedTuple):
     ``stages.replay``, with the seed and sizes): global candidates ``drawn`` (the size
     :func:`global_factors` was called with: its grid follows it) and ``evaluated`` (their
     first ones), whether the ``probe``'s chunk joined them, CMA-ES generations, local and plain
-    rounds, and the ``horizon`` in rounds over which each stage's sigma shrinks."""
+    rounds, the ``horizon`` in rounds over which each stage's sigma shrinks, the gradient steps
+    and how many of their points the plain problem evaluated (with ``gradient_on = "train"``)."""
 
     drawn: int
     evaluated: int
@@ -110,6 +117,7 @@ class Plan(NamedTuple):
     plain_horizon: int
     gradient_steps: int = 0
     nsga2_generations: int = 0
+    gradient_plain: int = -1  # points of the steps evaluated on the plain problem; -1: GRADIENT_PLAIN_CHUNKS chunks
 
 
 class Settings(NamedTuple):
@@ -537,6 +545,7 @@ class _Run:
         self.polish = state.get("polish", plan.plain_rounds if plan else settings.polish if self.surrogate else 0)
         self.generations = state.get("cma_generations", plan.cma_generations if plan else settings.cma)
         self.gradient_steps = state.get("gradient_steps", plan.gradient_steps if plan else settings.gradient)
+        self.gradient_plain = plan.gradient_plain if plan else -1
         self.nsga2_generations = state.get("nsga2_generations",
                                            plan.nsga2_generations if plan else settings.generations)  # fmt: skip
         self.horizon = state.get("horizon", {"local": plan.local_horizon, "plain": plan.plain_horizon} if plan else {})
@@ -913,8 +922,9 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     the steps reach that join the front (by the steps' own means) are evaluated by the plain
     evaluator and added (index -2). With ``gradient_on = "train"`` and a training surrogate the
     steps descend the training problem, and the points they reach that are non-dominated among
-    themselves (at most :data:`GRADIENT_PLAIN_CHUNKS` chunks of them, spread by chattering) are
-    evaluated on the plain problem and join by those metrics. A run killed during the stage
+    themselves (spread by chattering: as many as :data:`GRADIENT_PLAIN_SHARE` of the stage's time
+    holds, or :data:`GRADIENT_PLAIN_CHUNKS` chunks without a clock) are evaluated on the plain
+    problem and join by those metrics. A run killed during the stage
     resumes at its start."""
     settings, log = run.settings, run.log
     step, update, init = _gradient_program(run)
@@ -928,14 +938,19 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     state = init(Y)
     on_train = settings.gradient_on == "train" and run.surrogate
     end = None if run.clock.ends is None else run.finish_by("gradient", front_size(mp))
-    if on_train and end is not None:  # the plain evaluation of what the steps reach, after them
-        end -= GRADIENT_PLAIN_CHUNKS * run.costs.get("plain", 0.0)
-    ys, es, cs, shown, n = [], [], [], -np.inf, run.gradient_steps
+    # on the training problem with a clock, the steps stop where the plain evaluation of their
+    # non-dominated points (at most GRADIENT_PLAIN_SHARE of the stage) would pass the end
+    per_point = run.costs.get("plain", 0.0) / settings.chunk if on_train and end is not None else 0.0
+    most = GRADIENT_PLAIN_SHARE * (end - time.perf_counter()) if per_point else 0.0
+    ys, es, cs, shown, n, n_own = [], [], [], -np.inf, run.gradient_steps, 0
     for k in range(n + 1):  # call k evaluates the points of step k (call 0: the starts)
         (_, (E, C, bad)), g = step(Y, W)
         if k:
             ys.append(np.asarray(Y)), es.append(np.where(bad, np.nan, E)), cs.append(np.asarray(C))
-        if k == n or (k and end is not None and sharding.first(time.perf_counter() > end)):
+            if per_point:
+                n_own = int(np.sum(nondominated(np.concatenate(es), np.concatenate(cs))))
+        stop = end is not None and time.perf_counter() > end - min(most, n_own * per_point)
+        if k == n or (k and sharding.first(stop)):
             n = k
             break
         Y, state = update(Y, state, g)
@@ -950,9 +965,13 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     if on_train:  # the steps' own non-dominated points, evaluated on the plain problem
         own = np.flatnonzero(nondominated(eg, cg))
         own = own[np.argsort(cg[own], kind="stable")]
-        cap = GRADIENT_PLAIN_CHUNKS * settings.chunk
+        if per_point:  # as many as the time left holds, a chunk at least (as evaluate_many's deadline)
+            cap = max(settings.chunk, int(sharding.first(max(0.0, end - time.perf_counter()) / per_point)))
+        else:
+            cap = run.gradient_plain if run.gradient_plain >= 0 else GRADIENT_PLAIN_CHUNKS * settings.chunk
         if len(own) > cap:
             own = own[np.round(np.linspace(0, len(own) - 1, cap)).astype(int)]
+        run.gradient_plain = len(own)
         zg, mg = zg[own], run.evaluate(run.plain, zg[own], log=lambda _: None)
         bad = np.asarray(mg["diverged"]) > 0  # never joins, even where every one of them diverged
         eg, cg = (np.where(bad, np.nan, x) for x in axes(mg))
@@ -1028,6 +1047,7 @@ def _result(run: _Run, zp: np.ndarray, mp: dict, idx: np.ndarray, n_train: int) 
     work = Plan(drawn=run.n_cand, evaluated=run.evaluated, probe=bool(run.probe), cma_generations=generations,
                 local_rounds=run.rounds, local_horizon=run.horizon.get("local", 1), plain_rounds=run.polish,
                 plain_horizon=run.horizon.get("plain", 1), gradient_steps=run.gradient_steps,
+                gradient_plain=run.gradient_plain,
                 nsga2_generations=run.nsga2_generations if settings.search == "nsga2" else 0)  # fmt: skip
     n_global, n_cma = run.n_global, run.n_cma
     grid = grid_size(run.n_cand, settings.grid_share, len(run.space.params))
