@@ -11,6 +11,7 @@ Errors are one-line :class:`ConfigError`\\ s naming the key.
     result = sim.simulate()  # the batch with the config's parameters
     plain, train, p0 = fc.tuning_problems(cfg)  # what fosmc tune and fosmc front search on
     fc.design_model(cfg)  # the rows and box the controller is designed on ([model] from)
+    fc.chattering_floor(cfg)  # an arm's: the chattering (V/s) of a perfect tracker, per arm and joint
     cfg.as_dict()  # the TOML's layout as a plain dict (what result files record)
 
 ``study`` and ``references`` (``fosmc front``'s study, :mod:`fosmc_jax._app.study`) belong to
@@ -30,6 +31,7 @@ from ._problems import (
     as_config,
     box_of,
     build,
+    chattering_floor,
     defaults,
     design_model,
     design_summary,
@@ -58,6 +60,7 @@ __all__ = [
     "as_config",
     "Problem",
     "box_of",
+    "chattering_floor",
     "build",
     "defaults",
     "design_model",

@@ -200,3 +200,55 @@ def test_the_fronts_held_out_batch_has_fresh_arms_and_payloads_within_the_range(
     assert not np.allclose(fj.config.draws(held)["arms"]["F"], fj.config.draws(cfg)["arms"]["F"])
     paper = fj.config.held_out_config(fj.config.resolve({"plant": {"kind": "arm", "payloads": [0.0, 10.0]}}))
     assert paper["plant"]["payloads"] == pytest.approx([1.0, 3.0, 5.0, 7.0, 9.0])
+
+
+@pytest.mark.slow  # three compilations (9 s): the default tier keeps its 4 minutes
+def test_the_chattering_floor_is_the_integral_of_the_tracking_voltages_rate():
+    """``fosmc_jax.config.chattering_floor``, the total variation rate of the exact tracking
+    voltage on the controller's grid, against int |dU/dt| dt / t_final with dU/dt by forward-mode
+    autodiff in t and trapezoids on a 10x finer grid (measured 1e-5 to 6e-5 relative, the
+    trapezoids' error and the turns between samples: 2e-4); a digital loop's 5 ms samples the
+    same."""
+    cfg = {**ARM, "sim": {"t_final": 1.0, "dt": 1e-3}}
+    floor = fj.config.chattering_floor(cfg)
+    problem = fj.build(cfg)
+    t = jnp.linspace(0.0, 1.0, 10001)
+
+    def rate(arm):
+        u = lambda s: fj.tracking_voltage(arm, problem.reference(s), s)
+        return jax.vmap(jax.jacfwd(u))(t)  # (samples, 3), V/s
+
+    dU = np.abs(np.asarray(jax.jit(jax.vmap(rate))(problem.plants)))  # (arms, samples, 3)
+    integral = ((dU[:, 1:] + dU[:, :-1]) / 2 * np.diff(np.asarray(t))[None, :, None]).sum(axis=1)  # over t_final = 1 s
+    assert floor.shape == (2, 3) and np.all(floor > 0)
+    np.testing.assert_allclose(floor, integral, rtol=2e-4)
+    digital = fj.config.chattering_floor({**cfg, "controller": {"sample_period": 5e-3}})
+    np.testing.assert_allclose(digital, integral, rtol=2e-4)
+
+
+def test_the_chattering_floor_of_a_linear_plant_is_refused_in_one_line():
+    with pytest.raises(fj.ConfigError, match="^plant.kind: the chattering floor is the arm's") as e:
+        fj.config.chattering_floor({"sim": {"t_final": 0.1}})
+    assert "\n" not in str(e.value)
+
+
+@pytest.mark.slow  # a tune of an arm (about 20 s)
+def test_tune_warns_of_a_chattering_bound_below_the_floor_and_reports_the_switching_above_it():
+    """A bound on the total variation below the reference's own floor is named at the start; the
+    result holds the floor and the final chattering's share above it; a bound on
+    ``chattering_hf`` (not the total variation) has no floor."""
+    cfg = {**ARM, "sim": {"t_final": 0.2, "dt": 1e-3, "integrator": "euler"},
+           "tune": {"objective": "chattering_bound", "chattering_metric": "chattering", "chattering_bound": 0.5,
+                    "global_candidates": 0}}  # fmt: skip
+    lines = []
+    result = fj.run_tune(cfg, steps=1, log=lines.append)
+    floor = fj.config.chattering_floor(cfg).mean(axis=0)
+    warned = [line for line in lines if "warning: [tune] chattering_bound 0.5 V/s is at or below the floor" in line]
+    assert len(warned) == 1 and f"{floor.mean():.4g} V/s" in warned[0]
+    got = result["chattering_floor"]
+    np.testing.assert_allclose(got["per_joint"], floor, rtol=1e-12)
+    tv = np.mean(result["final"]["metrics"]["chattering"])
+    np.testing.assert_allclose(got["switching"], tv - floor.mean(), rtol=1e-12)
+    hf = fj.run_tune({**cfg, "tune": dict(cfg["tune"], chattering_metric="chattering_hf")}, steps=1,
+                     log=lambda _: None)  # fmt: skip
+    assert "chattering_floor" not in hf

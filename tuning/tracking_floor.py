@@ -3,7 +3,8 @@
 A controller that tracks a reference closely puts out about the voltage under which the arm
 follows it exactly (:func:`fosmc_jax.tracking_voltage`: the inverse dynamics through the
 motors); the total variation of that voltage over the run, the ``chattering`` metric of a
-perfect tracker, is a floor under every tuned point's ``chattering``. A bound on ``chattering``
+perfect tracker (:func:`fosmc_jax.config.chattering_floor`), is a floor under every tuned
+point's ``chattering``. A bound on ``chattering``
 below it (``[tune] chattering_bound`` with ``chattering_metric = "chattering"``) cannot be met
 at a small error. Per config: the floor (mean over the batch's arms and the joints, per joint),
 the largest tracking voltage against the config's voltage limit, and the config's bound.
@@ -44,12 +45,12 @@ def floor(config: str) -> dict:
     cfg = fj.config.load(config)
     if cfg.plant.kind != "arm":
         raise SystemExit(f"tracking_floor: {config}: plant.kind is {cfg.plant.kind!r}, not 'arm'")
-    problem = fj.build(cfg)
+    tv = fj.config.chattering_floor(cfg)  # (arms, 3)
+    problem = fj.build(cfg)  # the peak voltage, on the same samples
     m, n = fj.config.sample_steps(cfg), problem.options["n_steps"]
-    t = jnp.arange(0, n + 1, m) * problem.dt  # the controller's samples over the run
+    t = jnp.arange(0, n + 1, m) * problem.dt
     voltage = jax.vmap(lambda arm: jax.vmap(lambda s: fj.tracking_voltage(arm, problem.reference(s), s))(t))
     U = np.asarray(jax.jit(voltage)(problem.plants))  # (arms, samples, 3)
-    tv = np.abs(np.diff(U, axis=1)).sum(axis=1) / cfg.sim.t_final  # (arms, 3)
     tune = cfg.tune
     bound = (
         tune.chattering_bound

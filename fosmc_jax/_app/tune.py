@@ -239,6 +239,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
         f"{metric_label(obj.chattering_metric)}, each relative to its value at the config's parameters on the training "
         f"simulation ({obj.error_ref:.4e} {UNITS[obj.error_metric]}, {obj.chattering_ref:.4e} "
         f"{UNITS[obj.chattering_metric]}): the terms below are unit-free")  # fmt: skip
+    tv_floor = _tv_floor(cfg, obj, log)
     try:
         u_p0 = tuner.to_internal(p0, plain.base, floor)
     except ValueError as e:
@@ -287,7 +288,24 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     final_params = tuner.to_physical(u, plain.base, floor)
     return _result(cfg, obj, (p0, start_params, final_params), initial, evaluate_plain(final_params), history,
                    (held, held_problem), lambda p: tuner.to_physical(p, plain.base, floor), out if lead else None,
-                   log)  # fmt: skip
+                   log, tv_floor)  # fmt: skip
+
+
+def _tv_floor(cfg: problems.Config, obj, log: Log) -> np.ndarray | None:
+    """Where ``chattering_bound`` bounds the total variation (``chattering``) of an arm's
+    voltage: the trajectory's own floor under it per joint (:func:`problems.chattering_floor`,
+    mean over the batch's arms), with a warning where the bound lies below it (no controller
+    then tracks closely within the bound); else None."""
+    if obj.form != "chattering_bound" or obj.chattering_metric != "chattering" or cfg.plant.kind != "arm":
+        return None
+    per_joint = problems.chattering_floor(cfg).mean(axis=0)
+    floor, bound = float(per_joint.mean()), obj.chattering_bound
+    log(f"tune: the reference's chattering floor (the exact tracking voltage's total variation) is {floor:.4g} V/s; "
+        f"the bound {bound:.4g} V/s leaves {bound - floor:.4g} V/s to the switching")  # fmt: skip
+    if bound <= floor:
+        log(f"tune: warning: [tune] chattering_bound {bound:.4g} V/s is at or below the floor {floor:.4g} V/s of "
+            "the reference itself: no controller tracks it closely within the bound")  # fmt: skip
+    return per_joint
 
 
 def _evaluations(cfg: problems.Config, plain, problem, p0, searching: bool):
@@ -346,12 +364,14 @@ def _end(held_problem, p0, deadline: float, drawn: bool) -> float:
     return deadline - EXIT_SECONDS - drawing - 2 * evaluations
 
 
-def _result(cfg, obj, params, initial, final, history, held, physical, out: Path | None, log: Log) -> dict[str, Any]:
+def _result(cfg, obj, params, initial, final, history, held, physical, out: Path | None, log: Log,
+            tv_floor: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
     """The result (``run_tune``'s return) of a run from ``params`` (p0, the start, the final
     parameters) with plain metrics ``initial`` and ``final``: the final parameters evaluated on
     what training did not see (``held``: the held-out config and its problem: fresh payloads,
     sampled arms, draws); with ``out`` result.json and tuning.png written there (``physical``:
-    the history's internal parameters to physical ones)."""
+    the history's internal parameters to physical ones). With ``tv_floor`` (:func:`_tv_floor`)
+    the result holds it (``chattering_floor``) and the final chattering's share above it."""
     from .._search import tune as tuner
 
     p0, start_params, final_params = params
@@ -374,6 +394,12 @@ def _result(cfg, obj, params, initial, final, history, held, physical, out: Path
         "history": {k: v for k, v in history.items() if k != "params"},
         "config": cfg.as_dict(),
     })  # fmt: skip
+    if tv_floor is not None:
+        tv = np.mean(final["metrics"]["chattering"], axis=0)
+        result["chattering_floor"] = {"per_joint": tv_floor.tolist(), "mean": float(tv_floor.mean()),
+                                      "switching": float(tv.mean() - tv_floor.mean())}  # fmt: skip
+        log(f"tune: chattering {tv.mean():.4g} V/s: the floor {tv_floor.mean():.4g} V/s and "
+            f"{tv.mean() - tv_floor.mean():.4g} V/s of switching")  # fmt: skip
     if out is not None:
         from .plots import plot_tuning
 

@@ -17,6 +17,9 @@ from .build import (
     build as build,
 )
 from .build import (
+    chattering_floor as chattering_floor,
+)
+from .build import (
     controller_of as controller_of,
 )
 from .build import (
