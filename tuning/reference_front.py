@@ -120,12 +120,19 @@ def hv_reference(e: np.ndarray, c: np.ndarray) -> tuple[float, float]:
 
 def score(front: tuple[np.ndarray, np.ndarray], reference: dict) -> dict:
     """Epsilons over :data:`BANDS` and hypervolume of a front (errors, chatterings; no
-    diverged points) against a reference.json's content."""
+    diverged points) against a reference.json's content; ``epsilon_at``: the reference point
+    (chattering_hf, rms_error) where the first band's epsilon is reached."""
     re, rc = axes(reference["points"])
     out = {}
     for lo, hi in BANDS:
         band = (rc >= lo) & (rc <= hi)
         out[f"epsilon_{lo:g}_{hi:g}"] = fs.additive_epsilon(front, (re[band], rc[band]))
+    # where the first band's epsilon is reached: the reference point the front is farthest from
+    band = (rc >= BANDS[0][0]) & (rc <= BANDS[0][1])
+    if band.any() and len(front[0]):
+        (ae, ac), (be, bc) = np.log10(front), np.log10((re[band], rc[band]))
+        worst = int(np.argmax(np.min(np.maximum(ae[:, None] - be, ac[:, None] - bc), axis=0)))
+        out["epsilon_at"] = [float(rc[band][worst]), float(re[band][worst])]  # (chattering_hf V, rms_error rad)
     out["hypervolume"] = fs.hypervolume(*front, tuple(reference["hv_reference_log10"]))
     out["reference_hypervolume"] = fs.hypervolume(re, rc, tuple(reference["hv_reference_log10"]))
     return out
