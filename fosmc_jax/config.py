@@ -12,6 +12,7 @@ Errors are one-line :class:`ConfigError`\\ s naming the key.
     plain, train, p0 = fc.tuning_problems(cfg)  # what fosmc tune and fosmc front search on
     fc.design_model(cfg)  # the rows and box the controller is designed on ([model] from)
     fc.chattering_floor(cfg)  # an arm's: the chattering (V/s) of a perfect tracker, per arm and joint
+    fc.tracking_voltages(cfg)  # the voltages (arms, samples, 3) it is the total variation of
     cfg.as_dict()  # the TOML's layout as a plain dict (what result files record)
 
 ``study`` and ``references`` (``fosmc front``'s study, :mod:`fosmc_jax._app.study`) belong to
@@ -43,6 +44,7 @@ from ._problems import (
     resolve,
     rough_loop,
     sample_steps,
+    tracking_voltages,
     tuning_problems,
     with_params,
 )
@@ -75,6 +77,7 @@ __all__ = [
     "rough_loop",
     "sample_steps",
     "study",  # noqa: F822
+    "tracking_voltages",
     "tuning_problems",
     "with_params",
 ]

@@ -29,7 +29,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import fosmc_jax as fj  # noqa: E402
@@ -46,11 +45,7 @@ def floor(config: str) -> dict:
     if cfg.plant.kind != "arm":
         raise SystemExit(f"tracking_floor: {config}: plant.kind is {cfg.plant.kind!r}, not 'arm'")
     tv = fj.config.chattering_floor(cfg)  # (arms, 3)
-    problem = fj.build(cfg)  # the peak voltage, on the same samples
-    m, n = fj.config.sample_steps(cfg), problem.options["n_steps"]
-    t = jnp.arange(0, n + 1, m) * problem.dt
-    voltage = jax.vmap(lambda arm: jax.vmap(lambda s: fj.tracking_voltage(arm, problem.reference(s), s))(t))
-    U = np.asarray(jax.jit(voltage)(problem.plants))  # (arms, samples, 3)
+    U = fj.config.tracking_voltages(cfg)  # (arms, samples, 3): the peak voltage (computed again: 1 s)
     tune = cfg.tune
     bound = (
         tune.chattering_bound

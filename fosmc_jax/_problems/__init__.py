@@ -50,6 +50,9 @@ from .build import (
     sample_steps as sample_steps,
 )
 from .build import (
+    tracking_voltages as tracking_voltages,
+)
+from .build import (
     training_config as training_config,
 )
 from .build import (

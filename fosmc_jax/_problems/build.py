@@ -137,22 +137,30 @@ def build(config: str | Path | dict | Config | None = None) -> Problem:
     return problem_of(cfg)
 
 
-def chattering_floor(config: str | Path | dict | Config) -> np.ndarray:
-    """The ``chattering`` metric (sum_k |u_k+1 - u_k| / t_final, V/s) of a perfect tracker: the
-    total variation rate of the exact tracking voltage (:func:`fosmc_jax.tracking_voltage`) on the
-    controller's sampling grid (every ``sim.dt``, or every ``controller.sample_period``), per arm
-    of the config's batch and joint, (arms, 3). A controller that tracks closely puts out about
-    this voltage, so no tuning takes the mean ``chattering`` far below the mean of this floor at
-    a small error (``[tune] chattering_bound``); the switching part is what lies above it. Arm
-    plants only (``plant.kind = "arm"``): a one-line :class:`ConfigError` otherwise."""
+def tracking_voltages(config: str | Path | dict | Config) -> np.ndarray:
+    """The exact tracking voltage (:func:`fosmc_jax.tracking_voltage`) of each arm of the
+    config's batch on the controller's sampling grid (every ``sim.dt``, or every
+    ``controller.sample_period``, over [0, t_final]), (arms, samples, 3), V. Arm plants only
+    (``plant.kind = "arm"``): a one-line :class:`ConfigError` otherwise."""
     cfg = as_config(config)
     if cfg.plant.kind != "arm":
-        raise ConfigError(f"plant.kind: the chattering floor is the arm's tracking voltage's; got {cfg.plant.kind!r}")
+        raise ConfigError(f"plant.kind: the tracking voltage is an arm's; got {cfg.plant.kind!r}")
     problem = build(cfg)
     t = jnp.arange(0, n_steps(cfg) + 1, sample_steps(cfg)) * problem.dt  # the controller's samples
     voltage = lambda arm: jax.vmap(lambda s: tracking_voltage(arm, problem.reference(s), s))(t)
-    U = np.asarray(jax.jit(jax.vmap(voltage))(problem.plants))  # (arms, samples, 3)
-    return np.abs(np.diff(U, axis=1)).sum(axis=1) / cfg.sim.t_final
+    return np.asarray(jax.jit(jax.vmap(voltage))(problem.plants))
+
+
+def chattering_floor(config: str | Path | dict | Config) -> np.ndarray:
+    """The ``chattering`` metric (sum_k |u_k+1 - u_k| / t_final, V/s) of a perfect tracker: the
+    total variation rate of :func:`tracking_voltages`, per arm of the config's batch and joint,
+    (arms, 3). A controller that tracks closely puts out about this voltage, so no tuning takes
+    the mean ``chattering`` far below the mean of this floor at a small error (``[tune]
+    chattering_bound``); the switching part is what lies above it. Arm plants only."""
+    cfg = as_config(config)
+    if cfg.plant.kind != "arm":
+        raise ConfigError(f"plant.kind: the chattering floor is the arm's tracking voltage's; got {cfg.plant.kind!r}")
+    return np.abs(np.diff(tracking_voltages(cfg), axis=1)).sum(axis=1) / cfg.sim.t_final
 
 
 def _plants(cfg: Config, offsets: np.ndarray, drawn: dict, dtype) -> tuple[Any, np.ndarray]:
