@@ -64,7 +64,7 @@ from ._plants.linear import UNCERTAINTY, LinearPlant, uncertain_plants
 from ._plants.reference import Cycloid, Sinusoid, desired_state, feedforward
 from ._problems import ConfigError, build
 from ._simulator.cache import use_compilation_cache
-from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics
+from ._simulator.metrics import CHATTERING_CUTOFF, METRIC_NAMES, UNITS, Metrics, mean_over_survivors
 from ._simulator.native import available as kernel_available
 from ._simulator.problem import Problem
 from ._simulator.rollout import INTEGRATORS, Result, Trace, simulate, simulate_batch
@@ -126,6 +126,7 @@ __all__ = [
     "INTEGRATORS",
     "LAWS",
     "METRIC_NAMES",
+    "mean_over_survivors",
     "SWITCHING",
     "UNCERTAINTY",
     "BoxBound",

@@ -44,7 +44,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from fosmc_jax import METRIC_NAMES  # noqa: E402
+from fosmc_jax import METRIC_NAMES, mean_over_survivors  # noqa: E402
 from fosmc_jax import config as fconfig  # noqa: E402
 from fosmc_jax.io import write_text  # noqa: E402
 
@@ -95,16 +95,9 @@ def per_rollout(problem, params: dict, chunk: int, label: str) -> dict[str, np.n
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def survivors(x: np.ndarray, diverged: np.ndarray) -> np.ndarray:
-    """Per joint (3,): the mean of ``x`` (rollouts, 3) over the rollouts that did not diverge
-    (NaN where every one did), as front.json's metrics are."""
-    kept = x[~np.asarray(diverged, bool)]
-    return kept.mean(axis=0) if len(kept) else np.full(x.shape[1:], np.nan)
-
-
 def survivors_mean(x: np.ndarray, diverged: np.ndarray) -> np.ndarray:
-    """Per point: mean over the surviving rollouts (:func:`survivors`) and the joints."""
-    return np.array([np.mean(survivors(xi, di)) for xi, di in zip(x, diverged)])
+    """Per point: mean over the surviving rollouts (:func:`mean_over_survivors`) and the joints."""
+    return np.array([np.mean(mean_over_survivors(xi, di)) for xi, di in zip(x, diverged)])
 
 
 def select(points: list, band: tuple[float, float], max_points: int | None) -> np.ndarray:
@@ -271,7 +264,7 @@ def main(argv=None) -> None:
     # (a) against the stored training metrics
     rel = {}
     for k in METRIC_NAMES:
-        mine = np.stack([survivors(x, d) for x, d in zip(results["a"][k], results["a"]["diverged"])])
+        mine = np.stack([mean_over_survivors(x, d) for x, d in zip(results["a"][k], results["a"]["diverged"])])
         scale = np.maximum(np.abs(stored[k]), 1e-12)
         rel[k] = float(np.max(np.where(np.abs(stored[k]) > 0, np.abs(mine - stored[k]) / scale, np.abs(mine))))
     worst_rel = max(rel.values())
