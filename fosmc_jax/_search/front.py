@@ -943,15 +943,15 @@ def _gradient(run: _Run, idx: np.ndarray, zp: np.ndarray, mp: dict) -> tuple[np.
     per_point = run.costs.get("plain", 0.0) / settings.chunk if on_train and end is not None else 0.0
     most = GRADIENT_PLAIN_SHARE * (end - time.perf_counter()) if per_point else 0.0
     ys, es, cs, shown, n = [], [], [], -np.inf, run.gradient_steps
-    own = (np.zeros(0), np.zeros(0))  # the steps' non-dominated (E, C) so far (a dominated point stays so)
+    reached = (np.zeros(0), np.zeros(0))  # the steps' non-dominated (E, C) so far (a dominated point stays so)
     for k in range(n + 1):  # call k evaluates the points of step k (call 0: the starts)
         (_, (E, C, bad)), g = step(Y, W)
         if k:
             ys.append(np.asarray(Y)), es.append(np.where(bad, np.nan, E)), cs.append(np.asarray(C))
             if per_point:
-                own = tuple(np.concatenate([a, b]) for a, b in zip(own, (es[-1], cs[-1])))
-                own = tuple(a[nondominated(*own)] for a in own)
-        stop = end is not None and time.perf_counter() > end - min(most, len(own[0]) * per_point)
+                reached = tuple(np.concatenate([a, b]) for a, b in zip(reached, (es[-1], cs[-1])))
+                reached = tuple(a[nondominated(*reached)] for a in reached)
+        stop = end is not None and time.perf_counter() > end - min(most, len(reached[0]) * per_point)
         if k == n or (k and sharding.first(stop)):
             n = k
             break
