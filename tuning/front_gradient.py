@@ -30,6 +30,12 @@ the training surrogate (``--gradient-on train``):
     .venv/bin/python tuning/front_gradient.py --shares 0.25 --nsga2-shares 0 0.25 --peers nsga2:256 \
         --budget 60 --runs /tmp/front_nsga2_60 --out tuning/results/front_nsga2_60s
 
+``--unions 2`` also scores the union of every two seeds' fronts of each config and variant (two
+runs of 150 s against one of 300 s: whether restarts would pay):
+
+    .venv/bin/python tuning/front_gradient.py --configs realistic_arm --shares --nsga2-shares 0.25 --peers \
+        --seeds 10 11 12 13 14 15 --budget 150 --unions 2 --runs /tmp/islands --out tuning/results/front_150s_unions
+
 A run whose files are already in ``--runs`` is scored, not run again (a killed study resumes);
 ``--score-only`` re-scores the runs in ``--runs`` (against a rebuilt reference) and stops at a
 missing one instead of running it.
@@ -40,6 +46,7 @@ per config and variant); ``--findings FILE``: a markdown text the report keeps.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import pathlib
 import subprocess
@@ -98,6 +105,26 @@ def _variant_files(runs: pathlib.Path, config: str, variant: str, seed: int) -> 
     return folder, folder / ("nsga2.json" if variant.startswith("nsga2") else "front.json")
 
 
+def _points(path: str | pathlib.Path) -> list[dict]:
+    """A run's front points with no diverged rollout."""
+    return [p for p in next(iter(reference_front.points_of(path).values())) if not p["diverged"]]
+
+
+def unions(rows: list[dict], k: int) -> list[dict]:
+    """The scores of the union of the fronts of every ``k`` seeds of one config and variant (what
+    k independent runs reach together: the islands question, k runs of budget / k against one
+    run of the budget)."""
+    out = []
+    for config, variant in dict.fromkeys((r["config"], r["variant"]) for r in rows):
+        mine = sorted((r for r in rows if (r["config"], r["variant"]) == (config, variant)), key=lambda r: r["seed"])
+        reference = json.loads((reference_front.OUT / config / "reference.json").read_text())
+        for combo in itertools.combinations(mine, k):
+            pts = [p for r in combo for p in _points(r["file"])]
+            scores = reference_front.score(reference_front.axes(pts), reference)
+            out.append({"config": config, "variant": variant, "seeds": [r["seed"] for r in combo], **scores})
+    return out
+
+
 def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path, score_only: bool = False) -> dict:
     folder, result = _variant_files(runs, config, variant, seed)
     path = f"tuning/configs/{config}.toml"
@@ -130,7 +157,7 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path,
                                                      "wall_s": wall, "command": cmd}))  # fmt: skip
     meta = json.loads((folder / "run.json").read_text()) if (folder / "run.json").exists() else {}
     reference = json.loads((reference_front.OUT / config / "reference.json").read_text())
-    pts = [p for p in next(iter(reference_front.points_of(result).values())) if not p["diverged"]]
+    pts = _points(result)
     scores = reference_front.score(reference_front.axes(pts), reference)
     data = json.loads(result.read_text())
     stages = data.get("stages", {})
@@ -152,8 +179,8 @@ def report(data: dict, out: pathlib.Path) -> None:
     for config in dict.fromkeys(r["config"] for r in rows):
         mine = [r for r in rows if r["config"] == config]
         lines += [f"## {config} (reference HV {mine[0]['reference_hypervolume']:.3f})", "",
-                  "| variant | epsilon 0.1-10 V per seed | median | reached at (V) | epsilon 0.5-10 V median | HV median | gradient steps | points from gradient steps | evaluations | wall s | load (1-min, start) |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+                  "| variant | epsilon 0.1-10 V per seed | median | reached at (V) | epsilon 0.5-10 V median | median gap | HV median | gradient steps | points from gradient steps | evaluations | wall s | load (1-min, start) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for variant in dict.fromkeys(r["variant"] for r in mine):
             rs = sorted((r for r in mine if r["variant"] == variant), key=lambda r: r["seed"])
             med = lambda k, rs=rs: float(np.median([r[k] for r in rs]))
@@ -176,9 +203,22 @@ def report(data: dict, out: pathlib.Path) -> None:
             walls = ", ".join(f"{r['wall_s']:.0f}" for r in rs if r["wall_s"])
             evals = ", ".join(str(r.get("evaluations") or "-") for r in rs)
             loads = ", ".join(str(r["load_start_end"][0]).split()[0] for r in rs if r["load_start_end"])
+            gap = f"{med('median_gap'):.4f}" if all("median_gap" in r for r in rs) else "-"
             lines.append(f"| {name} | {eps} | **{med('epsilon_0.1_10'):.4f}** | {at} | {med('epsilon_0.5_10'):.4f} | "
-                         f"{med('hypervolume'):.3f} | {steps} | {grad} | {evals} | {walls} | {loads} |")  # fmt: skip
+                         f"{gap} | {med('hypervolume'):.3f} | {steps} | {grad} | {evals} | {walls} | {loads} |")  # fmt: skip
         lines.append("")
+        us = [u for u in data.get("unions", []) if u["config"] == config]
+        if us:
+            lines += [f"Unions of {len(us[0]['seeds'])} seeds' fronts (`--unions`):", "",
+                      "| variant | seeds | epsilon 0.1-10 V | reached at (V) | median gap | HV |", "|---|---|---|---|---|---|"]  # fmt: skip
+            for u in us:
+                at = f"{u['epsilon_at'][0]:.2f}" if u.get("epsilon_at") else "-"
+                lines.append(f"| {u['variant']} | {', '.join(map(str, u['seeds']))} | {u['epsilon_0.1_10']:.4f} | {at} | "
+                             f"{u.get('median_gap', float('nan')):.4f} | {u['hypervolume']:.3f} |")  # fmt: skip
+            for variant in dict.fromkeys(u["variant"] for u in us):
+                eps = [u["epsilon_0.1_10"] for u in us if u["variant"] == variant]
+                lines.append(f"| {variant}: median of {len(eps)} unions | | **{np.median(eps):.4f}** | | | |")
+            lines.append("")
     if data.get("findings"):
         lines += ["## Findings", "", data["findings"]]
     write_text(out.with_suffix(".md"), "\n".join(lines) + "\n")
@@ -198,6 +238,13 @@ def main() -> int:
     ap.add_argument("--runs", default="/tmp/front_gradient", help="folder of the runs' files (outside the repository)")
     ap.add_argument("--out", default=str(HERE / "results" / "front_gradient"))
     ap.add_argument("--findings")
+    ap.add_argument(
+        "--unions",
+        type=int,
+        default=0,
+        metavar="K",
+        help="also score the union of every K seeds' fronts of each config and variant",
+    )
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--score-only", action="store_true", help="score the runs in --runs; run none")
     ap.add_argument(
@@ -230,6 +277,8 @@ def main() -> int:
                         f"HV {rows[-1]['hypervolume']:.3f}")  # fmt: skip
         command = " ".join([".venv/bin/python", "tuning/front_gradient.py", *sys.argv[1:]])
         data = {"command": command, "code": reference_front.code_state(), "runs": rows}
+        if args.unions:
+            data["unions"] = unions(rows, args.unions)
     if args.findings:
         data["findings"] = pathlib.Path(args.findings).read_text()
     write_text(out.with_suffix(".json"), json.dumps(jsonable(data), indent=1))

@@ -121,7 +121,10 @@ def hv_reference(e: np.ndarray, c: np.ndarray) -> tuple[float, float]:
 def score(front: tuple[np.ndarray, np.ndarray], reference: dict) -> dict:
     """Epsilons over :data:`BANDS` and hypervolume of a front (errors, chatterings; no
     diverged points) against a reference.json's content; ``epsilon_at``: the reference point
-    (chattering_hf, rms_error) where the first band's epsilon is reached."""
+    (chattering_hf, rms_error) where the first band's epsilon is reached; ``median_gap``: the
+    median over the front's non-dominated points in the first band of how far the reference
+    beats each (``fosmc_jax.search.dominated_by``, log10; <= 0: on or past the reference). The
+    epsilon is the worst place the front covers, the median gap how close its typical point is."""
     re, rc = axes(reference["points"])
     out = {}
     for lo, hi in BANDS:
@@ -133,6 +136,10 @@ def score(front: tuple[np.ndarray, np.ndarray], reference: dict) -> dict:
         (ae, ac), (be, bc) = np.log10(front), np.log10((re[band], rc[band]))
         worst = int(np.argmax(np.min(np.maximum(ae[:, None] - be, ac[:, None] - bc), axis=0)))
         out["epsilon_at"] = [float(rc[band][worst]), float(re[band][worst])]  # (chattering_hf V, rms_error rad)
+    e, c = (np.asarray(x, float) for x in front)
+    own = fs.nondominated(e, c) & (c >= BANDS[0][0]) & (c <= BANDS[0][1])
+    if own.any():
+        out["median_gap"] = float(np.median([fs.dominated_by(pt, (re, rc)) for pt in zip(e[own], c[own])]))
     out["hypervolume"] = fs.hypervolume(*front, tuple(reference["hv_reference_log10"]))
     out["reference_hypervolume"] = fs.hypervolume(re, rc, tuple(reference["hv_reference_log10"]))
     return out
