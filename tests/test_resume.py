@@ -126,7 +126,7 @@ def _stop_and_resume(problems, settings, whole, checkpoint, monkeypatch, k, stag
     assert before + after == work  # no finished unit of work done twice
 
 
-#: NSGA-II's given sizes (``--search nsga2``): 3 generations of 16 (two chunks each), then 2 plain rounds.
+#: NSGA-II's given sizes (``--search nsga2``): 3 generations of 16 (one call each), then 2 plain rounds.
 NSGA2 = search_front.Settings(search="nsga2", population=16, generations=3, points=3, chunk=8, polish=2,
                               checkpoint_every=1)  # fmt: skip
 
