@@ -109,7 +109,7 @@ def test_resume_ends_where_an_uninterrupted_run_does(tmp_path, kill_at):
     [(["--budget", "0"], "--budget"), (["--points", "0"], "--points"), (["--steps", "-1"], "--steps"),
      (["--compare", "/nonexistent.json"], "--compare"), (["--search", "nsga2", "--steps", "2"], "--steps"),
      (["--search", "staged", "--generations", "2"], "--generations"), (["--generations", "0"], "--generations"),
-     (["--population", "2"], "--population")],
+     (["--population", "2"], "--population"), (["--plain-share", "1"], "--plain-share")],
 )  # fmt: skip
 def test_bad_front_arguments_are_refused(tmp_path, capsys, args, key):
     out = tmp_path / "out"
@@ -201,6 +201,17 @@ def test_stages_from_the_budget_run_until_their_deadlines(tmp_path):
     # 3.66 s of a 3 s budget once) moves the later ones, and timings belong to the benchmarks
     assert 0 < ends["global"] <= ends["cma"] <= ends["local"] <= ends["end"]
     assert header["steps"] == st["local_rounds"] and header["cma_generations"] == st["cma_generations"]
+
+
+def test_a_plain_share_of_zero_runs_no_plain_rounds(tmp_path):
+    """With a training surrogate and ``polish_share = 0`` the training front is re-evaluated on
+    the plain problem and no plain round runs: the search's time goes to NSGA-II."""
+    plain, train, p0 = _config.tuning_problems(_config.resolve(dict(TINY, tune={"train_t_final": 0.1})))
+    n = SETTINGS.chunk  # the population in one call of the other tests' chunk: their compilations
+    settings = search_front.Settings(population=n, chunk=n, budget=1.0, polish_share=0.0, gradient_share=0.0)
+    st = search_front.front_search(train, plain, p0, settings, log=lambda _: None)["stages"]
+    assert st["plain_rounds"] == 0 and st["from_plain_rounds"] == 0
+    assert st["plain_evaluations"] > 0 and st["nsga2_generations"] >= 1
 
 
 def test_local_round_perturbs_only_non_dominated_points_within_the_box():

@@ -30,6 +30,12 @@ the training surrogate (``--gradient-on train``):
     .venv/bin/python tuning/front_gradient.py --shares 0.25 --nsga2-shares 0 0.25 --peers nsga2:256 \
         --budget 60 --runs /tmp/front_nsga2_60 --out tuning/results/front_nsga2_60s
 
+``--plain-shares 0`` adds each ``--nsga2-shares`` variant with that share of plain rounds
+(``--plain-share``; with a training surrogate the rest of the search goes to NSGA-II):
+
+    .venv/bin/python tuning/front_gradient.py --shares --nsga2-shares 0.25 --plain-shares 0 --peers \
+        --budget 300 --runs /tmp/plain_share --out tuning/results/front_300s_plain_share
+
 ``--unions 2`` also scores the union of every two seeds' fronts of each config and variant (two
 runs of 150 s against one of 300 s: whether restarts would pay):
 
@@ -135,11 +141,12 @@ def run(config: str, variant: str, seed: int, budget: float, runs: pathlib.Path,
         folder.mkdir(parents=True, exist_ok=True)
         name, _, box = variant.partition("@")
         if name.startswith(("g", "ng", "tg")) or name == "front":  # "front": the CLI without gradient steps
-            share = "0" if name == "front" else name.lstrip("nt")[1:]
+            share, _, plain = ("0" if name == "front" else name.lstrip("nt")[1:]).partition("p")
             search = ["--search", "nsga2" if name.startswith(("ng", "tg")) else "staged"]
             on = ["--gradient-on", "train"] if name.startswith("tg") else []
             cmd = [str(ROOT / ".venv/bin/fosmc"), "front", "--config", path, "--budget", f"{budget:g}", "--seed",
-                   str(seed), "--gradient-share", share, *search, *on, "--out", str(folder), "--force"]  # fmt: skip
+                   str(seed), "--gradient-share", share, *search, *on, *(["--plain-share", plain] if plain else []),
+                   "--out", str(folder), "--force"]  # fmt: skip
         else:
             method, _, pop = name.partition(":")
             cmd = [sys.executable, str(HERE / "reference_front.py"), "build", "--config", path, "--method", method,
@@ -192,7 +199,8 @@ def report(data: dict, out: pathlib.Path) -> None:
             elif base.startswith("g"):
                 name = f"front --gradient-share {base[1:]}"
             elif base.startswith("ng"):
-                name = f"front --search nsga2 --gradient-share {base[2:]}"
+                share, _, plain = base[2:].partition("p")
+                name = f"front --search nsga2 --gradient-share {share}" + (f" --plain-share {plain}" if plain else "")
             elif base.startswith("tg"):
                 name = f"front --search nsga2 --gradient-share {base[2:]} --gradient-on train"
             else:
@@ -232,6 +240,8 @@ def main() -> int:
                     help="also the front on NSGA-II (--search nsga2) with these gradient shares")  # fmt: skip
     ap.add_argument("--train-shares", nargs="*", type=float, default=[],
                     help="also the front on NSGA-II with gradient steps on the training surrogate (--gradient-on train)")  # fmt: skip
+    ap.add_argument("--plain-shares", nargs="*", type=float, default=[],
+                    help="also the --nsga2-shares variants with these plain rounds' shares (--plain-share)")  # fmt: skip
     ap.add_argument("--peers", nargs="*", default=["nsga2:64"], help="NSGA-II populations as nsga2:P")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--budget", type=float, default=105.0)
@@ -264,6 +274,7 @@ def main() -> int:
         data = json.loads(out.with_suffix(".json").read_text())
     else:
         variants = [("front" if g == 0 else f"g{g:g}") for g in args.shares] + [f"ng{g:g}" for g in args.nsga2_shares]
+        variants += [f"ng{g:g}p{p:g}" for g in args.nsga2_shares for p in args.plain_shares]
         variants += [f"tg{g:g}" for g in args.train_shares]
         variants += list(args.peers)
         variants = [v + ("" if box == "kind" else f"@{box}") for v in variants for box in args.boxes]

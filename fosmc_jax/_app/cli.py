@@ -283,7 +283,8 @@ def cmd_front(args) -> int:
     start = process_start()
     result = commands.run_front(args.config, out=args.out, points=args.points, budget=args.budget,
                                 candidates=args.candidates, steps=args.steps, seed=args.seed,
-                                gradient_share=args.gradient_share, gradient_on=args.gradient_on, search=args.search,
+                                gradient_share=args.gradient_share, gradient_on=args.gradient_on,
+                                plain_share=args.plain_share, search=args.search,
                                 population=args.population,
                                 generations=args.generations, compare=tuple(args.compare), force=args.force,
                                 resume=args.resume, replay=args.replay, started=start, log=_log,
@@ -525,6 +526,10 @@ def parser() -> argparse.ArgumentParser:
     f.add_argument("--gradient-share", type=float, default=0.25, metavar="X",
                    help="share of the search time spent last on gradient steps refining the front's points "
                    "(with a budget; default 0.25; 0: none)")  # fmt: skip
+    f.add_argument("--plain-share", type=float, default=0.25, metavar="X",
+                   help="with a training surrogate, share of the search time the gradient steps leave that goes to "
+                   "local rounds on the plain problem around the training front (with a budget; default 0.25; "
+                   "0: none)")  # fmt: skip
     f.add_argument("--gradient-on", choices=("plain", "train"), default="plain",
                    help="the problem the gradient steps descend (train: a training surrogate's cheaper gradient, "
                    "the points reached evaluated on the plain problem; default plain)")  # fmt: skip

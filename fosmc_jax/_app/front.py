@@ -39,6 +39,7 @@ def run_front(
     seed: int = 0,
     gradient_share: float = 0.25,
     gradient_on: str = "plain",
+    plain_share: float = 0.25,
     search: str | None = None,
     population: int = 256,
     generations: int | None = None,
@@ -65,6 +66,9 @@ def run_front(
     on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
     0: none; default 0.25); ``gradient_on``: the problem they descend, "plain" or "train" (with a
     training surrogate its cheaper gradient, the points reached evaluated on the plain problem).
+    ``plain_share``: with a training surrogate and sizes from the budget, the share of the
+    search time the gradient steps leave that goes to local rounds on the plain problem around
+    the re-evaluated training front (0: none, the re-evaluation only; default 0.25).
     ``search``: the derivative-free search, "nsga2" (pymoo's NSGA-II of
     ``population``, ``generations`` from the budget unless given) or "staged" (global stage,
     CMA-ES, local rounds: ``candidates``, ``steps``); None: "staged" where ``candidates`` or
@@ -102,6 +106,8 @@ def run_front(
                                   lead)  # fmt: skip
         if not (_is_real(gradient_share) and 0 <= gradient_share < 1):
             raise ConfigError(f"--gradient-share: expected a number in [0, 1), got {gradient_share}")
+        if not (_is_real(plain_share) and 0 <= plain_share < 1):
+            raise ConfigError(f"--plain-share: expected a number in [0, 1), got {plain_share}")
         if gradient_on not in search_front.GRADIENT_ON:
             raise ConfigError(
                 f"--gradient-on: expected one of {', '.join(search_front.GRADIENT_ON)}, got {gradient_on!r}"
@@ -110,7 +116,8 @@ def run_front(
         files = (*compare, replay, *((out / "checkpoint.npz", out / "front.json") if resume and out else ()))
         agree(digest({"command": "front", "config": cfg.as_dict(), "out": out, "points": points, "budget": budget,
                       "candidates": candidates, "steps": steps, "seed": seed, "gradient_share": gradient_share,
-                      "gradient_on": gradient_on, "search": search, "population": population,
+                      "gradient_on": gradient_on, "plain_share": plain_share, "search": search,
+                      "population": population,
                       "generations": generations,
                       "compare": list(compare),
                       "force": force, "resume": resume, "replay": replay}, files))  # fmt: skip
@@ -120,7 +127,7 @@ def run_front(
         out.mkdir(parents=True, exist_ok=True)
     settings = search_front.Settings(points=points or 8, budget=budget, candidates=candidates or 0,
                                      steps=steps or 0, seed=seed, gradient_share=gradient_share,
-                                     gradient_on=gradient_on, search=search,
+                                     gradient_on=gradient_on, polish_share=plain_share, search=search,
                                      population=population, generations=generations or 0)  # fmt: skip
     if replay is not None:
         settings = study.replayed(replay)[1]._replace(budget=budget)

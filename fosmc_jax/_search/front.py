@@ -729,7 +729,7 @@ def _probe_and_plan(run: _Run, deadline: float | None) -> None:
     else:
         run.nsga2_generations = run.nsga2_generations or 10**9
         stages = f"NSGA-II generations of {settings.population}"
-    run.polish = run.polish or (10**9 if run.surrogate else 0)
+    run.polish = run.polish or (10**9 if run.surrogate and settings.polish_share else 0)
     run.log(f"front: one chunk of {settings.chunk} costs {costs['train']:.3f} s (compilation "
             f"{compile_s - costs['train']:.1f} s): {search:.0f} s of search: {stages}"
             f"{' and plain rounds' if run.surrogate else ''}"
