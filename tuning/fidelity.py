@@ -14,13 +14,17 @@ For each config (a TOML path, or ``unseen`` / ``unseen_reference``: the configs 
   ``train_t_final`` cleared, which only the training problem reads);
 - the candidates are the front's global stage at ``--seed`` (default 0, the front's):
   ``fs.global_factors(N, seed, fs.FrontSettings().grid_share)`` -> ``fs.from_factors(p0, z)`` (for N = 256:
-  the start, a 6^3 grid of factors common to the joints, 39 per-joint draws);
+  the start, a 6^3 grid of factors common to the joints, 39 per-joint draws), or with
+  ``--candidates-from FILE`` the start and N - 1 of the points of a front.json or a reference.json
+  (drawn without replacement at ``--seed``; all of them where it has fewer): the candidates near
+  the best front known, where a surrogate's errors decide what a search keeps;
 - rungs: dt / 2 (finer than the plain problem: its own discretization error, and the floor of
   every comparison); a digital loop (``controller.sample_period`` T > 0) dt = T / k, k in
   (1, 2, 5) (k RK4 steps per controller sample, the control held over the sample; the preset
   is k = 10); the ideal loop dt x 2 and x 5; every config the short horizon (plain dt,
   t_final = the cycloid's duration tau + 0.5 s: the reference's motion has ended) and the
-  cheapest pair (dt = T, or dt x 2, with the short horizon);
+  cheapest pair (dt = T, or dt x 2, with the short horizon); and the training step (dt = T, or
+  the plain dt on an ideal loop) in float32 (``sim.precision``: AVX2 holds twice the lanes);
 - every rung evaluates every candidate with a ``fs.Evaluator`` in chunks of 64 (the first
   chunk compiles; its time less the median warm chunk's is the compile time): mean metrics over
   each candidate's non-diverged rollouts, as the front's axes (mean over joints of
@@ -133,7 +137,9 @@ def rungs(cfg: dict) -> list[dict]:
     if short < tf:
         out.append({"name": f"short horizon ({short:g} s)", "dt": dt, "t_final": short})
         out.append(cheap)
-    return out
+    # the training step in float32: twice the SIMD lanes, if the quantized loop's ranks survive it
+    train = {"name": "dt = T, float32", "dt": T_s} if T_s else {"name": "float32", "dt": dt}
+    return out + [{**train, "t_final": tf, "precision": "float32"}]
 
 
 def rung_config(cfg: dict, rung: dict) -> tuple[dict, list[str]]:
@@ -142,6 +148,7 @@ def rung_config(cfg: dict, rung: dict) -> tuple[dict, list[str]]:
     c = cfg.as_dict()
     c["sim"]["dt"], c["sim"]["t_final"] = rung["dt"], rung["t_final"]
     c["tune"]["train_dt"] = c["tune"]["train_t_final"] = 0.0
+    c["sim"]["precision"] = rung.get("precision", c["sim"]["precision"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         c = _config.resolve(c)
@@ -237,27 +244,34 @@ def compare(plain: dict, rung: dict) -> dict:
     return out
 
 
-def study(spec: str, n: int, seed: int, log) -> dict:
+def study(spec: str, n: int, seed: int, log, candidates_from: str | None = None) -> dict:
     name, cfg, source = load_config(spec)
     plain0, _, p0 = _config.tuning_problems(cfg)
     space = fs.space_of(p0)
-    z = fs.global_factors(n, seed, fs.FrontSettings().grid_share, space)
-    params = fs.from_factors(p0, z)
+    if candidates_from:  # the start (candidate 0, as in the global stage), then a front's points
+        pts = json.loads(Path(candidates_from).read_text())["points"]
+        pts = [pts[i] for i in np.random.default_rng(seed).permutation(len(pts))[: n - 1]]
+        drawn = type(p0)(*(np.asarray([pt["params"][k] for pt in pts], float) for k in p0._fields))
+        z = np.concatenate([np.zeros((1, 3 * len(p0))), fs.to_factors(p0, drawn)])
+        n = len(z)
+    else:
+        z = fs.global_factors(n, seed, fs.FrontSettings().grid_share, space)
     T_s = cfg["controller"]["sample_period"]
     log(f"{name}: {source}; {cfg['plant']['payloads']} kg, T = {T_s} s, dt = {cfg['sim']['dt']} s, "
         f"t_final = {cfg['sim']['t_final']} s, {cfg['sim']['integrator']}; {n} candidates (seed {seed})")  # fmt: skip
     result = {"name": name, "source": source, "config": cfg.as_dict(), "candidates": n, "seed": seed,
+              "candidates_from": candidates_from,
               "grid_per_axis": grid_size(n, fs.FrontSettings().grid_share, len(space.params)), "factors": z, "rungs": []}  # fmt: skip
     plain_m = None
     for rung in rungs(cfg):
         c, warned = rung_config(cfg, rung)
-        problem = plain0 if rung["name"] == "plain" else _config.tuning_problems(c)[0]
+        problem, _, p_rung = (plain0, None, p0) if rung["name"] == "plain" else _config.tuning_problems(c)
         steps = problem.options["n_steps"]
         m_per = _config.sample_steps(c) if T_s else None
         log(f"  {name} / {rung['name']}: dt = {rung['dt']:g} s, t_final = {rung['t_final']:g} s, {steps} steps"
             + (f", m = {m_per}" if m_per else "") + "".join(f"\n    warning: {w}" for w in warned))  # fmt: skip
         t = time.perf_counter()
-        m, timing = evaluate(problem, params, n, log)
+        m, timing = evaluate(problem, fs.from_factors(p_rung, z), n, log)  # p_rung: the rung's precision
         entry = {**rung, "steps": steps, "steps_per_sample": m_per, "warnings": warned, "timing": timing,
                  "axes": {"rms_error": fs.axes(m)[0], "chattering_hf": fs.axes(m)[1]}, "diverged": m["diverged"]}  # fmt: skip
         if plain_m is None:
@@ -299,9 +313,15 @@ def markdown(results: list[dict], command: str, meta: dict) -> str:
         f"start, {meta['load'][1]} at the end; {meta['wall_s']:.0f} s in all. Written by `tuning/fidelity.py` "
         "(its docstring defines every column).",
         "",
-        "Candidates: the front's global stage (`fosmc_jax.search.global_factors` with the front's grid share, seed "
-        f"{results[0]['seed']}): for N = 256 the start, a 6^3 grid of factors common to the joints and 39 per-joint "
-        "draws; the same N and each config's own horizon for every config (nothing reduced). Rank and relative-difference columns: over the candidates that diverged on neither problem "
+        (
+            f"Candidates: the start and {results[0]['candidates'] - 1} points drawn (seed {results[0]['seed']}) from "
+            f"`{results[0]['candidates_from']}`; "
+            if results[0].get("candidates_from")
+            else "Candidates: the front's global stage (`fosmc_jax.search.global_factors` with the front's grid share, seed "
+            f"{results[0]['seed']}): for N = 256 the start, a 6^3 grid of factors common to the joints and 39 per-joint "
+            "draws; "
+        )
+        + "the same N and each config's own horizon for every config (nothing reduced). Rank and relative-difference columns: over the candidates that diverged on neither problem "
         "(`compared`). Relative differences of the short-horizon rungs measure a different quantity "
         "(the metrics over the first tau + 0.5 s), not an integration error: only their ranks matter. "
         "Same control: of those, the candidates whose chattering_hf (the exact integral of the held control) "
@@ -366,6 +386,8 @@ def main(argv: list[str] | None = None) -> None:
                     help=f"TOML paths or {', '.join(EXTRA)} (repeatable; default the realistic preset)")  # fmt: skip
     ap.add_argument("--n", type=int, default=256, help="candidates per config (default 256)")
     ap.add_argument("--seed", type=int, default=0, help="the global stage's seed (default 0, the front's)")
+    ap.add_argument("--candidates-from", metavar="FILE",
+                    help="the start and N - 1 points of a front.json or reference.json as the candidates")  # fmt: skip
     ap.add_argument("--out", default=str(ROOT / "tuning" / "results" / "fidelity"),
                     help="output stem: STEM.json and STEM.md (default tuning/results/fidelity)")  # fmt: skip
     args = ap.parse_args(argv)
@@ -374,7 +396,7 @@ def main(argv: list[str] | None = None) -> None:
     command = ".venv/bin/python tuning/fidelity.py" + ("" if not argv else " " + shlex.join(argv))
     t0, load0 = time.perf_counter(), load_avg()
     log = lambda s: print(f"[{time.perf_counter() - t0:6.1f} s] {s}", flush=True)
-    results = [study(spec, args.n, args.seed, log) for spec in configs]
+    results = [study(spec, args.n, args.seed, log, args.candidates_from) for spec in configs]
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                                 text=True).stdout.strip() or "unknown"  # fmt: skip
