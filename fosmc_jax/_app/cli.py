@@ -530,9 +530,10 @@ def parser() -> argparse.ArgumentParser:
                    help="with a training surrogate, share of the search time the gradient steps leave that goes to "
                    "local rounds on the plain problem around the training front (with a budget; default 0.25; "
                    "0: none)")  # fmt: skip
-    f.add_argument("--gradient-on", choices=("plain", "train"), default="plain",
+    f.add_argument("--gradient-on", choices=("plain", "train"), default="train",
                    help="the problem the gradient steps descend (train: a training surrogate's cheaper gradient, "
-                   "the points reached evaluated on the plain problem; default plain)")  # fmt: skip
+                   "the points reached evaluated on the plain problem; without one the same; "
+                   "default train)")  # fmt: skip
     f.add_argument(
         "--compare",
         action="append",

@@ -38,7 +38,7 @@ def run_front(
     steps: int | None = None,
     seed: int = 0,
     gradient_share: float = 0.25,
-    gradient_on: str = "plain",
+    gradient_on: str = "train",
     plain_share: float = 0.25,
     search: str | None = None,
     population: int = 256,
@@ -65,7 +65,8 @@ def run_front(
     ``gradient_share``: with sizes from the budget, the share of the search time spent at the end
     on gradient steps that refine the front's points (:func:`fosmc_jax._search.front._gradient`;
     0: none; default 0.25); ``gradient_on``: the problem they descend, "plain" or "train" (with a
-    training surrogate its cheaper gradient, the points reached evaluated on the plain problem).
+    training surrogate its cheaper gradient, the points reached evaluated on the plain problem;
+    the default; without one the two are the same).
     ``plain_share``: with a training surrogate and sizes from the budget, the share of the
     search time the gradient steps leave that goes to local rounds on the plain problem around
     the re-evaluated training front (0: none, the re-evaluation only; default 0.25).
