@@ -109,7 +109,8 @@ def test_noise_realizations_run_on_the_kernel_with_the_vmap_paths_values_and_gra
         assert _rel(a, b) < 1e-6
 
 
-@pytest.mark.parametrize("tables", [1, 2])
+# two tables a group in the slow tier (16 s in the default one's fresh-clone run): one a group runs the same loop
+@pytest.mark.parametrize("tables", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_realizations_beyond_the_tables_memory_run_in_groups_with_the_same_values(monkeypatch, tables):
     """Where the R keys' tables exceed generated.TABLE_BYTES, the kernel runs them in groups of
     ``tables`` keys (one: a call per key; two: a group and the rest): the same values. White-box
