@@ -23,6 +23,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from reference_front import params_of  # noqa: E402
 
 from fosmc_jax import config as _config  # noqa: E402
 from fosmc_jax import search as fs  # noqa: E402
@@ -32,8 +33,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def factors(p0, points: list[dict]) -> np.ndarray:
     """The log10 factors (n, 9) of front points over the start p0."""
-    params = type(p0)(*(np.asarray([pt["params"][k] for pt in points], float) for k in p0._fields))
-    return fs.to_factors(p0, params)
+    return fs.to_factors(p0, params_of(points, p0))
 
 
 def in_band(points: list[dict], lo: float, hi: float) -> list[dict]:

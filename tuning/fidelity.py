@@ -68,6 +68,7 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+from reference_front import params_of  # noqa: E402
 
 from fosmc_jax import config as _config  # noqa: E402
 from fosmc_jax import search as fs  # noqa: E402
@@ -251,8 +252,7 @@ def study(spec: str, n: int, seed: int, log, candidates_from: str | None = None)
     if candidates_from:  # the start (candidate 0, as in the global stage), then a front's points
         pts = json.loads(Path(candidates_from).read_text())["points"]
         pts = [pts[i] for i in np.random.default_rng(seed).permutation(len(pts))[: n - 1]]
-        drawn = type(p0)(*(np.asarray([pt["params"][k] for pt in pts], float) for k in p0._fields))
-        z = np.concatenate([np.zeros((1, 3 * len(p0))), fs.to_factors(p0, drawn)])
+        z = np.concatenate([np.zeros((1, 3 * len(p0))), fs.to_factors(p0, params_of(pts, p0))])
         n = len(z)
     else:
         z = fs.global_factors(n, seed, fs.FrontSettings().grid_share, space)
