@@ -402,6 +402,94 @@ def readouts(s: dict, raced: dict, u_flat: np.ndarray, times: tuple[float, ...])
     return out
 
 
+def polish(s: dict, raced: dict, u_flat: np.ndarray, args) -> dict:
+    """CMA-ES, then gradient steps (``--polish SHARE``): the race's CMA-ES sigma 0.3 run up to its
+    switch, the time pycma stopped it or SHARE x the budget, whichever comes first; from its best
+    point so far, ``--polish-starts`` K Adam starts at once (``fosmc_jax._search.tune.run_starts``,
+    the config's rate times 4**(-1..1)) for the rest of the budget, timed alone after the race
+    (compilation excluded: the batched gradient is compiled and timed first). Read off at each time:
+    the best point so far by training loss of CMA-ES's part and the gradient's, and its plain loss."""
+    gens = raced["cma"]["cma 0.3"]["gens"]
+    tg = np.asarray([g[0] for g in gens])
+    stopped = bool(raced["cma"]["cma 0.3"].get("stopped_itself"))
+    switch = min(args.polish * args.budget, float(tg[-1]) if stopped else np.inf)
+    upto = [g for g in gens if g[0] <= switch + 1e-9] or gens[:1]
+    X = np.concatenate([g[1] for g in upto])
+    F = np.concatenate([g[2] for g in upto])
+    i = int(np.nanargmin(np.where(np.isfinite(F), F, np.nan)))
+    x_s, f_s = X[i], float(F[i])
+    K, unravel = args.polish_starts, s["unravel"]
+    U0 = jax.vmap(unravel)(jnp.asarray(np.repeat(x_s[None], K, 0)))
+    rates = tuner.rates_of(s["lr"], K)
+    fresh_models()
+    vk = jax.jit(jax.vmap(jax.value_and_grad(s["loss"], has_aux=True)))
+    jax.block_until_ready(vk(U0))
+    t = time.perf_counter()
+    jax.block_until_ready(vk(U0))
+    per_step = time.perf_counter() - t
+    left = args.budget - switch
+    tcfg = s["tcfg"]
+    n_steps = max(2, math.ceil(STEP_MARGIN * left / per_step))
+    settings = fs.TuneSettings(n_steps, s["lr"], tcfg["schedule"], tcfg["clip"], "reverse", tuple(tcfg["params"]), 0)
+    stamps: list[float] = []
+    ref: dict = {}
+    t0 = time.perf_counter()
+
+    def hook(msg: str) -> None:
+        if not STEP_LINE.match(msg):
+            return
+        if "history" not in ref:
+            ref["history"] = sys._getframe(1).f_locals["history"]
+        stamps.append(time.perf_counter() - t0)
+        if stamps[-1] - stamps[0] + per_step > left + per_step:
+            raise Stop
+
+    loads = [load()]
+    if left > 0:
+        try:
+            tuner.run_starts(s["loss"], U0, settings, rates=rates, stepper=tuner.Stepper(vk, "reverse", 0.0, per_step),
+                             log=hook)  # fmt: skip
+        except Stop:
+            pass
+    loads.append(load())
+    hist = ref.get("history", {"loss": [], "params": []})
+    n = len(stamps)
+    st = np.asarray(stamps, float)
+    median = float(np.median(np.diff(st))) if n > 1 else per_step
+    t_grad = switch + st - (st[0] - median if n else 0.0)  # the first step counted as one median step
+    losses = np.asarray(hist["loss"][:n], float)
+    pts_grad = [np.asarray(ravel_pytree(type(unravel(jnp.asarray(u_flat)))(*map(jnp.asarray, p)))[0])
+                for p in hist["params"][:n]]  # fmt: skip
+    t_cma = np.repeat(tg, POPSIZE)
+    F_cma = np.concatenate([g[2] for g in gens])
+    X_cma = np.concatenate([g[1] for g in gens])
+    at, pts = {}, []
+    for T in args.times:
+        if T <= switch + 1e-9:
+            sel = np.nonzero((t_cma <= T + 1e-9) & np.isfinite(F_cma))[0]
+            j = int(sel[np.argmin(F_cma[sel])]) if len(sel) else None
+            at[f"{T:g}"] = {"from": "cma-es", "train_loss": None if j is None else float(F_cma[j])}
+            pts.append(u_flat if j is None else X_cma[j])
+            continue
+        sel = np.nonzero((t_grad <= T + 1e-9) & np.isfinite(losses))[0]
+        j = int(sel[np.argmin(losses[sel])]) if len(sel) else None
+        if j is not None and losses[j] < f_s:
+            at[f"{T:g}"] = {"from": "gradient", "train_loss": float(losses[j]), "step": j + 1}
+            pts.append(pts_grad[j])
+        else:
+            at[f"{T:g}"] = {"from": "cma-es", "train_loss": f_s}
+            pts.append(x_s)
+    v, div = s["plain_eval"](np.asarray(pts), chunk=POPSIZE)
+    for rec, val, dv in zip(at.values(), v, div):
+        rec.update(plain_loss=float(val), plain_diverged=int(dv))
+    log(f"  polish: switch at {switch:.1f} s ({'pycma stopped' if switch < args.polish * args.budget else 'share'}), "
+        f"CMA-ES's best {f_s:.4f}; {n} gradient steps of {K} starts ({per_step:.3f} s each); plain at the end "
+        f"{v[-1]:.4f}")  # fmt: skip
+    return {"switch_s": switch, "pycma_stopped": switch < args.polish * args.budget, "share": args.polish,
+            "switch_train_loss": f_s, "starts": K, "rates": rates.tolist(), "step_s": per_step, "steps": n,
+            "step_s_median": median, "train_loss": losses.tolist(), "at": at, "loads": loads}  # fmt: skip
+
+
 # ---------------------------------------------------------------------------- one config
 
 
@@ -524,6 +612,8 @@ def study_config(name: str, cfg: dict, args) -> dict:
         raced = race(s, np.asarray(u_flat), args.budget, per_step, f"{name} from {label}")
         r = readouts(s, raced, np.asarray(u_flat), args.times)
         res["races"][label] = r
+        if args.polish and label == "start":
+            r["polish"] = polish(s, raced, np.asarray(u_flat), args)
         tl = args.times[-1]
         log(f"{name} from {label}: plain loss start {r['start_plain_loss']:.4f}; at {tl:g} s: "
             + ", ".join(f"{k} {r['methods'][k][f'{tl:g}']['plain_loss']:.4f}" for k in r["methods"]))  # fmt: skip
@@ -676,6 +766,34 @@ def share_table(data: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def polish_table(data: dict) -> str:
+    """``--polish``'s read-offs beside the race's CMA-ES runs."""
+    times = [f"{t:g}" for t in data["settings"]["times"]]
+    L = ["| config | loop | switch (s): why | CMA-ES's best there (train) | "
+         + " | ".join(f"{t} s: CMA-ES+gradient / CMA 0.1 / CMA 0.3" for t in times)
+         + " | at or below both at " + ", ".join(times) + " s | gradient steps (s/step) | training loss: switch -> gradient's best | load (1-min, after / before) |",
+         "|" + "---|" * (8 + len(times))]  # fmt: skip
+    for name, c in data["configs"].items():
+        r = c["races"].get("start", {})
+        if "polish" not in r:
+            continue
+        q = r["polish"]
+        cells, wins = [], []
+        for t in times:
+            own = q["at"][t]["plain_loss"]
+            a, b = (r["methods"][k][t]["plain_loss"] for k in ("cma 0.1", "cma 0.3"))
+            low = min(own, a, b)
+            cells.append(" / ".join(f"**{x:.3f}**" if x == low else f"{x:.3f}" for x in (own, a, b))
+                         + ("" if q["at"][t]["from"] == "gradient" else " (cma)"))  # fmt: skip
+            wins.append("yes" if own <= min(a, b) else "no")
+        best = min(q["train_loss"], default=np.inf)
+        L.append(f"| {name} | {_loop(c)} | {q['switch_s']:.1f}: {'pycma stopped' if q['pycma_stopped'] else 'share'} | "
+                 f"{q['switch_train_loss']:.3f} | " + " | ".join(cells) + f" | {', '.join(wins)} | "
+                 f"{q['steps']} of {q['starts']} starts ({q['step_s_median']:.3f}) | {q['switch_train_loss']:.3f} -> "
+                 f"{best:.3f} | {q['loads'][1][0]:.1f} / {q['loads'][0][0]:.1f} |")  # fmt: skip
+    return "\n".join(L) + "\n"
+
+
 def compile_table(data: dict) -> str:
     L = ["| config | gradient path | train: rollouts x steps (dt) | plain: rollouts x steps | lr, schedule | "
          "compile (s): first trace of the gradient / gradient / in race / batched train / batched plain | before the race: s per gradient, "
@@ -747,6 +865,18 @@ def findings(data: dict) -> list[str]:
             out.append(f"{what.capitalize()}, at {tl} s: CMA-ES's best training point is better on the training "
                        "loss and worse on the plain one than tune's, or worse than the start on the plain loss "
                        "(it exploits the training surrogate): " + "; ".join(over) + ".")  # fmt: skip
+    polished = {n: c["races"]["start"] for n, c in data["configs"].items() if "polish" in c["races"].get("start", {})}
+    if polished:
+        ok = lambda r, t: r["polish"]["at"][t]["plain_loss"] <= min(r["methods"][f"cma {sg:g}"][t]["plain_loss"]
+                                                                    for sg in SIGMAS)  # fmt: skip
+        allw = [n for n, r in polished.items() if all(ok(r, t) for t in times)]
+        at_end = [n for n, r in polished.items() if ok(r, tl)]
+        gained = {n: r["polish"]["switch_train_loss"] - min(r["polish"]["train_loss"], default=np.inf)
+                  for n, r in polished.items()}  # fmt: skip
+        out.append(f"CMA-ES then gradient steps (`--polish`): its plain loss is at or below both CMA-ES runs' at every "
+                   f"read-off on {', '.join(allw) or 'no config'} and at {tl} s on {len(at_end)} of {len(polished)} "
+                   "configs; the gradient steps lowered the training loss below CMA-ES's at the switch by "
+                   + ", ".join(f"{d:.3f} ({n})" for n, d in gained.items()) + ".")  # fmt: skip
     return out
 
 
@@ -824,6 +954,13 @@ def report(data: dict) -> str:
       "in the race (an Adam step moves each entry by about its learning rate at most, whatever the gradient's "
       "size).\n\n")  # fmt: skip
     A(share_table(data))
+    if any("polish" in c["races"].get("start", {}) for c in data["configs"].values()):
+        A("\n## CMA-ES, then gradient steps (`--polish`)\n\nThe race's CMA-ES sigma 0.3 run up to the switch (the "
+          f"time pycma stopped it, or {st['polish']:g} x the budget, the earlier), then {st['polish_starts']} Adam "
+          "starts at once from its best point so far (the config's rate times 4**(-1..1)) for the rest of the budget, "
+          "timed alone after the race. Before the switch its point is CMA-ES sigma 0.3's ((cma)); after it the better "
+          "of CMA-ES's point and the gradient steps' best by training loss. Plain loss, the lowest in bold.\n\n")  # fmt: skip
+        A(polish_table(data))
     A("\n## Costs and compilation\n\n")
     A(compile_table(data))
     text = findings(data)
@@ -849,20 +986,32 @@ def _log_product(metrics: dict) -> float:
     return float(np.log10(np.mean(metrics["rms_error"]) * np.mean(metrics["chattering_hf"])))
 
 
-def cold_run(name: str, budget: float | None) -> dict:
+def cold_run(name: str, budget: float | None, tune_set: str = "") -> dict:
     """One ``fosmc tune`` as a new user runs it: a fresh process with empty caches (the kernels'
     and XLA's), its wall time from before its start to its exit, and its point's measures: the
     issue's log10(E x C) against the smallest among the reference front's points (where
-    tuning/results/reference/<name>/ has one), and mean rms_error and total variation."""
+    tuning/results/reference/<name>/ has one), and mean rms_error and total variation.
+    ``tune_set`` (``KEY=VALUE,...``, TOML values): ``[tune]`` keys added to the config (one
+    without a ``[tune]`` table of its own), in a copy beside the run."""
     out = pathlib.Path(tempfile.mkdtemp(prefix=f"tune-cold-{name}-"))
     env = dict(os.environ, XDG_CACHE_HOME=tempfile.mkdtemp(), FOSMC_JAX_CACHE=tempfile.mkdtemp())
-    cmd = [str(ROOT / ".venv" / "bin" / "fosmc"), "tune", "--config", str(CONFIGS / f"{name}.toml"), "--out",
+    config = CONFIGS / f"{name}.toml"
+    if tune_set:
+        text = config.read_text()
+        if "[tune]" in text:
+            raise SystemExit(f"--tune-set: {config} has a [tune] table of its own")
+        config = out / config.name
+        config.write_text(
+            text + "\n[tune]\n" + "\n".join(kv.replace("=", " = ", 1) for kv in tune_set.split(",")) + "\n"
+        )
+    cmd = [str(ROOT / ".venv" / "bin" / "fosmc"), "tune", "--config", str(config), "--out",
            str(out / "run")] + ([] if budget is None else ["--budget", f"{budget:g}"])  # fmt: skip
     before = load()
     t0 = time.perf_counter()
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
-    row = {"config": name, "budget": budget, "wall_s": round(wall, 2), "load_start_end": [before, load()],
+    row = {"config": name, "budget": budget, "tune_set": tune_set, "wall_s": round(wall, 2),
+           "load_start_end": [before, load()],
            "returncode": done.returncode, "log": [x for x in done.stderr.splitlines() if "step " not in x][-12:]}  # fmt: skip
     if done.returncode:
         return row
@@ -871,6 +1020,7 @@ def cold_run(name: str, budget: float | None) -> dict:
     row.update(rms_error=float(np.mean(final["rms_error"])), chattering_hf=float(np.mean(final["chattering_hf"])),
                total_variation=float(np.mean(final["chattering"])), log10_EC=_log_product(final),
                steps=len(history["loss"]), start_loss=history["loss"][0] if history["loss"] else None,
+               cma=result["start"].get("cma"),
                best_loss=min(history["loss"] + [history.get("last", np.inf)]) if history["loss"] else None)  # fmt: skip
     if budget is not None:
         row["within_margin"] = bool(wall <= 1.05 * budget + 2.0)
@@ -891,19 +1041,24 @@ def cold_report(data: dict) -> str:
              "start to its exit; E and C: the means over rollouts and joints of `rms_error` and `chattering_hf` in "
              "result.json's `final.metrics`, TV of `chattering` (total variation); the reference: the smallest "
              "log10(E x C) among tuning/results/reference/<config>/reference.json's points.", "",
-             "| config | --budget | wall, s | within 1.05 B + 2 s | load start / end | steps | E, rad | C, V | TV, V/s "
-             "| log10(E x C) | minus the reference's smallest |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "| config | --budget | wall, s | within 1.05 B + 2 s | load start / end | CMA-ES stage: generations, loss "
+             "| steps | E, rad | C, V | TV, V/s | log10(E x C) | minus the reference's smallest |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for r in data["rows"]:
         if r["returncode"]:
             lines.append(f"| {r['config']} | {r['budget']} | {r['wall_s']:.1f} | failed ({r['returncode']}) |"
-                         " | | | | | | |")  # fmt: skip
+                         " | | | | | | | |")  # fmt: skip
             continue
         margin = "" if r["budget"] is None else ("yes" if r["within_margin"] else "**no**")
         above = f"{r['above_reference_min']:+.3f}" if "above_reference_min" in r else ""
         budget = "none" if r["budget"] is None else f"{r['budget']:g}"
-        lines.append(f"| {r['config']} | {budget} | {r['wall_s']:.1f} | "
-                     f"{margin} | {r['load_start_end'][0][0]:.1f} / {r['load_start_end'][1][0]:.1f} | {r['steps']} | "
+        name = r["config"] + (f" ({r['tune_set']})" if r.get("tune_set") else "")
+        c = r.get("cma")
+        cma = (
+            "none" if not c else f"{c['generations']}, {c['start_loss']:.3f} -> {c['loss']:.3f} ({c['seconds']:.1f} s)"
+        )
+        lines.append(f"| {name} | {budget} | {r['wall_s']:.1f} | "
+                     f"{margin} | {r['load_start_end'][0][0]:.1f} / {r['load_start_end'][1][0]:.1f} | {cma} | {r['steps']} | "
                      f"{r['rms_error']:.3g} | {r['chattering_hf']:.3g} | {r['total_variation']:.3g} | "
                      f"{r['log10_EC']:.3f} | {above} |")  # fmt: skip
     return "\n".join(lines) + "\n"
@@ -924,7 +1079,7 @@ def cold(args) -> int:
             "rows": []}  # fmt: skip
     for name, budget in runs:
         log(f"cold: {name} --budget {budget} ({uptime()})")
-        data["rows"].append(cold_run(name, budget))
+        data["rows"].append(cold_run(name, budget, args.tune_set or ""))
         log(f"cold: {name}: {data['rows'][-1]['wall_s']:.1f} s")
     data["uptime_end"] = uptime()
     write_text(stem.with_suffix(".json"), json.dumps(jsonable(data), indent=1))
@@ -953,6 +1108,12 @@ def main() -> int:
                     "(fosmc tune's [tune] starts; default 1: the one-start tune)")  # fmt: skip
     ap.add_argument("--spread", type=float, default=tuner.SPREAD, help="with --starts: the starts' learning rates span the "
                     f"config's rate / SPREAD .. x SPREAD (default fosmc tune's, {tuner.SPREAD:g})")  # fmt: skip
+    ap.add_argument("--tune-set", metavar="KEY=VALUE,...", help="with --cold: [tune] keys added to each config "
+                    "(TOML values, e.g. cma_generations=0,starts=8)")  # fmt: skip
+    ap.add_argument("--polish", type=float, metavar="SHARE", help="CMA-ES then gradient steps, after the race from "
+                    "tune's start: the CMA-ES sigma 0.3 run's best point when pycma stopped it or at SHARE x the budget "
+                    "(the earlier), then K Adam starts from it for the rest (polish())")  # fmt: skip
+    ap.add_argument("--polish-starts", type=int, default=8, help="with --polish: K (default 8)")
     ap.add_argument("--out", help=f"output stem (writes STEM.json and STEM.md; default {OUT.relative_to(ROOT)})")
     ap.add_argument("--merge", action="store_true", help="add (or redo) the configs into the existing JSON")
     ap.add_argument("--report-only", action="store_true", help="rewrite the Markdown from the JSON")
@@ -984,6 +1145,8 @@ def main() -> int:
     log(f"start: {run['uptime_start']}; configs {names}; {args.budget:g} s per method; compilation cache {cache}")
     settings = {"budget": args.budget, "times": list(args.times), "sigmas": list(SIGMAS), "popsize": POPSIZE,
                 "step_margin": STEP_MARGIN, "quick": args.quick}  # fmt: skip
+    if args.polish:
+        settings.update(polish=args.polish, polish_starts=args.polish_starts)
     if args.merge and json_path.exists():
         data = json.loads(json_path.read_text())
         if data["settings"] != settings:
