@@ -392,6 +392,34 @@ def test_fosmc_tune_with_starts_tunes_the_global_stages_best_at_once(tmp_path):
     assert min(res["history"]["loss"] + [res["history"]["last"]]) <= res["history"]["loss"][0]
 
 
+def test_the_config_names_the_cma_stage():
+    from fosmc_jax import _problems as _config
+
+    assert _config.resolve({})["tune"]["cma_generations"] == 100
+    assert _config.resolve({"tune": {"cma_generations": 50}})["tune"]["cma_generations"] == 50
+    with pytest.raises(fj.ConfigError, match="tune.cma_generations: expected a non-negative integer"):
+        _config.resolve({"tune": {"cma_generations": -1}})
+
+
+@pytest.mark.slow  # a global stage, a batched loss and a batched gradient compiled (~20 s on 2 cores)
+def test_fosmc_tune_with_a_cma_stage_starts_the_gradient_steps_at_its_best():
+    """``[tune] cma_generations``: CMA-ES runs from the global stage's best on the training loss
+    and the gradient steps (here two starts at once) begin at its best point: their first loss is
+    the stage's, which is at most the global stage's best's."""
+    from fosmc_jax._app.tune import run_tune
+
+    cfg = {"plant": {"uncertainty": "sample", "samples": 2},
+           "sim": {"t_final": 0.25, "dt": 2e-3, "integrator": "euler"},
+           "tune": {"global_candidates": 16, "starts": 2, "cma_generations": 3, "steps": 2, "mode": "reverse",
+                    "remat_steps": 0}}  # fmt: skip
+    lines = []
+    res = run_tune(cfg, log=lines.append)
+    cma = res["start"]["cma"]
+    assert cma["generations"] == 3 and cma["loss"] <= cma["start_loss"]
+    assert any(line.startswith("tune: CMA-ES stage: 3 generations") for line in lines)
+    assert res["history"]["loss"][0] == pytest.approx(cma["loss"], rel=1e-9, abs=1e-9)
+
+
 def test_a_budget_gives_the_global_stage_what_the_steps_do_not_need():
     """``fosmc tune --budget``'s plan, made once the gradient is compiled: the steps end at the
     budget's end; the global stage takes the time ``tune.steps`` steps and a possible second

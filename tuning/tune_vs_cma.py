@@ -998,7 +998,7 @@ def cold_run(name: str, budget: float | None, tune_set: str = "") -> dict:
     config = CONFIGS / f"{name}.toml"
     if tune_set:
         text = config.read_text()
-        if "[tune]" in text:
+        if any(line.strip().startswith("[tune]") for line in text.splitlines()):
             raise SystemExit(f"--tune-set: {config} has a [tune] table of its own")
         config = out / config.name
         config.write_text(
@@ -1054,9 +1054,7 @@ def cold_report(data: dict) -> str:
         budget = "none" if r["budget"] is None else f"{r['budget']:g}"
         name = r["config"] + (f" ({r['tune_set']})" if r.get("tune_set") else "")
         c = r.get("cma")
-        cma = (
-            "none" if not c else f"{c['generations']}, {c['start_loss']:.3f} -> {c['loss']:.3f} ({c['seconds']:.1f} s)"
-        )
+        cma = "none" if not c else f"{c['generations']}, {c['start_loss']:.3f} -> {c['loss']:.3f}"
         lines.append(f"| {name} | {budget} | {r['wall_s']:.1f} | "
                      f"{margin} | {r['load_start_end'][0][0]:.1f} / {r['load_start_end'][1][0]:.1f} | {cma} | {r['steps']} | "
                      f"{r['rms_error']:.3g} | {r['chattering_hf']:.3g} | {r['total_variation']:.3g} | "

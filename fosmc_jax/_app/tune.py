@@ -144,6 +144,13 @@ GLOBAL_SHARE, EXIT_SECONDS = 0.3, 2.0
 #: (BENCHMARKS.md, "fosmc tune --budget").
 FILL = 10
 
+#: The CMA-ES stage (``tune.cma_generations``; with ``--budget`` and no ``--steps`` ``FILL`` times as
+#: many at most, as the steps): candidates a generation, the first steps' size in the internal
+#: coordinates (0.3: a factor 1.35; ahead of 0.1 on most configs of tuning/results/tune_vs_cma.md),
+#: and with ``--budget`` its share of the time the global stage leaves (it hands over earlier where
+#: pycma stops it; tuning/results/tune_vs_cma_polish.md measured 0.5)
+CMA_POPSIZE, CMA_SIGMA, CMA_SHARE = 16, 0.3, 0.5
+
 #: The global stage's candidates per evaluation (the config's parameters are evaluated by the
 #: same program, for the objective's scales)
 CHUNK = 16
@@ -265,6 +272,14 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
             + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
     start_params, starts = _start(tcfg, evaluator, obj, p0, floor, checkpoint if resuming else None,
                                   deadlines.global_stage, log)  # fmt: skip
+    cma = None
+    if tcfg.cma_generations and searching and not resuming:
+        now = time.perf_counter()
+        until = None if end is None else now + CMA_SHARE * (end - now)
+        generations = tcfg.cma_generations * (FILL if fill else 1)
+        start_params, cma = _cma(tcfg, loss, start_params, plain.base, generations, until, log)
+        if starts is not None:  # the starts, each at its own rate, from CMA-ES's best
+            starts = jax.tree.map(lambda x, s: jax.numpy.broadcast_to(x, s.shape), start_params, starts)
     u0 = tuner.to_internal(start_params, plain.base, floor)
     settings = tuner.Settings(tcfg.steps * (FILL if fill else 1), lr, tcfg.schedule, tcfg.clip, tcfg.mode,
                               tuple(tcfg.params), tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
@@ -288,7 +303,56 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
     final_params = tuner.to_physical(u, plain.base, floor)
     return _result(cfg, obj, (p0, start_params, final_params), initial, evaluate_plain(final_params), history,
                    (held, held_problem), lambda p: tuner.to_physical(p, plain.base, floor), out if lead else None,
-                   log, tv_floor)  # fmt: skip
+                   log, tv_floor, cma)  # fmt: skip
+
+
+def _cma(tcfg, loss, start, base, generations: int, deadline: float | None, log: Log):
+    """The CMA-ES stage (``tune.cma_generations`` above 0): pycma's CMA-ES from the global stage's
+    best on the gradient steps' own training loss, in the internal coordinates (log delta,
+    log gamma, log(-poles); the parameters not in ``tune.params`` held), ``CMA_POPSIZE``
+    candidates a generation in one vmapped call, steps of ``CMA_SIGMA``; until pycma's own
+    criteria stop it, ``generations`` are run or the ``deadline`` passes. Returns its best
+    point (physical; the start where nothing beat it), the gradient steps' start, and what the
+    stage did (``result.json``'s ``start.cma``)."""
+    from jax.flatten_util import ravel_pytree
+
+    from .._search import peers
+    from .._search import tune as tuner
+
+    flat, unravel = ravel_pytree(tuner.to_internal(start, base, None))
+    flat = np.asarray(flat)
+    free = np.concatenate([np.full(np.size(x), name in tcfg.params) for name, x in zip(start._fields, start)])
+    batched = jax.jit(jax.vmap(lambda x: loss(unravel(x))[0]))
+    shown = [time.perf_counter()]
+
+    def objective(X):
+        full = np.repeat(flat[None], len(X), 0)
+        full[:, free] = X
+        return np.asarray(batched(sharding.replicated(jax.numpy.asarray(full))))  # placed as the gradient's input
+
+    def progress(line: str) -> None:
+        if time.perf_counter() - shown[0] > 1.0:  # about once a second
+            shown[0] = time.perf_counter()
+            log(f"tune: CMA-ES stage: {line.removeprefix('cma-es: ')}")
+
+    t0 = time.perf_counter()
+    f0 = float(objective(np.repeat(flat[free][None], CMA_POPSIZE, 0))[0])  # the compiled size; pycma never tries x0
+    budget = np.inf if deadline is None else sharding.first(deadline - time.perf_counter())
+    if budget <= 0:
+        log("tune: CMA-ES stage: its share of the budget is spent: the gradient steps start at the global stage's best")
+        return start, {"generations": 0, "start_loss": f0, "loss": f0}
+    x, f, X, _ = peers.cma_es(objective, flat[free], CMA_SIGMA, budget, CMA_POPSIZE, log=progress,
+                              generations=generations)  # fmt: skip
+    info = {"generations": len(X) // CMA_POPSIZE, "start_loss": f0, "loss": min(float(f), f0)}  # no clock: one result
+    if not f < f0:
+        log(f"tune: CMA-ES stage: {info['generations']} generations found nothing below the global stage's best "
+            f"(loss {f0:.5f}): the gradient steps start there")  # fmt: skip
+        return start, info
+    best = flat.copy()
+    best[free] = x
+    log(f"tune: CMA-ES stage: {info['generations']} generations in {time.perf_counter() - t0:.1f} s: loss "
+        f"{f0:.5f} -> {f:.5f}; the gradient steps start there")  # fmt: skip
+    return tuner.to_physical(unravel(jax.numpy.asarray(best)), base, None), info
 
 
 def _tv_floor(cfg: problems.Config, obj, log: Log) -> np.ndarray | None:
@@ -365,13 +429,14 @@ def _end(held_problem, p0, deadline: float, drawn: bool) -> float:
 
 
 def _result(cfg, obj, params, initial, final, history, held, physical, out: Path | None, log: Log,
-            tv_floor: np.ndarray | None = None) -> dict[str, Any]:  # fmt: skip
+            tv_floor: np.ndarray | None = None, cma: dict | None = None) -> dict[str, Any]:  # fmt: skip
     """The result (``run_tune``'s return) of a run from ``params`` (p0, the start, the final
     parameters) with plain metrics ``initial`` and ``final``: the final parameters evaluated on
     what training did not see (``held``: the held-out config and its problem: fresh payloads,
     sampled arms, draws); with ``out`` result.json and tuning.png written there (``physical``:
     the history's internal parameters to physical ones). With ``tv_floor`` (:func:`_tv_floor`)
-    the result holds it (``chattering_floor``) and the final chattering's share above it."""
+    the result holds it (``chattering_floor``) and the final chattering's share above it; with
+    ``cma`` (:func:`_cma`'s record) ``start.cma``."""
     from .._search import tune as tuner
 
     p0, start_params, final_params = params
@@ -386,6 +451,7 @@ def _result(cfg, obj, params, initial, final, history, held, physical, out: Path
         "start": {
             "params": as_dict(start_params),
             "global_candidates": 0 if start_params is p0 else cfg.tune.global_candidates,
+            **({} if cma is None else {"cma": cma}),
         },  # fmt: skip
         "final": {"params": as_dict(final_params), **final},
         "held_out": held_out,

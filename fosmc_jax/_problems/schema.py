@@ -156,6 +156,7 @@ def _tune_defaults() -> dict[str, Any]:
         "gamma_bound_convention": "paper",
         "global_candidates": 1024,
         "starts": 1,
+        "cma_generations": 100,
         "objective": "weighted",
         "scale": "log",
         "error_metric": "rms_error",
@@ -409,6 +410,7 @@ SCHEMA: dict[str, Any] = {
         "starts": _integer(
             "a positive integer (the global stage's best candidates tuned at once; 1: its best)", lambda n: n >= 1
         ),
+        "cma_generations": _integer("a non-negative integer (0: no CMA-ES stage)", lambda n: n >= 0),
         "objective": _choice(FORMS),
         "scale": _choice(SCALES),
         "error_metric": _choice(ERROR_METRICS),

@@ -261,6 +261,7 @@ class Tune(Table):
     gamma_bound_convention: str
     global_candidates: int
     starts: int
+    cma_generations: int
     objective: str
     scale: str
     error_metric: str

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from .._simulator import sharding
 from . import tune as tuner
 from .front import (
     DIM,
@@ -69,10 +70,12 @@ def random_search(problem: tuner.Problem, p0: tuner.Params, budget: float, chunk
 
 
 def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0: float, budget: float,
-           popsize: int = 16, seed: int = 0, lower=None, upper=None, log=print):  # fmt: skip
+           popsize: int = 16, seed: int = 0, lower=None, upper=None, log=print,
+           generations: int | None = None):  # fmt: skip
     """Minimise ``objective`` (a batch (n, d) -> (n,), one vmapped call per generation) with
-    pycma's CMA-ES from ``x0`` until the wall-time ``budget`` (s) is spent; returns (best x,
-    best value, every x evaluated, their values)."""
+    pycma's CMA-ES from ``x0`` until the wall-time ``budget`` (s) is spent, pycma's own criteria
+    stop it or ``generations`` (None: no limit) are run; returns (best x, best value, every x
+    evaluated, their values)."""
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
     opts = {"popsize": popsize, "seed": seed + 1, "verbose": -9}
@@ -80,7 +83,10 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
         opts["bounds"] = [list(lower), list(upper)]
     es = cma.CMAEvolutionStrategy(np.asarray(x0, float), sigma0, opts)
     start, xs, fs = time.perf_counter(), [], []
-    while time.perf_counter() - start < budget and not es.stop():
+    # process 0's clock (sharding.first): in a run across processes (fosmc tune's CMA-ES stage)
+    # every process runs the same generations
+    while (sharding.first(time.perf_counter() - start < budget) and not es.stop()
+           and (generations is None or len(xs) < generations)):  # fmt: skip
         X = np.asarray(es.ask())
         f = np.asarray(objective(X), float)
         es.tell(list(X), list(np.where(np.isfinite(f), f, 1e30)))
