@@ -406,8 +406,9 @@ def polish(s: dict, raced: dict, u_flat: np.ndarray, args) -> dict:
     """CMA-ES, then gradient steps (``--polish SHARE``): the race's CMA-ES sigma 0.3 run up to its
     switch, the time pycma stopped it or SHARE x the budget, whichever comes first; from its best
     point so far, ``--polish-starts`` K Adam starts at once (``fosmc_jax._search.tune.run_starts``,
-    the config's rate times 4**(-1..1)) for the rest of the budget, timed alone after the race
-    (compilation excluded: the batched gradient is compiled and timed first). Read off at each time:
+    the config's rate times 4**(-1..1); K = 1: ``fosmc tune``'s one-start loop ``run``) for the rest
+    of the budget, timed alone after the race (compilation excluded: the gradient is compiled and
+    timed first; ``run``'s first step counts as one median step). Read off at each time:
     the best point so far by training loss of CMA-ES's part and the gradient's, and its plain loss."""
     gens = raced["cma"]["cma 0.3"]["gens"]
     tg = np.asarray([g[0] for g in gens])
@@ -447,8 +448,13 @@ def polish(s: dict, raced: dict, u_flat: np.ndarray, args) -> dict:
     loads = [load()]
     if left > 0:
         try:
-            tuner.run_starts(s["loss"], U0, settings, rates=rates, stepper=tuner.Stepper(vk, "reverse", 0.0, per_step),
-                             log=hook)  # fmt: skip
+            if (
+                K == 1
+            ):  # fosmc tune's own loop for one start (run: no restarts), its gradient compiled on its first step
+                fs.tune(s["loss"], replicated(unravel(jnp.asarray(x_s))), settings, log=hook)
+            else:
+                tuner.run_starts(s["loss"], U0, settings, rates=rates,
+                                 stepper=tuner.Stepper(vk, "reverse", 0.0, per_step), log=hook)  # fmt: skip
         except Stop:
             pass
     loads.append(load())

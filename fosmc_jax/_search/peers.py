@@ -78,7 +78,10 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
     evaluated, their values)."""
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
-    opts = {"popsize": popsize, "seed": seed + 1, "verbose": -9}
+    # a stream of its own: pycma's default (its seed into NumPy's global stream) would reset the
+    # caller's np.random and share a stream with anything else drawing from it (the same draws as
+    # that default where nothing does)
+    opts = {"popsize": popsize, "randn": np.random.RandomState(seed + 1).randn, "verbose": -9}
     if lower is not None:
         opts["bounds"] = [list(lower), list(upper)]
     es = cma.CMAEvolutionStrategy(np.asarray(x0, float), sigma0, opts)
