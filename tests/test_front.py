@@ -128,6 +128,21 @@ def test_cma_es_wrapper_reaches_the_minimum_of_a_quadratic():
     assert value < 1e-8 and len(X) == len(F_) and F_.min() == value
 
 
+def test_cma_es_keeps_to_its_generations_and_to_a_random_stream_of_its_own():
+    """``generations`` caps the run, a spent budget still runs one generation, the same seed gives
+    the same draws, and NumPy's global stream (the caller's) is left as it was."""
+    from fosmc_jax._search.peers import cma_es
+
+    f = lambda X: np.sum(X**2, axis=1)
+    np.random.seed(7)
+    expected = np.random.rand()
+    np.random.seed(7)
+    _, _, X, _ = cma_es(f, np.ones(3), 0.3, budget=60.0, popsize=8, generations=4, log=lambda _: None)
+    assert len(X) == 32 and np.random.rand() == expected
+    np.testing.assert_array_equal(cma_es(f, np.ones(3), 0.3, 60.0, 8, generations=4, log=lambda _: None)[2], X)
+    assert len(cma_es(f, np.ones(3), 0.3, budget=0.0, popsize=8, log=lambda _: None)[2]) == 8
+
+
 def test_factors_map_and_random_search_cover_the_box():
     from fosmc_jax._search import peers
 

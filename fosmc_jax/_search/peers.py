@@ -73,9 +73,9 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
            popsize: int = 16, seed: int = 0, lower=None, upper=None, log=print,
            generations: int | None = None):  # fmt: skip
     """Minimise ``objective`` (a batch (n, d) -> (n,), one vmapped call per generation) with
-    pycma's CMA-ES from ``x0`` until the wall-time ``budget`` (s) is spent, pycma's own criteria
-    stop it or ``generations`` (None: no limit) are run; returns (best x, best value, every x
-    evaluated, their values)."""
+    pycma's CMA-ES from ``x0`` (one generation at least) until the wall-time ``budget`` (s) is
+    spent, pycma's own criteria stop it or ``generations`` (None: no limit) are run; returns
+    (best x, best value, every x evaluated, their values)."""
     import cma  # here, not at the top: importing pycma takes 1-2 s
 
     # a stream of its own: pycma's default (its seed into NumPy's global stream) would reset the
@@ -86,9 +86,9 @@ def cma_es(objective: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sigma0
         opts["bounds"] = [list(lower), list(upper)]
     es = cma.CMAEvolutionStrategy(np.asarray(x0, float), sigma0, opts)
     start, xs, fs = time.perf_counter(), [], []
-    # process 0's clock (sharding.first): in a run across processes (fosmc tune's CMA-ES stage)
-    # every process runs the same generations
-    while (sharding.first(time.perf_counter() - start < budget) and not es.stop()
+    # one generation at least; process 0's clock (sharding.first): in a run across processes
+    # (fosmc tune's CMA-ES stage) every process runs the same generations
+    while ((not xs or sharding.first(time.perf_counter() - start < budget)) and not es.stop()
            and (generations is None or len(xs) < generations)):  # fmt: skip
         X = np.asarray(es.ask())
         f = np.asarray(objective(X), float)
