@@ -272,7 +272,7 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
             + f", the steps until {end - started:.1f} s from the process's start")  # fmt: skip
     start_params, starts = _start(tcfg, evaluator, obj, p0, floor, checkpoint if resuming else None,
                                   deadlines.global_stage, log)  # fmt: skip
-    cma = None
+    cma = (tuner.checkpoint_extra(checkpoint) or {}).get("cma") if resuming else None  # the first run's record
     if tcfg.cma_generations and searching and not resuming:
         now = time.perf_counter()
         until = None if end is None else now + CMA_SHARE * (end - now)
@@ -285,7 +285,8 @@ def _tune(cfg: problems.Config, out: Path | None, resume: bool, budget: float | 
                               tuple(tcfg.params), tcfg.checkpoint_every, tcfg.optimizer)  # fmt: skip
     terms = (f"{obj.error_metric} term", f"{obj.chattering_metric} term")
     found = {k: np.asarray(v).tolist() for k, v in zip(p0._fields, start_params)}
-    keep = None if start_params is p0 else {"start": found}  # a resumed run's start: its global stage's best
+    # a resumed run's start (its global stage's or CMA-ES's best) and the CMA-ES stage's record
+    keep = None if start_params is p0 else {"start": found, **({} if cma is None else {"cma": cma})}
     if end is not None and time.perf_counter() > end:
         log(f"tune: --budget {budget:g} s: passed before the gradient steps (compilation included); one step runs")
     if starts is None:
