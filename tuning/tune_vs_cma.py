@@ -448,9 +448,8 @@ def polish(s: dict, raced: dict, u_flat: np.ndarray, args) -> dict:
     loads = [load()]
     if left > 0:
         try:
-            if (
-                K == 1
-            ):  # fosmc tune's own loop for one start (run: no restarts), its gradient compiled on its first step
+            # one start: fosmc tune's own loop (run: no restarts), its gradient compiled on its first step
+            if K == 1:
                 fs.tune(s["loss"], replicated(unravel(jnp.asarray(x_s))), settings, log=hook)
             else:
                 tuner.run_starts(s["loss"], U0, settings, rates=rates,
@@ -962,9 +961,10 @@ def report(data: dict) -> str:
     A(share_table(data))
     if any("polish" in c["races"].get("start", {}) for c in data["configs"].values()):
         A("\n## CMA-ES, then gradient steps (`--polish`)\n\nThe race's CMA-ES sigma 0.3 run up to the switch (the "
-          f"time pycma stopped it, or {st['polish']:g} x the budget, the earlier), then {st['polish_starts']} Adam "
-          "starts at once from its best point so far (the config's rate times 4**(-1..1)) for the rest of the budget, "
-          "timed alone after the race. Before the switch its point is CMA-ES sigma 0.3's ((cma)); after it the better "
+          f"time pycma stopped it, or {st['polish']:g} x the budget, the earlier), then "
+          + ("`fosmc tune`'s own one-start Adam loop (`run`, the config's rate)" if st["polish_starts"] == 1 else
+             f"{st['polish_starts']} Adam starts at once (`run_starts`, the config's rate times 4**(-1..1))")
+          + " from its best point so far for the rest of the budget, timed alone after the race. Before the switch its point is CMA-ES sigma 0.3's ((cma)); after it the better "
           "of CMA-ES's point and the gradient steps' best by training loss. Plain loss, the lowest in bold.\n\n")  # fmt: skip
         A(polish_table(data))
     A("\n## Costs and compilation\n\n")
