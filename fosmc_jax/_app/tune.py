@@ -146,7 +146,8 @@ FILL = 10
 
 #: The CMA-ES stage (``tune.cma_generations``; with ``--budget`` and no ``--steps`` ``FILL`` times as
 #: many at most, as the steps): candidates a generation, the first steps' size in the internal
-#: coordinates (0.3: a factor 1.35; ahead of 0.1 on most configs of tuning/results/tune_vs_cma.md),
+#: coordinates (0.3: a factor 1.35; ahead of 0.1 on most configs of tuning/results/tune_vs_cma.md,
+#: behind it on the five of tune_vs_cma_polish_one_start_more.md),
 #: and with ``--budget`` its share of the time the global stage leaves (it hands over earlier where
 #: pycma stops it; tuning/results/tune_vs_cma_polish.md measured 0.5)
 CMA_POPSIZE, CMA_SIGMA, CMA_SHARE = 16, 0.3, 0.5
@@ -338,10 +339,7 @@ def _cma(tcfg, loss, start, base, generations: int, deadline: float | None, log:
 
     t0 = time.perf_counter()
     f0 = float(objective(np.repeat(flat[free][None], CMA_POPSIZE, 0))[0])  # the compiled size; pycma never tries x0
-    budget = np.inf if deadline is None else sharding.first(deadline - time.perf_counter())
-    if budget <= 0:
-        log("tune: CMA-ES stage: its share of the budget is spent: the gradient steps start at the global stage's best")
-        return start, {"generations": 0, "start_loss": f0, "loss": f0}
+    budget = np.inf if deadline is None else sharding.first(deadline - time.perf_counter())  # spent: one generation
     x, f, X, _ = peers.cma_es(objective, flat[free], CMA_SIGMA, budget, CMA_POPSIZE, log=progress,
                               generations=generations)  # fmt: skip
     info = {"generations": len(X) // CMA_POPSIZE, "start_loss": f0, "loss": min(float(f), f0)}  # no clock: one result
